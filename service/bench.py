@@ -1,0 +1,418 @@
+"""``tryon bench <suite> [--json]``: performance and accuracy figures.
+
+Suites:
+  body  PCA reconstruction of held-out avatars; measurements -> avatar on held-out ANSUR II
+        subjects (all 12 entered: ISO 20685-1 share; gender + height + weight entered:
+        estimation error beside a linear regression fitted on the training subjects in the
+        same run); median times of measurements -> avatar and of measuring an avatar, beside
+        baselines timed in the same run.
+
+Held-out ANSUR subjects are those whose row index in their file is a multiple of 5 (no build
+step sees them). ANSUR II is read from ``../shared/data`` (or ``TRYON_SHARED_DATA``).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from service.model import measurements as M
+from service.model import shape as S
+from service.model.body import load_body_model
+
+
+def heldout_avatars(model) -> np.ndarray:
+    """(n, V, 3) held-out evaluation avatars stored beside the model artifact."""
+    z = np.load(Path(model.path).parent / "heldout_avatars.npz")
+    return model.mean[None].astype(np.float64) + z["offsets"].astype(np.float64) * float(z["scale"])
+
+
+def shared_data_dir() -> Path:
+    env = os.environ.get("TRYON_SHARED_DATA")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def read_ansur(heldout: bool) -> list[dict]:
+    """ANSUR II subjects in API units: {"row", "measurements": {12 attributes}}."""
+    base = shared_data_dir() / "anthropometry" / "ansur2"
+    out = []
+    for fname, gender, enc in (("ANSUR_II_MALE_Public.csv", "male", "latin-1"),
+                               ("ANSUR_II_FEMALE_Public.csv", "female", "ascii")):
+        with open(base / fname, encoding=enc, newline="") as f:
+            for i, r in enumerate(csv.DictReader(f)):
+                if (i % 5 == 0) != heldout:
+                    continue
+                m = {"gender": gender}
+                for name in M.ATTRIBUTES[1:]:
+                    v = float(r[M.ANSUR_COLUMNS[name]])
+                    m[name] = v / 10.0  # mm -> cm, and weightkg is in 0.1 kg
+                out.append({"row": i, "measurements": m})
+    return out
+
+
+def _median_ms(fn, repeats: int) -> float:
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return 1000.0 * float(np.median(ts))
+
+
+def bench_body(limit: int, repeats: int) -> dict:
+    model = load_body_model()
+    rng = np.random.default_rng(0)
+    res: dict = {"suite": "body", "components": model.n_components}
+
+    # 1. PCA reconstruction of held-out avatars
+    X = heldout_avatars(model)
+    W = model.project(X)
+    R = model.vertices(W).astype(np.float64)
+    err = np.linalg.norm(R - X, axis=2) * 1000
+    res["pca_reconstruction_mm"] = {"avatars": len(X), "mean": float(err.mean()),
+                                    "max": float(err.max()),
+                                    "goal": {"mean": 0.5, "max": 5.0}}
+
+    held = read_ansur(heldout=True)
+    train = read_ansur(heldout=False)
+    if limit:
+        held = [held[i] for i in sorted(rng.choice(len(held), size=min(limit, len(held)), replace=False))]
+    specs = {a.name: a for a in model.attributes}
+
+    def in_range(m):
+        return all(specs[k].min <= v <= specs[k].max for k, v in m.items() if k != "gender")
+
+    # 2. all 12 entered: re-measured error, ISO share
+    names = list(M.ATTRIBUTES[1:])
+    errs, ok, skipped = [], [], 0
+    for s in held:
+        m = s["measurements"]
+        if not in_range(m):
+            skipped += 1
+            continue
+        fit = S.avatar_from_measurements(model, m)
+        e = np.array([fit.measurements[n] - m[n] for n in names])
+        tol = np.array([M.ISO_TOLERANCE[n] * M.api_scale(n) for n in names])
+        errs.append(e)
+        ok.append(bool(np.all(np.abs(e) <= tol)))
+    E = np.abs(np.array(errs))
+    res["all12"] = {
+        "subjects": len(errs), "outside_accepted_range": skipped,
+        "within_iso_all_attributes": float(np.mean(ok)), "goal": 0.95,
+        "per_attribute": {n: {"mean_abs": float(E[:, i].mean()), "p95_abs": float(np.percentile(E[:, i], 95)),
+                              "within_iso": float(np.mean(E[:, i] <= M.ISO_TOLERANCE[n] * M.api_scale(n))),
+                              "unit": "kg" if n == "weight_kg" else "cm"}
+                          for i, n in enumerate(names)},
+    }
+
+    # 3. gender + height + weight entered: estimated attributes vs truth, beside a linear
+    # regression (gender, height, weight -> attribute) fitted on the training subjects now
+    given = ("gender", "height_cm", "weight_kg")
+    est_names = [n for n in names if n not in given]
+
+    def design(rows):
+        return np.array([[1.0, 1.0 if r["gender"] == "male" else 0.0, r["height_cm"], r["weight_kg"]] for r in rows])
+
+    Xtr = design([t["measurements"] for t in train])
+    Ytr = np.array([[t["measurements"][n] for n in est_names] for t in train])
+    coef, *_ = np.linalg.lstsq(Xtr, Ytr, rcond=None)
+    ours, base = [], []
+    for s in held:
+        m = s["measurements"]
+        if not in_range(m):
+            continue
+        fit = S.avatar_from_measurements(model, {k: m[k] for k in given})
+        ours.append([fit.measurements[n] - m[n] for n in est_names])
+        base.append(list(design([m])[0] @ coef - np.array([m[n] for n in est_names])))
+    O, B = np.abs(np.array(ours)), np.abs(np.array(base))
+    res["estimation_from_gender_height_weight"] = {
+        "subjects": len(O),
+        "per_attribute_mae_cm": {n: {"ours": float(O[:, i].mean()), "linear_regression": float(B[:, i].mean()),
+                                     "ratio": float(O[:, i].mean() / B[:, i].mean())}
+                                 for i, n in enumerate(est_names)},
+        "mean_ratio": float(np.mean(O.mean(0) / B.mean(0))),
+        "goal": "ratio <= 1 (no worse than the regression)",
+    }
+
+    # 4. timings (medians), beside baselines measured in the same run
+    sample = held[: max(1, min(20, len(held)))]
+    full = [s["measurements"] for s in sample if in_range(s["measurements"])]
+    three = [{k: m[k] for k in given} for m in full]
+    it = iter(range(10**9))
+
+    t_avatar12 = _median_ms(lambda: S.avatar_from_measurements(model, full[next(it) % len(full)]), repeats)
+    t_avatar3 = _median_ms(lambda: S.avatar_from_measurements(model, three[next(it) % len(three)]), repeats)
+    prior = S._prior(model)
+
+    def regression_only():
+        m = full[next(it) % len(full)]
+        prior.condition({i: (S.GENDER_CODE[m[n]] if n == "gender" else m[n]) for i, n in enumerate(M.ATTRIBUTES)}, {})
+
+    t_regress = _median_ms(regression_only, repeats)
+    Xs = [model.vertices(S.avatar_from_measurements(model, m).weights) for m in full[:5]]
+    t_measure = _median_ms(lambda: model.measure(Xs[next(it) % len(Xs)], "male"), repeats)
+    t_reference = _median_ms(lambda: M.reference_measure(model.measurement_spec, Xs[next(it) % len(Xs)], "male"),
+                             max(3, repeats // 10))
+    res["timing_ms"] = {
+        "measurements_to_avatar_all12": t_avatar12, "measurements_to_avatar_3": t_avatar3,
+        "baseline_regression_only": t_regress,
+        "measure_avatar": t_measure, "baseline_reference_plane_slicing": t_reference,
+        "measure_speedup_vs_reference": t_reference / t_measure,
+        "goal": {"measurements_to_avatar": 50.0, "measure_avatar": 5.0},
+    }
+    return res
+
+
+def format_body(r: dict) -> str:
+    L = []
+    p = r["pca_reconstruction_mm"]
+    L.append(f"body model: {r['components']} PCA components")
+    L.append(f"PCA reconstruction, {p['avatars']} held-out avatars: mean {p['mean']:.3f} mm, max {p['max']:.3f} mm "
+             f"(goal < 0.5 / < 5)")
+    a = r["all12"]
+    L.append(f"\nall 12 entered, {a['subjects']} held-out ANSUR subjects ({a['outside_accepted_range']} outside range):"
+             f" within ISO 20685-1 on every attribute: {100 * a['within_iso_all_attributes']:.1f} % (goal >= 95 %)")
+    L.append(f"  {'attribute':<20}{'mean |err|':>12}{'p95 |err|':>12}{'within ISO':>12}")
+    for n, v in a["per_attribute"].items():
+        L.append(f"  {n:<20}{v['mean_abs']:>10.3f} {v['unit']:<2}{v['p95_abs']:>9.3f} {v['unit']:<2}{100 * v['within_iso']:>10.1f} %")
+    e = r["estimation_from_gender_height_weight"]
+    L.append(f"\ngender + height + weight entered, {e['subjects']} subjects: mean absolute error of estimates (cm)")
+    L.append(f"  {'attribute':<20}{'ours':>10}{'lin. regr.':>12}{'ratio':>8}")
+    for n, v in e["per_attribute_mae_cm"].items():
+        L.append(f"  {n:<20}{v['ours']:>10.2f}{v['linear_regression']:>12.2f}{v['ratio']:>8.2f}")
+    L.append(f"  mean ratio {e['mean_ratio']:.3f} (goal <= 1)")
+    t = r["timing_ms"]
+    L.append("\nmedian times (ms)")
+    L.append(f"  measurements -> avatar, all 12 given   {t['measurements_to_avatar_all12']:8.2f}  (goal <= 50)")
+    L.append(f"  measurements -> avatar, 3 given        {t['measurements_to_avatar_3']:8.2f}")
+    L.append(f"  baseline: conditioning only (regression){t['baseline_regression_only']:7.2f}")
+    L.append(f"  measuring an avatar                    {t['measure_avatar']:8.2f}  (goal <= 5)")
+    L.append(f"  baseline: trimesh plane slicing        {t['baseline_reference_plane_slicing']:8.2f}  "
+             f"(x{t['measure_speedup_vs_reference']:.1f} slower)")
+    return "\n".join(L)
+
+
+# -- try-on ---------------------------------------------------------------------------------
+def makehuman_garments(model) -> dict:
+    """The MakeHuman CC0 garments of ../shared/data (tests and benchmarks only): name ->
+    (fit function avatar -> (M, 3), faces)."""
+    from service.model import mhclo
+
+    out = {}
+    base = shared_data_dir() / "makehuman_clothes"
+    for f in sorted(base.glob("*/*.mhclo")):
+        b = mhclo.parse_mhclo(f.read_text(encoding="utf-8", errors="replace"), model.mean.shape[0])
+        _, faces = mhclo.parse_obj_faces(f.with_suffix(".obj").read_text(encoding="utf-8", errors="replace"))
+        out[f.stem] = (b.fit, faces)
+    return out
+
+
+def bench_garments(model) -> dict:
+    """All benchmark garments: the demo ones, a 10k-vertex skirt, and MakeHuman's."""
+    from service.model import demo_garments as D
+
+    demos = D.make_demo_garments(model)
+    out = {f"demo-{n}": ((lambda X, g=g: g.fit(model, X)), g.faces) for n, g in demos.items()}
+    big = D.DemoGarment("skirt", D.skirt_faces(64, 160))
+    out["demo-skirt-10k"] = ((lambda X: D.skirt_rings(model, X, rings=64, angles=160)), big.faces)
+    out.update({f"mh-{k}": v for k, v in makehuman_garments(model).items()})
+    return out
+
+
+def penetration_depths(garment: np.ndarray, body: np.ndarray, faces: np.ndarray, tree, vert_faces) -> np.ndarray:
+    """Depth (m, > 0 inside) of each garment vertex below the body surface: exact distance to
+    the closest triangle among those around the 8 nearest body vertices, signed by that
+    triangle's normal. garment (M, 3), body (V, 3)."""
+    _, nn = tree.query(garment, k=8)
+    cand = vert_faces[nn].reshape(len(garment), -1)
+    valid = cand >= 0
+    tri = body[faces[np.where(valid, cand, 0)]]  # (M, C, 3, 3)
+    p = garment[:, None, :]
+    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+    q = closest_point_on_triangles(p, a, b, c)
+    d = np.linalg.norm(p - q, axis=-1)
+    d = np.where(valid, d, np.inf)
+    j = np.argmin(d, axis=1)
+    r = np.arange(len(garment))
+    n = np.cross(b[r, j] - a[r, j], c[r, j] - a[r, j])
+    sign = np.sign(np.einsum("ij,ij->i", garment - q[r, j], n))
+    return -sign * d[r, j]
+
+
+def closest_point_on_triangles(p, a, b, c):
+    """Closest points on triangles (..., 3) to points p (Ericson, Real-Time Collision
+    Detection 5.1.5), vectorised."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        v = vb * denom
+        w = vc * denom
+        res = a + ab * v[..., None] + ac * w[..., None]  # interior
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    cases = [
+        ((d1 <= 0) & (d2 <= 0), a),
+        ((d3 >= 0) & (d4 <= d3), b),
+        ((d6 >= 0) & (d5 <= d6), c),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + ab * t_ab[..., None]),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + ac * t_ac[..., None]),
+        ((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), b + (c - b) * t_bc[..., None]),
+    ]
+    for cond, val in reversed(cases):
+        res = np.where(cond[..., None], val, res)
+    return res
+
+
+def _vertex_faces(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n, max valence) face ids around each vertex, -1 padded."""
+    order = np.argsort(faces.reshape(-1), kind="stable")
+    vid = faces.reshape(-1)[order]
+    fid = order // 3
+    counts = np.bincount(vid, minlength=n)
+    out = np.full((n, counts.max()), -1, np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(vid)) - start[vid]
+    out[vid, pos] = fid
+    return out
+
+
+def bench_tryon(limit: int, repeats: int) -> dict:
+    from scipy.spatial import cKDTree
+
+    from service.model import gltf
+    from service.model import tryon as T
+
+    model = load_body_model()
+    nb = model.n_body_vertices
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    garments = bench_garments(model)
+    bases = {}
+    for name, (fit, faces) in garments.items():
+        fits = np.stack([fit(E) for E in EX])
+        bases[name] = T.build_garment_basis(model, fits, faces, ex)
+    res: dict = {"suite": "tryon", "examples": {"n": ex.n, "c": ex.c, "count": 1 + 2 * ex.n},
+                 "garments": {k: v.n_vertices for k, v in bases.items()}}
+
+    # 1. accuracy on held-out avatars: basis-fitted vs fitted directly by the same method
+    H = heldout_avatars(model)
+    if limit:
+        H = H[:limit]
+    W = model.project(H)
+    per = {}
+    all_err = []
+    for name, (fit, _) in garments.items():
+        errs = []
+        for Xh, w in zip(H, W):
+            direct = fit(Xh)
+            synth = T.G.synthesize(bases[name].g, bases[name].B, w)
+            errs.append(np.linalg.norm(synth - direct, axis=1))
+        e = np.concatenate(errs) * 1000
+        per[name] = {"mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99))}
+        all_err.append(e)
+    e = np.concatenate(all_err)
+    res["accuracy_mm"] = {"avatars": len(H), "mean": float(e.mean()), "p99": float(np.percentile(e, 99)),
+                          "goal": {"mean": 2.0, "p99": 8.0}, "per_garment": per}
+
+    # 2. penetration over random customers (held-out ANSUR subjects' measurements)
+    rng = np.random.default_rng(1)
+    held = read_ansur(heldout=True)
+    specs = {a.name: a for a in model.attributes}
+    held = [h for h in held if all(specs[k].min <= v <= specs[k].max for k, v in h["measurements"].items() if k != "gender")]
+    n_cust = 200 if not limit else min(200, max(20, limit))
+    picks = rng.choice(len(held), size=n_cust, replace=False)
+    vert_faces = _vertex_faces(model.body_faces, nb)
+    inside, total, worst = 0, 0, 0.0
+    per_pen = {k: 0 for k in bases}
+    for i in picks:
+        fitc = S.avatar_from_measurements(model, held[i]["measurements"])
+        body = T.customer_body(model, fitc.weights)
+        tree = cKDTree(body.vertices[:nb])
+        for name, basis in bases.items():
+            v, _ = T.try_on(basis, body)
+            dep = penetration_depths(v.astype(np.float64), body.vertices[:nb].astype(np.float64), model.body_faces, tree, vert_faces)
+            bad = int((dep > 0.001).sum())
+            inside += bad
+            per_pen[name] += bad
+            total += len(v)
+            worst = max(worst, float(dep.max()))
+    res["penetration"] = {"customers": int(n_cust), "garments": len(bases), "vertices_checked": int(total),
+                          "vertices_more_than_1mm_inside": int(inside), "deepest_mm": 1000 * worst,
+                          "per_garment": per_pen, "goal": 0}
+
+    # 3. in-process try-on of a 10k-vertex garment: synthesis + push-out + GLB, beside synthesis
+    basis = bases["demo-skirt-10k"]
+    bodies = [T.customer_body(model, S.avatar_from_measurements(model, held[i]["measurements"]).weights)
+              for i in picks[:10]]
+    it = iter(range(10**9))
+    g, B = np.asarray(basis.g), np.asarray(basis.B)
+    t_syn = _median_ms(lambda: T.G.synthesize(g, B, bodies[next(it) % 10].weights), repeats)
+
+    def full():
+        body = bodies[next(it) % 10]
+        v, _ = T.try_on(basis, body)
+        return gltf.mesh_to_glb(v, basis.faces, name="garment")
+
+    t_full = _median_ms(full, repeats)
+    res["timing_ms"] = {"garment_vertices": basis.n_vertices, "synthesis_3MN": t_syn,
+                        "tryon_synthesis_pushout_glb": t_full, "ratio": t_full / t_syn, "goal": 2.0,
+                        "multiply_adds": 3 * basis.n_vertices * ex.n}
+    return res
+
+
+def format_tryon(r: dict) -> str:
+    L = [f"examples: N = {r['examples']['n']} components, c = {r['examples']['c']} "
+         f"({r['examples']['count']} example avatars); {len(r['garments'])} garments"]
+    a = r["accuracy_mm"]
+    L.append(f"\ngarment accuracy on {a['avatars']} held-out avatars (basis vs direct fit): mean {a['mean']:.3f} mm, "
+             f"p99 {a['p99']:.3f} mm (goal <= 2 / <= 8)")
+    L.append(f"  {'garment':<34}{'vertices':>9}{'mean mm':>10}{'p99 mm':>10}")
+    for k, v in a["per_garment"].items():
+        L.append(f"  {k:<34}{r['garments'][k]:>9}{v['mean_mm']:>10.3f}{v['p99_mm']:>10.3f}")
+    p = r["penetration"]
+    L.append(f"\npenetration: {p['customers']} customers x {p['garments']} garments, {p['vertices_checked']} vertices: "
+             f"{p['vertices_more_than_1mm_inside']} more than 1 mm inside (goal 0); deepest {p['deepest_mm']:.2f} mm")
+    t = r["timing_ms"]
+    L.append(f"\nin-process try-on, {t['garment_vertices']}-vertex garment (median ms)")
+    L.append(f"  bare synthesis (3MN = {t['multiply_adds']} multiply-adds)   {t['synthesis_3MN']:8.3f}")
+    L.append(f"  synthesis + push-out + GLB bytes            {t['tryon_synthesis_pushout_glb']:8.3f}  "
+             f"(x{t['ratio']:.1f}; goal <= 2 ms)")
+    return "\n".join(L)
+
+
+SUITES = {"body": (bench_body, format_body), "tryon": (bench_tryon, format_tryon)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="tryon bench", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("suite", choices=sorted(SUITES))
+    ap.add_argument("--json", action="store_true", help="print JSON for machines")
+    ap.add_argument("--limit", type=int, default=0, help="held-out subjects to use (0 = all)")
+    ap.add_argument("--repeats", type=int, default=50, help="repetitions per timing")
+    args = ap.parse_args(argv)
+    run, fmt = SUITES[args.suite]
+    res = run(args.limit, args.repeats)
+    print(json.dumps(res, indent=2) if args.json else fmt(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""Mesh helpers shared by the body model, garments, the GLB writer and the offline build.
+
+vertices: (V, 3) float, faces: (F, 3) int (counter-clockwise seen from outside).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges (E, 2), each as (low, high)."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def face_incidence(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(V, F) sparse vertex-face incidence: ``incidence @ face_values`` sums around vertices.
+    Cache it per mesh: normals then cost one sparse product."""
+    f = np.asarray(faces, np.int64)
+    return sp.csr_matrix((np.ones(f.size, np.float32), (f.reshape(-1), np.repeat(np.arange(len(f)), 3))),
+                         shape=(n_vertices, len(f)))
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix | None = None) -> np.ndarray:
+    """Smooth, area-weighted unit vertex normals (V, 3) float32 (|n| = 1 within float32 eps).
+
+    The un-normalised face cross product has length 2 x area: area weighting for free.
+    Vertices on no face, or whose faces are degenerate, get +Y."""
+    v = np.asarray(vertices, np.float32)
+    f = np.asarray(faces)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    inc = incidence if incidence is not None else face_incidence(f, len(v))
+    acc = np.asarray(inc @ fn, np.float64)
+    length = np.linalg.norm(acc, axis=1)
+    ok = length > 1e-20
+    out = np.zeros_like(acc)
+    out[:, 1] = 1.0
+    out[ok] = acc[ok] / length[ok, None]
+    n32 = out.astype(np.float32)
+    return (n32 / np.linalg.norm(n32.astype(np.float64), axis=1, keepdims=True)).astype(np.float32)

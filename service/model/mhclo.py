@@ -1,0 +1,118 @@
+"""MakeHuman ``.mhclo`` garments: parse the binding and fit the garment to any avatar.
+
+Each garment vertex is bound to three hm08 base-mesh vertices (helper geometry included):
+``i1 i2 i3 w1 w2 w3 dx dy dz``, position = sum_k w_k B[i_k] + (dx sx, dy sy, dz sz), where the
+per-axis scales s = (current distance / reference distance) of the ``x_scale``/``y_scale``/
+``z_scale`` vertex pairs. Files are in decimetres, Y up, facing +Z: the same axes as our frame,
+so only the unit differs (offsets x 0.1 m; distances measured on the avatar in metres).
+
+Shapes: avatar vertices (V, 3) metres (all 19,158 hm08 vertices); garment (M, 3).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DM = 0.1  # metres per decimetre
+MAX_BYTES = 8 * 1024 * 1024
+
+
+class MhcloError(ValueError):
+    """A malformed or unusable ``.mhclo``/``.obj`` pair."""
+
+
+@dataclass
+class Binding:
+    """indices (M, 3) int, weights (M, 3), offsets (M, 3) decimetres, scale pairs per axis
+    ((a, b, reference distance dm) x 3), name."""
+
+    indices: np.ndarray
+    weights: np.ndarray
+    offsets: np.ndarray
+    scales: list[tuple[int, int, float]]
+    name: str
+
+    def fit(self, vertices: np.ndarray) -> np.ndarray:
+        """The garment on an avatar: (M, 3) float64 metres."""
+        X = np.asarray(vertices, np.float64)
+        s = np.array([abs(X[a, ax] - X[b, ax]) / (ref * DM) for ax, (a, b, ref) in enumerate(self.scales)])
+        return np.einsum("mk,mkd->md", self.weights, X[self.indices]) + self.offsets * DM * s
+
+
+def parse_mhclo(text: str, n_base_vertices: int) -> Binding:
+    """Parse an ``.mhclo`` file. Keyword lines may follow ``verts 0`` (MakeHuman's shoes02)."""
+    scales: dict[str, tuple[int, int, float]] = {}
+    rows: list[list[float]] = []
+    name = "garment"
+    in_verts = False
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        key = parts[0]
+        if key in ("x_scale", "y_scale", "z_scale") and len(parts) == 4:
+            try:
+                scales[key] = (int(parts[1]), int(parts[2]), float(parts[3]))
+            except ValueError as e:
+                raise MhcloError(f"bad {key} line: {line!r}") from e
+            continue
+        if key == "name" and len(parts) > 1:
+            name = " ".join(parts[1:])
+            continue
+        if key == "verts":
+            in_verts = True
+            continue
+        if key in ("delete_verts", "faces", "weights"):
+            in_verts = False
+            continue
+        if in_verts:
+            try:
+                nums = [float(p) for p in parts]
+            except ValueError:
+                continue  # keyword lines among the bindings (shoes02.mhclo)
+            if len(nums) == 9:
+                rows.append(nums)
+            elif len(nums) == 1:
+                rows.append([nums[0], nums[0], nums[0], 1, 0, 0, 0, 0, 0])
+            else:
+                raise MhcloError(f"binding line has {len(nums)} numbers, expected 9: {line!r}")
+    if not rows:
+        raise MhcloError("no vertex bindings found (expected a 'verts 0' section)")
+    missing = {"x_scale", "y_scale", "z_scale"} - set(scales)
+    if missing:
+        raise MhcloError(f"missing {', '.join(sorted(missing))}")
+    A = np.array(rows)
+    idx = A[:, :3].astype(np.int64)
+    if not np.all(np.isfinite(A)):
+        raise MhcloError("non-finite numbers in the binding")
+    if idx.min() < 0 or idx.max() >= n_base_vertices:
+        raise MhcloError(f"binding refers to vertex {int(idx.max())}; the base mesh has {n_base_vertices}")
+    for key, (a, b, ref) in scales.items():
+        if not (0 <= a < n_base_vertices and 0 <= b < n_base_vertices) or ref <= 0:
+            raise MhcloError(f"bad {key} reference")
+    return Binding(idx, A[:, 3:6], A[:, 6:9], [scales["x_scale"], scales["y_scale"], scales["z_scale"]], name)
+
+
+def parse_obj_faces(text: str) -> tuple[int, np.ndarray]:
+    """Vertex count and triangulated faces (F, 3) of an OBJ (quads and polygons fanned)."""
+    n_v = 0
+    faces: list[list[int]] = []
+    for line in text.splitlines():
+        if line.startswith("v "):
+            n_v += 1
+        elif line.startswith("f "):
+            try:
+                poly = [int(t.split("/")[0]) for t in line.split()[1:]]
+            except ValueError as e:
+                raise MhcloError(f"bad face line: {line!r}") from e
+            poly = [p - 1 if p > 0 else n_v + p for p in poly]
+            for k in range(1, len(poly) - 1):
+                faces.append([poly[0], poly[k], poly[k + 1]])
+    if n_v == 0 or not faces:
+        raise MhcloError("the OBJ has no vertices or no faces")
+    F = np.array(faces, np.int64)
+    if F.min() < 0 or F.max() >= n_v:
+        raise MhcloError("the OBJ has a face index out of range")
+    return n_v, F

@@ -1,0 +1,136 @@
+"""Garment bases on disk and the try-on itself (pure numpy; no web or queue imports).
+
+``GarmentBasis`` holds everything a try-on needs for one garment: the mean garment g (M, 3),
+the clothing basis B (N, M, 3), faces (F, 3), the push-out binding (M, k) to body vertices,
+skinning transferred from the body (M, 4) + (M, 4), a colour and a layer. It is stored as
+plain ``.npy`` files in one directory and memory-mapped by every API process.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from service.model import garment as G
+
+# Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
+# with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
+EXAMPLES = {"n": 16, "c": 1.0}
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w")
+
+
+def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
+    n = min(n or EXAMPLES["n"], model.n_components)
+    return G.ExampleSet(n=n, c=float(c or EXAMPLES["c"]), sigma=np.sqrt(model.variances[:n]))
+
+
+def example_vertices(model, examples: G.ExampleSet) -> np.ndarray:
+    """(1 + 2N, V, 3) float32 example avatars in listing order."""
+    W = np.zeros((1 + 2 * examples.n, model.n_components))
+    W[:, : examples.n] = examples.weights()
+    return model.vertices(W)
+
+
+@dataclass
+class GarmentBasis:
+    g: np.ndarray
+    B: np.ndarray
+    faces: np.ndarray
+    binding: np.ndarray
+    skin_idx: np.ndarray
+    skin_w: np.ndarray
+    meta: dict = field(default_factory=dict)
+    _smoother: object = None
+    _incidence: object = None
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.g.shape[0])
+
+    def smoother(self):
+        if self._smoother is None:
+            self._smoother = G.laplacian_smoother(np.asarray(self.faces), self.n_vertices)
+        return self._smoother
+
+    def normals(self, vertices: np.ndarray) -> np.ndarray:
+        """Vertex normals (M, 3) of this garment's mesh with the given vertices."""
+        if self._incidence is None:
+            self._incidence = G.face_incidence(np.asarray(self.faces), self.n_vertices)
+        return G.vertex_normals(vertices, self.faces, self._incidence)
+
+    def save(self, directory: Path) -> None:
+        """Write atomically: a temporary sibling directory renamed into place."""
+        directory = Path(directory)
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=directory.parent))
+        try:
+            for k in ARRAYS:
+                np.save(tmp / f"{k}.npy", np.ascontiguousarray(getattr(self, k)))
+            (tmp / "meta.json").write_text(json.dumps(self.meta, sort_keys=True))
+            if directory.exists():
+                shutil.rmtree(directory)
+            os.replace(tmp, directory)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+    @classmethod
+    def load(cls, directory: Path, mmap: bool = True) -> "GarmentBasis":
+        directory = Path(directory)
+        arrs = {k: np.load(directory / f"{k}.npy", mmap_mode="r" if mmap else None) for k in ARRAYS}
+        meta = json.loads((directory / "meta.json").read_text())
+        return cls(**arrs, meta=meta)
+
+    def etag(self) -> str:
+        return self.meta.get("etag", "")
+
+
+def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.ExampleSet,
+                        meta: dict | None = None) -> GarmentBasis:
+    """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order)."""
+    g, B = G.build_basis(fits, examples)
+    nb = model.n_body_vertices
+    body0 = model.mean[:nb]
+    binding = G.bind_to_body(g, body0)
+    near = binding[:, 0]
+    meta = dict(meta or {})
+    meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
+                 "examples_c": examples.c})
+    h = hashlib.sha256()
+    for a in (g, B, np.asarray(faces, np.int32)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    meta["etag"] = h.hexdigest()[:32]
+    return GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
+                        skin_idx=model.lbs_indices[near].copy(), skin_w=model.lbs_weights[near].copy(), meta=meta)
+
+
+@dataclass
+class CustomerBody:
+    """What a try-on needs of a customer's body, computed once per customer."""
+
+    weights: np.ndarray  # (K,)
+    vertices: np.ndarray  # (V, 3) float32
+    normals: np.ndarray  # (n_body, 3) float32
+
+
+def customer_body(model, weights: np.ndarray) -> CustomerBody:
+    X = model.vertices(weights)
+    nb = model.n_body_vertices
+    n = G.vertex_normals(X[:nb], model.body_faces).astype(np.float32)
+    return CustomerBody(np.asarray(weights, np.float64), X, n)
+
+
+def try_on(basis: GarmentBasis, body: CustomerBody, layer: int = 0) -> tuple[np.ndarray, int]:
+    """The fitted garment (M, 3) float32 for a customer and how many vertices were pushed out.
+
+    Synthesis g + w B (3MN multiply-adds), then push-out of the customer's body with a
+    clearance growing with the layer (outer garments over inner ones)."""
+    v = G.synthesize(np.asarray(basis.g), np.asarray(basis.B), body.weights)
+    clearance = G.CLEARANCE + layer * G.LAYER_GAP
+    return G.push_out(v, body.vertices, body.normals, np.asarray(basis.binding), basis.smoother(), clearance)

@@ -1,0 +1,47 @@
+"""Shared pytest helpers: the Khronos glTF validator (node, ``npm ci``) as a fixture."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+VALIDATE_SCRIPT = REPO / "tests" / "gltf_validate.mjs"
+
+
+def run_gltf_validator(glb: bytes, tmp_dir: Path) -> dict[str, Any]:
+    """Validate GLB bytes with the Khronos validator; returns its report (``issues.numErrors``,
+    ``issues.numWarnings``, ``issues.messages``...). Needs node and ``npm ci`` at the repo root."""
+    node = shutil.which("node")
+    if node is None:
+        raise RuntimeError("node is required for the glTF validator (see .ci/run)")
+    if not (REPO / "node_modules" / "gltf-validator").is_dir():
+        raise RuntimeError("gltf-validator is not installed: run `npm ci` at the repo root")
+    path = tmp_dir / "asset.glb"
+    path.write_bytes(glb)
+    proc = subprocess.run(
+        [node, str(VALIDATE_SCRIPT), str(path)],
+        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"glTF validator failed: {proc.stderr.strip()}")
+    return json.loads(proc.stdout)
+
+
+def format_issues(report: dict[str, Any]) -> str:
+    """The report's messages, one per line, for assertion output."""
+    return "\n".join(
+        f"[{m.get('severity')}] {m.get('code')} {m.get('pointer', '')}: {m.get('message')}"
+        for m in report.get("issues", {}).get("messages", [])
+    )
+
+
+@pytest.fixture
+def validate_glb(tmp_path: Path) -> Callable[[bytes], dict[str, Any]]:
+    """``validate_glb(bytes) -> report`` using the Khronos glTF validator."""
+    return lambda glb: run_gltf_validator(glb, tmp_path)
