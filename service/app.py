@@ -14,6 +14,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.routes import router
+from service.api.tryon_routes import router as tryon_router
 from service.model.body import load_body_model
 from service.settings import Settings, get_settings
 
@@ -120,12 +121,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         model = load_body_model(path)
         log.info("body model loaded from %s (%d components)", model.path, model.n_components)
         app.state.body_model = model
-        yield
+        from service import storage as storage_mod
+        from service.catalogue import BodyCache, ensure_demo_garments
+
+        storage = storage_mod.Storage(settings)
+        app.state.storage = storage
+        app.state.body_cache = BodyCache()
+        storage_mod.set_default(storage)
+        ids = ensure_demo_garments(model, storage)
+        log.info("storage ready (%s); demo garments: %s",
+                 settings.redis_url or f"embedded redis under {settings.data_dir}", ", ".join(ids))
+        try:
+            yield
+        finally:
+            storage_mod.set_default(None)
+            storage.close()
 
     app = FastAPI(
         title="tryon",
         version=__version__,
-        description="Online 3D clothes try-on: avatars from body measurements, as JSON or GLB.",
+        description="Online 3D clothes try-on: avatars from body measurements or meshes, retailers' garments "
+        "as clothing bases, garments and outfits fitted to each customer, as JSON or GLB.",
         lifespan=lifespan,
     )
     app.state.settings = settings
@@ -135,6 +151,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(Exception, _unhandled_error)
     app.include_router(router)
+    app.include_router(tryon_router)
     static = web_client_dir()
     if static is not None:  # mounted last: API routes take precedence
         app.mount("/", StaticFiles(directory=static, html=True), name="web_client")

@@ -397,7 +397,131 @@ def format_tryon(r: dict) -> str:
     return "\n".join(L)
 
 
-SUITES = {"body": (bench_body, format_body), "tryon": (bench_tryon, format_tryon)}
+# -- HTTP load on loopback ------------------------------------------------------------------
+async def _load(port: int, paths: list[str], clients: int, seconds: float) -> tuple[list[float], int]:
+    """``clients`` keep-alive connections, each requesting paths round-robin for ``seconds``.
+    Returns (latencies in seconds, non-200 count). Raw asyncio streams: light on the client
+    side, so the server keeps most of the CPU."""
+    import asyncio
+
+    lat: list[float] = []
+    errors = 0
+    stop = time.perf_counter() + seconds
+
+    async def client(k: int):
+        nonlocal errors
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        i = k
+        while time.perf_counter() < stop:
+            path = paths[i % len(paths)]
+            i += 1
+            t = time.perf_counter()
+            writer.write(f"GET {path} HTTP/1.1\r\nHost: bench\r\n\r\n".encode())
+            await writer.drain()
+            head = await reader.readuntil(b"\r\n\r\n")
+            length = 0
+            for line in head.split(b"\r\n"):
+                if line.lower().startswith(b"content-length:"):
+                    length = int(line.split(b":")[1])
+            await reader.readexactly(length)
+            lat.append(time.perf_counter() - t)
+            if not head.startswith(b"HTTP/1.1 200"):
+                errors += 1
+        writer.close()
+
+    await asyncio.gather(*(client(k) for k in range(clients)))
+    return lat, errors
+
+
+def bench_http(clients: int = 16, seconds: float = 10.0, workers: int = 2) -> dict:
+    """p50/p99 and requests/s of try-on GETs against a real ``tryon serve`` on loopback,
+    beside ``/healthz`` (the framework's own floor) measured the same way in the same run."""
+    import asyncio
+    import socket
+    import subprocess
+    import tempfile
+
+    import httpx
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    tmp = tempfile.mkdtemp(prefix="tryon-bench-")
+    env = dict(os.environ, TRYON_DATA_DIR=tmp)
+    env.pop("REDIS_URL", None)
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
+                             "--workers", str(workers)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        base = f"http://127.0.0.1:{port}"
+        for _ in range(600):
+            try:
+                if httpx.get(base + "/v1/garments", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        garments = [g["id"] for g in httpx.get(base + "/v1/garments").json()["garments"]]
+        cust = httpx.post(base + "/v1/customers", json={"measurements": {
+            "gender": "female", "height_cm": 166, "weight_kg": 68, "waist_cm": 80}}).json()["id"]
+        paths = [f"/v1/customers/{cust}/garments/{g}.glb" for g in garments]
+        for p in paths:  # warm caches (customer body, mmapped bases)
+            httpx.get(base + p)
+        out = {"clients": clients, "seconds": seconds, "server_workers": workers, "garments": len(paths)}
+        for name, ps in (("healthz", ["/healthz"]), ("tryon", paths)):
+            lat, errors = asyncio.run(_load(port, ps, clients, seconds))
+            a = np.array(lat) * 1000
+            out[name] = {"requests": len(a), "errors": errors, "p50_ms": float(np.percentile(a, 50)),
+                         "p99_ms": float(np.percentile(a, 99)), "rps": len(a) / seconds}
+        out["goal"] = {"p50_ms": 10, "p99_ms": 30, "rps": 500}
+        return out
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def bench_examples(limit: int, repeats: int) -> dict:
+    """Choose the example avatars by measurement: garment accuracy (basis vs direct fit on
+    held-out avatars) for a grid of N (components) and c (std units), over the demo garments
+    and a spread of MakeHuman garments."""
+    from service.model import tryon as T
+
+    model = load_body_model()
+    H = heldout_avatars(model)[: (limit or 20)]
+    W = model.project(H)
+    garments = bench_garments(model)
+    names = [n for n in garments if n.startswith("demo-") and n != "demo-skirt-10k"] + \
+        ["mh-male_casualsuit04", "mh-female_elegantsuit01", "mh-shoes01"]
+    directs = {n: [garments[n][0](X) for X in H] for n in names}
+    rows = []
+    for n_comp in (8, 12, 16, 24, 32, 48):
+        for c in (0.5, 1.0, 2.0):
+            ex = T.example_set(model, n=n_comp, c=c)
+            EX = T.example_vertices(model, ex)
+            errs = []
+            for name in names:
+                fit = garments[name][0]
+                g, B = T.G.build_basis(np.stack([fit(E) for E in EX]), ex)
+                for w, d in zip(W, directs[name]):
+                    errs.append(np.linalg.norm(T.G.synthesize(g, B, w) - d, axis=1))
+            e = np.concatenate(errs) * 1000
+            rows.append({"n": n_comp, "c": c, "examples": 1 + 2 * n_comp, "mean_mm": float(e.mean()),
+                         "p99_mm": float(np.percentile(e, 99))})
+    return {"suite": "examples", "avatars": len(H), "garments": names, "grid": rows,
+            "current": dict(T.EXAMPLES)}
+
+
+def format_examples(r: dict) -> str:
+    L = [f"garment accuracy vs example set ({r['avatars']} held-out avatars; {', '.join(r['garments'])})",
+         f"  {'N':>3}{'c':>6}{'examples':>10}{'mean mm':>10}{'p99 mm':>10}"]
+    for row in r["grid"]:
+        mark = "  <- current" if (row["n"], row["c"]) == (r["current"]["n"], r["current"]["c"]) else ""
+        L.append(f"  {row['n']:>3}{row['c']:>6.1f}{row['examples']:>10}{row['mean_mm']:>10.3f}{row['p99_mm']:>10.3f}{mark}")
+    return "\n".join(L)
+
+
+SUITES = {"body": (bench_body, format_body), "tryon": (bench_tryon, format_tryon),
+          "examples": (bench_examples, format_examples)}
 
 
 def main(argv: list[str] | None = None) -> int:

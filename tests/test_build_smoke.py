@@ -46,7 +46,9 @@ def test_smoke_build_has_the_committed_format(smoke):
     with np.load(a / "model.npz") as new, np.load(DEFAULT_MODEL_PATH) as ref:
         assert set(new.files) == set(ref.files)
         for k in ref.files:
-            assert new[k].dtype == ref[k].dtype, k
+            assert new[k].dtype.kind == ref[k].dtype.kind, k  # meta_json: a string of any length
+            if k != "meta_json":
+                assert new[k].dtype == ref[k].dtype, k
             if k not in ("components", "variances", "pop_attributes", "pop_weights", "meta_json"):
                 assert new[k].shape == ref[k].shape, k  # topology, rig, landmarks: identical
             if k in ("body_faces", "lbs_indices", "edges_torso", "edges_thigh", "edges_calf", "lm_soles"):

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parent.parent
 def test_help_lists_commands() -> None:
     proc = subprocess.run([sys.executable, "-m", "service.cli", "--help"], cwd=REPO,
                           capture_output=True, text=True, check=True)
-    for command in ("serve", "build-body-model", "bench", "openapi"):
+    for command in ("serve", "worker", "build-body-model", "bench", "openapi"):
         assert command in proc.stdout
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.gltf import mesh_to_glb, read_glb, vertex_normals
+from service.model.gltf import basis_to_glb, mesh_to_glb, read_glb, scene_to_glb, vertex_normals
 from tests.conftest import format_issues
 
 
@@ -128,3 +128,261 @@ def test_vertex_normals_sphere_point_outwards() -> None:
 def test_bad_input_raises(vertices: np.ndarray, faces: np.ndarray) -> None:
     with pytest.raises(ValueError):
         mesh_to_glb(vertices, faces)
+
+
+# --------------------------------------------------------------------------------------------
+# Scenes, clothing bases as morph targets, and compression (KHR_mesh_quantization, meshopt).
+
+COMPRESSIONS = [None, "quantize", "meshopt"]
+
+
+def _garment(around: int = 100, high: int = 100, n_basis: int = 16) -> tuple[np.ndarray, ...]:
+    """A tube-shaped 'garment' (around * high vertices, open ends) and a smooth basis (K, M, 3):
+    radial bulges of increasing frequency, a few cm each, like a clothing PCA basis."""
+    th = np.linspace(0, 2 * np.pi, around, endpoint=False)
+    ys = np.linspace(0.6, 1.4, high)
+    T, Y = np.meshgrid(th, ys)
+    g = np.stack([0.18 * np.cos(T), Y, 0.15 * np.sin(T)], axis=-1).reshape(-1, 3).astype(np.float32)
+    idx = np.arange(around * high).reshape(high, around)
+    nxt = np.roll(idx, -1, axis=1)
+    a, b, c, d = idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])
+    radial = np.stack([np.cos(T), np.zeros_like(T), np.sin(T)], axis=-1).reshape(-1, 3)
+    B = []
+    for k in range(n_basis):
+        amp = 0.03 / (1 + k) * np.cos((k % 4 + 1) * T.ravel()) * np.sin((k // 4 + 1) * np.pi * (Y.ravel() - 0.6) / 0.8)
+        B.append(radial * amp[:, None] + np.array([0.0, 0.002 * k, 0.0]))
+    return g, faces, np.stack(B).astype(np.float32)
+
+
+def _skin_step(glb: bytes) -> float:
+    from service.model.gltf import _parse_glb, _read_float  # noqa: PLC0415
+
+    doc, blob = _parse_glb(glb)
+    ibm = _read_float(doc, blob, doc["skins"][0]["inverseBindMatrices"])
+    return float(ibm[0, 0])  # column-major: element (0, 0) is the uniform scale s
+
+
+def _canon(faces: np.ndarray) -> np.ndarray:
+    """Each triangle rotated to start at its smallest index (winding kept): meshopt's index
+    codec may rotate triangles."""
+    f = np.asarray(faces, np.int64)
+    k = np.argmin(f, axis=1)
+    rows = np.arange(len(f))[:, None]
+    return f[rows, (k[:, None] + np.arange(3)) % 3]
+
+
+def _mesh_step(glb: bytes, doc: dict[str, Any], mesh_index: int) -> float:
+    node = next(n for n in doc["nodes"] if n.get("mesh") == mesh_index)
+    return _skin_step(glb) if "skin" in node else float(node["scale"][0])
+
+
+def _assert_no_warnings(report: dict[str, Any]) -> None:
+    """0 errors, 0 warnings (infos allowed: the validator does not know EXT_meshopt_compression
+    and says so as an info)."""
+    issues = report["issues"]
+    assert issues["numErrors"] == 0, format_issues(report)
+    assert issues["numWarnings"] == 0, format_issues(report)
+    for m in issues["messages"]:
+        assert m["code"] in ("UNSUPPORTED_EXTENSION", "UNUSED_OBJECT"), format_issues(report)
+
+
+def _check_compression_json(doc: dict[str, Any], compression: str | None) -> None:
+    if compression is None:
+        assert "extensionsUsed" not in doc and len(doc["buffers"]) == 1
+        return
+    assert "KHR_mesh_quantization" in doc["extensionsRequired"]
+    assert set(doc["extensionsRequired"]) == set(doc["extensionsUsed"])
+    for mesh in doc["meshes"]:
+        attrs = mesh["primitives"][0]["attributes"]
+        assert doc["accessors"][attrs["POSITION"]]["componentType"] == 5122  # SHORT
+        nrm = doc["accessors"][attrs["NORMAL"]]
+        assert nrm["componentType"] == 5120 and nrm["normalized"] is True  # normalized BYTE
+        for tg in mesh["primitives"][0].get("targets", []):
+            assert doc["accessors"][tg["POSITION"]]["componentType"] == 5122
+    if compression == "meshopt":
+        assert "EXT_meshopt_compression" in doc["extensionsRequired"]
+        fallback = doc["buffers"][1]
+        assert "uri" not in fallback and fallback["extensions"]["EXT_meshopt_compression"]["fallback"] is True
+        encoded = [v for v in doc["bufferViews"] if "EXT_meshopt_compression" in v.get("extensions", {})]
+        assert encoded and all(v["buffer"] == 1 for v in encoded)
+        for v in encoded:
+            ext = v["extensions"]["EXT_meshopt_compression"]
+            assert ext["buffer"] == 0 and ext["byteOffset"] % 4 == 0
+            assert ext["mode"] in ("ATTRIBUTES", "TRIANGLES") and ext["count"] * ext["byteStride"] == v["byteLength"]
+    else:
+        assert len(doc["buffers"]) == 1
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_mesh_compression_validates_and_round_trips(
+    compression: str | None, validate_glb: Callable[[bytes], dict[str, Any]]
+) -> None:
+    m = _sphere()
+    v = m.vertices.astype(np.float32)
+    for skin in (None, _chain_skin(v)):
+        glb = mesh_to_glb(v, m.faces, skin=skin, compression=compression)
+        report = validate_glb(glb)
+        _assert_no_warnings(report)
+        out = read_glb(glb)
+        _check_compression_json(out["json"], compression)
+        np.testing.assert_array_equal(_canon(out["indices"]), _canon(m.faces))
+        if compression is None:
+            np.testing.assert_array_equal(out["positions"], v)
+        else:
+            s = _mesh_step(glb, out["json"], 0)
+            assert 0 < s <= 1.0 / 65534 * (1 + 1e-6)  # 1 m extent over 16 bits
+            assert np.abs(out["positions"] - v).max() <= s / 2 * 1.001 + 1e-6
+            ref = vertex_normals(v, m.faces)
+            assert np.min(np.sum(out["normals"] * ref, axis=1)) > 0.999  # 8-bit normals, < 2.6 deg
+        if skin is not None:
+            w, j = out["weights"].astype(np.float64), out["joints"]
+            np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-6)
+            assert np.all(j[w == 0] == 0)
+            assert report["info"]["hasSkins"] is True
+
+
+def test_meshopt_decodes_to_the_quantized_data() -> None:
+    g, faces, B = _garment(40, 30, 4)
+    q = read_glb(basis_to_glb(g, B, faces, compression="quantize"))
+    mo = read_glb(basis_to_glb(g, B, faces, compression="meshopt"))
+    for key in ("positions", "normals", "targets"):
+        np.testing.assert_array_equal(mo[key], q[key])
+    np.testing.assert_array_equal(_canon(mo["indices"]), _canon(q["indices"]))
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_basis_morph_targets(compression: str | None, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    g, faces, B = _garment(40, 30, 6)
+    names = [f"pc{i}" for i in range(6)]
+    glb = basis_to_glb(g, B, faces, target_names=names, compression=compression)
+    report = validate_glb(glb)
+    _assert_no_warnings(report)
+    out = read_glb(glb)
+    doc = out["json"]
+    _check_compression_json(doc, compression)
+    mesh = doc["meshes"][0]
+    assert mesh["extras"]["targetNames"] == names and out["target_names"] == names
+    assert mesh["weights"] == [0.0] * 6
+    assert doc["materials"][0]["doubleSided"] is True
+    for tg in mesh["primitives"][0]["targets"]:
+        acc = doc["accessors"][tg["POSITION"]]
+        assert "min" in acc and "max" in acc
+    assert out["targets"].shape == B.shape
+    if compression is None:
+        np.testing.assert_array_equal(out["positions"], g)
+        np.testing.assert_array_equal(out["targets"], B)  # deltas are B exactly
+    else:
+        s = _mesh_step(glb, doc, 0)
+        assert np.abs(out["positions"] - g).max() <= s / 2 * 1.001 + 1e-6
+        assert np.abs(out["targets"] - B).max() <= s / 2 * 1.001 + 1e-6
+    # The morph formula is the basis synthesis: g + sum w_i B_i.
+    w = np.array([0.5, -1.0, 2.0, 0.0, 0.3, -0.7])
+    morphed = out["positions"].astype(np.float64) + np.tensordot(w, out["targets"].astype(np.float64), 1)
+    tol = 1e-6 if compression is None else (1 + np.abs(w).sum()) * _mesh_step(glb, doc, 0)
+    assert np.abs(morphed - (g + np.tensordot(w, B.astype(np.float64), 1))).max() <= tol
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_skinned_basis_validates(compression: str | None, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    g, faces, B = _garment(30, 20, 3)
+    glb = basis_to_glb(g - [0.0, 1.0, 0.0], B, faces, skin=_chain_skin(g - [0.0, 1.0, 0.0]), compression=compression)
+    report = validate_glb(glb)
+    _assert_no_warnings(report)
+    assert report["info"]["hasSkins"] is True and report["info"]["hasMorphTargets"] is True
+    out = read_glb(glb)
+    np.testing.assert_allclose(out["targets"], B, atol=1e-6 if compression is None else 1e-4)
+
+
+def _scene(compression: str | None) -> tuple[list[dict[str, Any]], dict[str, Any], bytes]:
+    body = _sphere()
+    bv = body.vertices.astype(np.float32)
+    bskin = _chain_skin(bv)
+    shirt = trimesh.creation.icosphere(subdivisions=2, radius=0.55)
+    sv = shirt.vertices.astype(np.float32)
+    sv[:, 1] = np.clip(sv[:, 1], -0.1, 0.55)
+    sskin = _chain_skin(sv)
+    hat = trimesh.creation.box(extents=(0.3, 0.1, 0.3))
+    skeleton = {k: bskin[k] for k in ("joints", "parents", "joint_names")}
+    meshes = [
+        {"vertices": bv, "faces": body.faces, "name": "avatar",
+         "vertex_joints": bskin["vertex_joints"], "vertex_weights": bskin["vertex_weights"]},
+        {"vertices": sv, "faces": shirt.faces, "name": "shirt", "color": (0.1, 0.3, 0.8, 1.0),
+         "double_sided": True, "vertex_joints": sskin["vertex_joints"], "vertex_weights": sskin["vertex_weights"]},
+        {"vertices": hat.vertices + [0.0, 0.6, 0.0], "faces": hat.faces, "name": "hat", "color": (0.9, 0.1, 0.1, 0.5)},
+    ]
+    return meshes, skeleton, scene_to_glb(meshes, skin=skeleton, compression=compression)
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_scene_shared_skin(compression: str | None, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    meshes, skeleton, glb = _scene(compression)
+    report = validate_glb(glb)
+    _assert_no_warnings(report)
+    out = read_glb(glb)
+    doc = out["json"]
+    _check_compression_json(doc, compression)
+    assert len(doc["skins"]) == 1 and len(doc["meshes"]) == 3 and len(doc["materials"]) == 3
+    skin = doc["skins"][0]
+    assert [doc["nodes"][j]["name"] for j in skin["joints"]] == skeleton["joint_names"]
+    mesh_nodes = {doc["nodes"][i]["name"]: doc["nodes"][i] for i in doc["scenes"][0]["nodes"] if "mesh" in doc["nodes"][i]}
+    assert mesh_nodes["avatar"].get("skin") == 0 and mesh_nodes["shirt"].get("skin") == 0
+    assert "skin" not in mesh_nodes["hat"]
+    assert doc["materials"][1]["doubleSided"] is True and doc["materials"][2]["alphaMode"] == "BLEND"
+    for i, (m, got) in enumerate(zip(meshes, out["meshes"])):
+        assert got["name"] == m["name"]
+        np.testing.assert_array_equal(_canon(got["indices"]), _canon(m["faces"]))
+        v = np.asarray(m["vertices"], np.float32)
+        if compression is None:
+            np.testing.assert_array_equal(got["positions"], v)
+        else:
+            s = _mesh_step(glb, doc, i)
+            assert np.abs(got["positions"] - v).max() <= s / 2 * 1.001 + 1e-6
+        if "vertex_joints" in m:
+            w = got["weights"].astype(np.float64)
+            np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-6)
+            assert np.all(got["joints"][w == 0] == 0)
+    if compression is not None:  # the skinned meshes share one grid, baked into the skin
+        assert "scale" not in mesh_nodes["avatar"] and "scale" in mesh_nodes["hat"]
+
+
+def test_scene_without_skin_and_bad_inputs() -> None:
+    meshes, _, _ = _scene(None)
+    with pytest.raises(ValueError):
+        scene_to_glb(meshes)  # vertex_joints but no skin
+    static = [{k: v for k, v in m.items() if not k.startswith("vertex_")} for m in meshes]
+    out = read_glb(scene_to_glb(static))
+    assert "skins" not in out["json"] and len(out["meshes"]) == 3
+    with pytest.raises(ValueError):
+        scene_to_glb([])
+    g, faces, B = _garment(10, 5, 2)
+    with pytest.raises(ValueError):
+        basis_to_glb(g, B[:, :-1], faces)
+    with pytest.raises(ValueError):
+        basis_to_glb(g, B, faces, target_names=["only one"])
+
+
+@pytest.mark.parametrize("mode", ["draco", "Quantize", ""])
+def test_unknown_compression_raises(mode: str) -> None:
+    m = _sphere()
+    v = m.vertices.astype(np.float32)
+    g, faces, B = _garment(10, 5, 2)
+    with pytest.raises(ValueError):
+        mesh_to_glb(v, m.faces, compression=mode)
+    with pytest.raises(ValueError):
+        scene_to_glb([{"vertices": v, "faces": m.faces}], compression=mode)
+    with pytest.raises(ValueError):
+        basis_to_glb(g, B, faces, compression=mode)
+
+
+def test_compressed_sizes_10k_vertices_16_targets(validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    g, faces, B = _garment(100, 100, 16)  # 10,000 vertices, 16 morph targets
+    sizes = {}
+    for comp in COMPRESSIONS:
+        glb = basis_to_glb(g, B, faces, compression=comp)
+        _assert_no_warnings(validate_glb(glb))
+        sizes[comp] = len(glb)
+    print(f"10k-vertex garment, 16 morph targets, GLB bytes: {sizes}")
+    # plain: 12 B a position/normal/delta; quantized: 8 B (SHORT VEC3 padded), 4 B a normal.
+    assert sizes["quantize"] < 0.7 * sizes[None]
+    assert sizes["meshopt"] < 0.7 * sizes["quantize"]

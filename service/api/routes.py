@@ -52,8 +52,11 @@ def wants_glb(accept: str | None) -> bool:
     return _accept_quality(accept, GLB_MEDIA_TYPE) > _accept_quality(accept, JSON_MEDIA_TYPE)
 
 
-def avatar_glb(model: BodyModel, vertices: np.ndarray) -> bytes:
-    """The customer-visible skinned body surface of a (V, 3) avatar as GLB bytes."""
+def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None = None) -> bytes:
+    """The customer-visible skinned body surface of a (V, 3) avatar as GLB bytes
+    (``compression``: None, "quantize" or "meshopt", when the GLB writer supports it)."""
+    from service.catalogue import compression_kwargs
+
     n_body = model.n_body_vertices
     return mesh_to_glb(
         model.body_vertices(vertices),
@@ -66,6 +69,7 @@ def avatar_glb(model: BodyModel, vertices: np.ndarray) -> bytes:
             "vertex_joints": model.lbs_indices[:n_body],
             "vertex_weights": model.lbs_weights[:n_body],
         },
+        **compression_kwargs(mesh_to_glb, compression),
     )
 
 

@@ -77,3 +77,45 @@ class AvatarResponse(BaseModel):
         description="All 12 attributes measured on the avatar (gender as female/male)"
     )
     estimated: list[str] = Field(description="Attributes that were not given, hence estimated")
+
+
+class CustomerResponse(BaseModel):
+    """A stored customer: the avatar's shape weights and its measurements."""
+
+    id: str = Field(description="Random URL-safe id")
+    status: Literal["ready"] = "ready"
+    source: Literal["measurements", "mesh"] = Field(description="How the avatar was made")
+    weights: list[float] = Field(description="PCA shape weights (components,)")
+    measurements: dict[str, float | str] = Field(description="The 12 attributes measured on the avatar")
+    estimated: list[str] = Field(default_factory=list, description="Attributes that were estimated")
+    created: str = Field(description="ISO 8601 UTC time of creation")
+    unit: str | None = Field(default=None, description="Mesh uploads: detected unit of the file (m, cm, mm)")
+    residual_mm: float | None = Field(
+        default=None, description="Mesh uploads: mean distance between the upload and its projection (mm)"
+    )
+
+
+class ExampleAvatarOut(BaseModel):
+    """One example avatar: the mean (``component`` null) or mean +/- c sqrt(var) U_component."""
+
+    id: str = Field(examples=["pc00-plus"])
+    component: int | None
+    sign: int = Field(description="+1, -1, or 0 for the mean")
+    coefficient: float = Field(description="Weight of the component (metres-scale PCA units)")
+
+
+class GarmentResponse(BaseModel):
+    """A stored garment (its clothing basis is at /v1/garments/{id}/basis.glb)."""
+
+    id: str
+    name: str
+    owner: str = Field(description='Retailer that uploaded it ("demo" for the built-in catalogue)')
+    source: Literal["meshes", "mhclo", "demo"]
+    color: list[float] = Field(description="Linear RGBA base colour")
+    layer: int = Field(description="Layer order in an outfit (inner garments first)")
+    created: str
+    n_vertices: int
+    n_faces: int
+    n_components: int = Field(description="Number of basis rows (PCA components covered)")
+    etag: str = Field(description="Content hash of the basis")
+    unit: str | None = Field(default=None, description="Mesh-set uploads: detected unit of the files")

@@ -18,10 +18,12 @@ import numpy as np
 
 from service.model import measurements as M
 from service.model.body import BONES
+from service.model.garment import bind_to_body, laplacian_smoother, push_out
 from service.model.geometry import vertex_normals
 
 B = {b: i for i, b in enumerate(BONES)}
 EASE = {"tshirt": 0.012, "trousers": 0.010}
+FIT_CLEARANCE = 0.006  # skin-to-cloth clearance the offline fit guarantees on each example
 SKIRT = {"rings": 24, "angles": 72, "waist_below_navel": 0.03, "hem_above_knee": 0.06,
          "ease_top": 0.012, "ease_hem": 0.03, "flare": 0.12}
 COLORS = {"tshirt": (0.16, 0.35, 0.75, 1.0), "trousers": (0.12, 0.13, 0.18, 1.0),
@@ -39,13 +41,18 @@ class DemoGarment:
     ease: float = 0.0
 
     def fit(self, model, vertices: np.ndarray) -> np.ndarray:
-        """The garment on an avatar (V, 3) -> (M, 3) float64 (the offline method)."""
+        """The garment on an avatar (V, 3) -> (M, 3) float64 (the offline method): construct
+        it, then resolve collisions with that avatar (push-out, as a cloth fit would)."""
         X = np.asarray(vertices, np.float64)
-        if self.name == "skirt":
-            return skirt_rings(model, X)
         nb = model.n_body_vertices
         n = vertex_normals(X[:nb], model.body_faces)
-        return X[self.vids] + self.ease * n[self.vids]
+        if self.name == "skirt":
+            P = skirt_rings(model, X)
+        else:
+            P = X[self.vids] + self.ease * n[self.vids]
+        binding = bind_to_body(P, X[:nb])
+        P, _ = push_out(P, X[:nb], n, binding, laplacian_smoother(self.faces, len(P)), FIT_CLEARANCE)
+        return P.astype(np.float64)
 
 
 def _largest_component(faces: np.ndarray) -> np.ndarray:

@@ -29,8 +29,8 @@ from service.model.geometry import face_incidence, vertex_normals  # noqa: F401 
 
 CLEARANCE = 0.003  # metres between skin and cloth after push-out
 LAYER_GAP = 0.004  # extra clearance per layer (outer garments over inner ones)
-BIND_K = 6  # body vertices bound per garment vertex
-SMOOTHING = {"iterations": 4, "alpha": 0.5}
+BIND_K = 4  # body vertices bound per garment vertex
+SMOOTHING = {"iterations": 3, "alpha": 0.5}
 
 
 @dataclass
@@ -83,18 +83,24 @@ def bind_to_body(garment: np.ndarray, body: np.ndarray, k: int = BIND_K) -> np.n
     return idx.astype(np.int32)
 
 
-def laplacian_smoother(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
-    """Row-normalised adjacency (uniform Laplacian averaging operator) of a mesh."""
+def laplacian_smoother(faces: np.ndarray, n_vertices: int) -> sp.csc_matrix:
+    """The displacement diffusion operator S = ((1 - a) I + a A)^k (CSC), A the uniform
+    (row-normalised) adjacency, a and k from ``SMOOTHING``. Precompute once per garment."""
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     e = np.concatenate([e, e[:, ::-1]])
     A = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
     A.data[:] = 1.0
     deg = np.asarray(A.sum(1)).ravel()
-    return sp.diags(1.0 / np.maximum(deg, 1)) @ A
+    A = sp.diags(1.0 / np.maximum(deg, 1)) @ A
+    step = (1 - SMOOTHING["alpha"]) * sp.identity(n_vertices, format="csr") + SMOOTHING["alpha"] * A
+    S = sp.identity(n_vertices, format="csr")
+    for _ in range(SMOOTHING["iterations"]):
+        S = S @ step
+    return S.tocsc().astype(np.float32)
 
 
 def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, binding: np.ndarray,
-             smoother: sp.csr_matrix | None = None, clearance: float = CLEARANCE) -> tuple[np.ndarray, int]:
+             smoother: sp.csc_matrix | None = None, clearance: float = CLEARANCE) -> tuple[np.ndarray, int]:
     """Move garment vertices that are inside the body (or within ``clearance`` of it) out
     along the body normal, then smooth the displacement so the garment stays smooth.
 
@@ -102,9 +108,8 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     Returns (garment (M, 3) float32, number of vertices moved)."""
     G = np.asarray(garment, np.float32)
     body = np.asarray(body, np.float32)
-    cand = body[binding]  # (M, k, 3)
-    d2 = ((cand - G[:, None, :]) ** 2).sum(-1)
-    j = np.argmin(d2, axis=1)
+    diff = body[binding] - G[:, None, :]  # (M, k, 3)
+    j = np.argmin(np.einsum("ijk,ijk->ij", diff, diff), axis=1)
     rows = np.arange(len(G))
     nb = binding[rows, j]
     p, n = body[nb], body_normals[nb]
@@ -112,12 +117,13 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     bad = depth > 0
     if not bad.any():
         return G, 0
-    required = np.zeros_like(G)
-    required[bad] = depth[bad, None] * n[bad]
-    disp = required
+    required = depth[bad, None] * n[bad]
+    disp = np.zeros_like(G)
     if smoother is not None:
-        # constrained diffusion: pushed vertices keep their push, neighbours follow smoothly
-        for _ in range(SMOOTHING["iterations"]):
-            disp = np.asarray(smoother @ disp, np.float32) * SMOOTHING["alpha"] + disp * (1 - SMOOTHING["alpha"])
-            disp[bad] = required[bad]
+        # diffuse the pushes to the neighbours (only the pushed vertices' columns of S), and
+        # keep each pushed vertex's full push: the garment stays smooth and outside
+        disp = np.asarray(smoother[:, np.flatnonzero(bad)] @ required, np.float32)
+    # each pushed vertex ends at least ``clearance`` out along its body normal
+    short = depth[bad] - np.einsum("ij,ij->i", disp[bad], n[bad])
+    disp[bad] += np.maximum(short, 0)[:, None] * n[bad]
     return (G + disp).astype(np.float32), int(bad.sum())

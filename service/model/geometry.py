@@ -33,10 +33,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_ma
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     inc = incidence if incidence is not None else face_incidence(f, len(v))
     acc = np.asarray(inc @ fn, np.float64)
-    length = np.linalg.norm(acc, axis=1)
+    length = np.sqrt(np.einsum("ij,ij->i", acc, acc))
     ok = length > 1e-20
-    out = np.zeros_like(acc)
-    out[:, 1] = 1.0
-    out[ok] = acc[ok] / length[ok, None]
-    n32 = out.astype(np.float32)
-    return (n32 / np.linalg.norm(n32.astype(np.float64), axis=1, keepdims=True)).astype(np.float32)
+    if not ok.all():
+        acc[~ok] = (0.0, 1.0, 0.0)
+        length[~ok] = 1.0
+    n32 = (acc / length[:, None]).astype(np.float32)
+    # re-normalise after rounding so |n| == 1 within float32 eps (the glTF validator checks)
+    n64 = n32.astype(np.float64)
+    return (n64 / np.sqrt(np.einsum("ij,ij->i", n64, n64))[:, None]).astype(np.float32)

@@ -90,11 +90,43 @@ def _clean_skin_weights(
     return j, w
 
 
+def _quantize_weights(w: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float weights (N, 4) summing to 1 -> (N, 4) uint8 summing to exactly 255 (largest
+    remainder rounding), with joint index 0 wherever a quantized weight is 0."""
+    scaled = np.asarray(w, np.float64) * 255.0
+    q = np.floor(scaled).astype(np.int64)
+    short = 255 - q.sum(axis=1)
+    order = np.argsort(-(scaled - q), axis=1, kind="stable")
+    for k in range(4):  # hand out the missing units to the largest remainders
+        give = short > k
+        rows = np.nonzero(give)[0]
+        q[rows, order[rows, k]] += 1
+    j = np.asarray(j, np.int64).copy()
+    j[q == 0] = 0
+    return q.astype(np.uint8), j
+
+
+def _quantize_normals(n: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) -> (N, 3) int8 (normalized BYTE, value / 127)."""
+    return np.clip(np.round(np.asarray(n, np.float64) * 127.0), -127, 127).astype(np.int8)
+
+
+def _pad_rows(arr: np.ndarray) -> np.ndarray:
+    """(count, ncomp) -> (count, k) with zero columns appended so each row is a multiple of 4
+    bytes (glTF's vertex attribute alignment rule; KHR_mesh_quantization's SHORT/BYTE VEC3)."""
+    per = arr.dtype.itemsize * arr.shape[1]
+    if per % 4 == 0:
+        return arr
+    extra = (-per % 4) // arr.dtype.itemsize
+    return np.concatenate([arr, np.zeros((arr.shape[0], extra), arr.dtype)], axis=1)
+
+
 class _Builder:
-    """Accumulates the binary buffer, buffer views and accessors of one GLB."""
+    """Accumulates the buffer views and accessors of one GLB; :meth:`finish` lays out the binary
+    buffer, plain or with meshoptimizer-encoded views (EXT_meshopt_compression)."""
 
     def __init__(self) -> None:
-        self.blob = bytearray()
+        self.views: list[tuple[bytes, int, int | None, str | None, int | None]] = []
         self.buffer_views: list[dict[str, Any]] = []
         self.accessors: list[dict[str, Any]] = []
 
@@ -106,53 +138,124 @@ class _Builder:
         *,
         target: int | None = None,
         minmax: bool = False,
+        normalized: bool = False,
     ) -> int:
         """Append ``data`` ((count, ncomp) or (count,)) as a tightly packed, 4-byte aligned view
-        plus one accessor; returns the accessor index."""
+        plus one accessor; returns the accessor index. Vertex attribute rows that are not a
+        multiple of 4 bytes are zero padded (the view then gets a byteStride)."""
         arr = np.ascontiguousarray(data, dtype=_DTYPES[component_type])
         count = arr.shape[0]
-        while len(self.blob) % 4:
-            self.blob.append(0)
-        view: dict[str, Any] = {"buffer": 0, "byteOffset": len(self.blob), "byteLength": arr.nbytes}
-        if target is not None:
-            view["target"] = target
-        self.blob += arr.tobytes()
-        self.buffer_views.append(view)
+        flat = arr.reshape(count, -1)
+        stride: int | None = None
+        stored = arr
+        if target == ARRAY_BUFFER and (flat.shape[1] * arr.dtype.itemsize) % 4:
+            stored = _pad_rows(flat)
+            stride = stored.shape[1] * arr.dtype.itemsize
+        mode = None
+        if target == ARRAY_BUFFER:
+            mode = "ATTRIBUTES"
+        elif target == ELEMENT_ARRAY_BUFFER and count % 3 == 0:
+            mode = "TRIANGLES"
+        self.views.append((np.ascontiguousarray(stored).tobytes(), count, target, mode, stride))
         acc: dict[str, Any] = {
-            "bufferView": len(self.buffer_views) - 1,
+            "bufferView": len(self.views) - 1,
             "componentType": component_type,
             "count": int(count),
             "type": type_,
         }
+        if normalized:
+            acc["normalized"] = True
         if minmax:
-            flat = arr.reshape(count, -1)
             cast = float if component_type == FLOAT else int
             acc["min"] = [cast(x) for x in flat.min(axis=0)]
             acc["max"] = [cast(x) for x in flat.max(axis=0)]
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
+    def finish(self, meshopt: bool) -> tuple[bytes, list[dict[str, Any]]]:
+        """(the BIN chunk's bytes, the ``buffers`` array); fills :attr:`buffer_views`."""
+        blob = bytearray()
+        fallback_len = 0
+        self.buffer_views = []
+        for raw, count, target, mode, stride in self.views:
+            while len(blob) % 4:
+                blob.append(0)
+            view: dict[str, Any] = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(raw)}
+            if meshopt and mode is not None:
+                elem = len(raw) // count
+                if mode == "ATTRIBUTES":
+                    enc = _mo().encode_gltf_buffer(np.frombuffer(raw, np.uint8).reshape(count, elem), mode)
+                else:
+                    idx = np.frombuffer(raw, np.uint16 if elem == 2 else np.uint32)
+                    enc = _mo().encode_gltf_buffer(idx.astype(np.uint32), mode)
+                # The bufferView itself points into the (data-less) fallback buffer 1.
+                view = {"buffer": 1, "byteOffset": fallback_len, "byteLength": len(raw)}
+                fallback_len += len(raw) + (-len(raw) % 4)
+                view["extensions"] = {
+                    "EXT_meshopt_compression": {
+                        "buffer": 0,
+                        "byteOffset": len(blob),
+                        "byteLength": len(enc),
+                        "byteStride": elem,
+                        "count": int(count),
+                        "mode": mode,
+                    }
+                }
+                blob += enc
+            else:
+                blob += raw
+            if stride is not None:
+                view["byteStride"] = stride
+            if target is not None:
+                view["target"] = target
+            self.buffer_views.append(view)
+        while len(blob) % 4:
+            blob.append(0)
+        buffers: list[dict[str, Any]] = [{"byteLength": len(blob)}]
+        if meshopt:
+            buffers.append(
+                {"byteLength": max(fallback_len, 4), "extensions": {"EXT_meshopt_compression": {"fallback": True}}}
+            )
+        return bytes(blob), buffers
 
-def mesh_to_glb(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    *,
-    normals: np.ndarray | None = None,
-    color: tuple[float, float, float, float] = (0.8, 0.7, 0.62, 1.0),
-    name: str = "avatar",
-    skin: Skin | dict[str, Any] | None = None,
-) -> bytes:
-    """A triangle mesh as GLB 2.0 bytes.
 
-    vertices: (N, 3) float (metres, Y up), faces: (F, 3) int (counter-clockwise = outside),
-    normals: (N, 3) or None (smooth area-weighted normals are computed),
-    color: linear RGBA base colour of the PBR material, name: mesh/node name,
-    skin: optional :class:`Skin`; adds a joint node hierarchy (translations relative to the
-    parent, identity rotations), inverse bind matrices (translation by -joint) and
-    JOINTS_0/WEIGHTS_0 attributes.
-    """
-    v = np.asarray(vertices, dtype=np.float32)
-    f = np.asarray(faces, dtype=np.int64)
+def _mo() -> Any:
+    """The ``meshopt`` module (meshoptimizer's codecs), imported on first use."""
+    try:
+        import meshopt
+    except ImportError as e:  # pragma: no cover - it is a declared dependency
+        raise RuntimeError("compression='meshopt' needs the `meshopt` Python package") from e
+    return meshopt
+
+
+COMPRESSIONS = (None, "quantize", "meshopt")
+DEFAULT_COLOR = (0.8, 0.7, 0.62, 1.0)
+
+
+def _check_compression(compression: str | None) -> None:
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
+
+
+def _check_skeleton(skin: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    jpos = np.asarray(skin["joints"], dtype=np.float64)
+    parents = np.asarray(skin["parents"], dtype=np.int64)
+    names = [str(x) for x in skin["joint_names"]]
+    n_j = jpos.shape[0] if jpos.ndim == 2 else 0
+    if jpos.shape != (n_j, 3) or parents.shape != (n_j,) or len(names) != n_j or n_j == 0:
+        raise ValueError("skin joints (J, 3), parents (J,) and joint_names (J) must agree")
+    if not np.all(np.isfinite(jpos)):
+        raise ValueError("skin joints must be finite")
+    for i, p in enumerate(parents):
+        if not (p == -1 or 0 <= p < i):
+            raise ValueError("skin parents must precede their children (-1 for roots)")
+    return jpos, parents, names
+
+
+def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[str, Any]:
+    """Validated float32/int arrays of one mesh dict (see :func:`scene_to_glb`)."""
+    v = np.asarray(m["vertices"], dtype=np.float32)
+    f = np.asarray(m["faces"], dtype=np.int64)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
         raise ValueError(f"vertices must be (N, 3) with N > 0, got {v.shape}")
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
@@ -162,128 +265,318 @@ def mesh_to_glb(
     n = v.shape[0]
     if f.min() < 0 or f.max() >= n:
         raise ValueError(f"face indices out of range [0, {n})")
+    normals = m.get("normals")
     nrm = vertex_normals(v, f) if normals is None else _unit_float32(np.asarray(normals, np.float64))
     if nrm.shape != v.shape:
         raise ValueError(f"normals must be {v.shape}, got {nrm.shape}")
-
-    b = _Builder()
-    attributes: dict[str, int] = {
-        "POSITION": b.add(v, FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True),
-        "NORMAL": b.add(nrm, FLOAT, "VEC3", target=ARRAY_BUFFER),
+    color = tuple(float(c) for c in m.get("color", DEFAULT_COLOR))
+    if len(color) == 3:
+        color = (*color, 1.0)
+    if len(color) != 4:
+        raise ValueError(f"color must be RGBA, got {color}")
+    out: dict[str, Any] = {
+        "v": v,
+        "f": f,
+        "n": nrm,
+        "color": color,
+        "name": str(m.get("name", f"mesh{index}")),
+        "double_sided": bool(m.get("double_sided", False)),
+        "targets": None,
+        "target_names": None,
+        "joints": None,
+        "weights": None,
     }
-    nodes: list[dict[str, Any]] = []
-    gltf_skins: list[dict[str, Any]] = []
-    scene_nodes = [0]
-    nodes.append({"name": name, "mesh": 0})
-
-    if skin is not None:
-        jpos = np.asarray(skin["joints"], dtype=np.float64)
-        parents = np.asarray(skin["parents"], dtype=np.int64)
-        names = list(skin["joint_names"])
-        n_j = jpos.shape[0]
-        if jpos.shape != (n_j, 3) or parents.shape != (n_j,) or len(names) != n_j or n_j == 0:
-            raise ValueError("skin joints (J, 3), parents (J,) and joint_names (J) must agree")
-        for i, p in enumerate(parents):
-            if not (p == -1 or 0 <= p < i):
-                raise ValueError("skin parents must precede their children (-1 for roots)")
-        vj, vw = _clean_skin_weights(skin["vertex_joints"], skin["vertex_weights"], n_j)
+    if m.get("targets") is not None:
+        t = np.asarray(m["targets"], dtype=np.float32)
+        if t.ndim != 3 or t.shape[1:] != v.shape:
+            raise ValueError(f"targets must be (K, {n}, 3), got {t.shape}")
+        if not np.all(np.isfinite(t)):
+            raise ValueError("targets must be finite")
+        names = m.get("target_names")
+        names = [f"basis_{i}" for i in range(t.shape[0])] if names is None else [str(x) for x in names]
+        if len(names) != t.shape[0]:
+            raise ValueError(f"target_names must have {t.shape[0]} entries, got {len(names)}")
+        if t.shape[0] > 0:
+            out["targets"], out["target_names"] = t, names
+    has_j = m.get("vertex_joints") is not None or m.get("vertex_weights") is not None
+    if has_j:
+        if n_joints is None:
+            raise ValueError(f"mesh {out['name']!r} has vertex_joints/vertex_weights but no skin was given")
+        if m.get("vertex_joints") is None or m.get("vertex_weights") is None:
+            raise ValueError("vertex_joints and vertex_weights go together")
+        vj, vw = _clean_skin_weights(m["vertex_joints"], m["vertex_weights"], n_joints)
         if vj.shape[0] != n:
             raise ValueError(f"skin vertex arrays must have {n} rows, got {vj.shape[0]}")
-        jtype = UNSIGNED_BYTE if n_j <= 256 else UNSIGNED_SHORT
-        attributes["JOINTS_0"] = b.add(vj, jtype, "VEC4", target=ARRAY_BUFFER)
-        attributes["WEIGHTS_0"] = b.add(vw, FLOAT, "VEC4", target=ARRAY_BUFFER)
-        ibm = np.tile(np.eye(4, dtype=np.float32), (n_j, 1, 1))
-        ibm[:, 3, :3] = -jpos  # column-major storage: translation is the 4th column
-        ibm_acc = b.add(ibm.reshape(n_j, 16), FLOAT, "MAT4")
+        out["joints"], out["weights"] = vj, vw
+    return out
+
+
+def _quant_grid(meshes: list[dict[str, Any]]) -> tuple[float, np.ndarray]:
+    """One uniform step ``s`` and centre ``t`` so that (v - t) / s and every morph delta / s fit
+    in [-32767, 32767] for all ``meshes``. Uniform, so normals stay correct under the node scale."""
+    lo = np.min([m["v"].min(axis=0) for m in meshes], axis=0).astype(np.float64)
+    hi = np.max([m["v"].max(axis=0) for m in meshes], axis=0).astype(np.float64)
+    t = (lo + hi) / 2.0
+    s = float(np.max(hi - lo)) / (2 * 32767)
+    for m in meshes:
+        if m["targets"] is not None:
+            s = max(s, float(np.abs(m["targets"]).max()) / 32767)
+    s = s * (1 + 1e-9) if s > 0 else 1.0  # keep rounding inside the range
+    return s, t
+
+
+def _build_glb(
+    meshes: list[dict[str, Any]],
+    skin: dict[str, Any] | None,
+    compression: str | None,
+    skin_name: str = "skeleton",
+) -> bytes:
+    _check_compression(compression)
+    if not meshes:
+        raise ValueError("at least one mesh is needed")
+    skel = _check_skeleton(skin) if skin is not None else None
+    n_j = skel[0].shape[0] if skel is not None else None
+    ms = [_prepare_mesh(m, i, n_j) for i, m in enumerate(meshes)]
+    quant = compression in ("quantize", "meshopt")
+    skinned = [m for m in ms if m["joints"] is not None]
+    skin_grid = _quant_grid(skinned) if quant and skinned else None
+
+    b = _Builder()
+    nodes: list[dict[str, Any]] = []
+    gltf_meshes: list[dict[str, Any]] = []
+    materials: list[dict[str, Any]] = []
+    for mi, m in enumerate(ms):
+        node: dict[str, Any] = {"name": m["name"], "mesh": mi}
+        if quant:
+            s, t = skin_grid if m["joints"] is not None else _quant_grid([m])  # type: ignore[misc]
+            q = np.clip(np.round((m["v"].astype(np.float64) - t) / s), -32767, 32767).astype(np.int16)
+            pos = b.add(q, SHORT, "VEC3", target=ARRAY_BUFFER, minmax=True)
+            nrm = b.add(_quantize_normals(m["n"]), BYTE, "VEC3", target=ARRAY_BUFFER, normalized=True)
+            if m["joints"] is None:  # a skinned node's transform is ignored: the skin dequantizes
+                node["translation"] = [float(x) for x in t]
+                node["scale"] = [s, s, s]
+        else:
+            pos = b.add(m["v"], FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True)
+            nrm = b.add(m["n"], FLOAT, "VEC3", target=ARRAY_BUFFER)
+        attributes: dict[str, int] = {"POSITION": pos, "NORMAL": nrm}
+        if m["joints"] is not None:
+            jtype = UNSIGNED_BYTE if n_j is not None and n_j <= 256 else UNSIGNED_SHORT
+            if quant:
+                w8, j = _quantize_weights(m["weights"], m["joints"])
+                attributes["JOINTS_0"] = b.add(j, jtype, "VEC4", target=ARRAY_BUFFER)
+                attributes["WEIGHTS_0"] = b.add(w8, UNSIGNED_BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
+            else:
+                attributes["JOINTS_0"] = b.add(m["joints"], jtype, "VEC4", target=ARRAY_BUFFER)
+                attributes["WEIGHTS_0"] = b.add(m["weights"], FLOAT, "VEC4", target=ARRAY_BUFFER)
+            node["skin"] = 0
+        prim: dict[str, Any] = {"attributes": attributes}
+        gmesh: dict[str, Any] = {"name": m["name"], "primitives": [prim]}
+        if m["targets"] is not None:
+            targets = []
+            for d in m["targets"]:
+                if quant:
+                    s = node["scale"][0] if "scale" in node else skin_grid[0]  # type: ignore[index]
+                    dq = np.clip(np.round(d.astype(np.float64) / s), -32767, 32767).astype(np.int16)
+                    targets.append({"POSITION": b.add(dq, SHORT, "VEC3", target=ARRAY_BUFFER, minmax=True)})
+                else:
+                    targets.append({"POSITION": b.add(d, FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True)})
+            prim["targets"] = targets
+            gmesh["weights"] = [0.0] * len(targets)
+            gmesh["extras"] = {"targetNames": list(m["target_names"])}
+        itype = UNSIGNED_SHORT if m["v"].shape[0] < 65535 else UNSIGNED_INT
+        prim["indices"] = b.add(m["f"].reshape(-1), itype, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
+        prim["material"] = mi
+        prim["mode"] = TRIANGLES
+        mat: dict[str, Any] = {
+            "name": f"{m['name']}_material",
+            "pbrMetallicRoughness": {
+                "baseColorFactor": list(m["color"]),
+                "metallicFactor": 0.0,
+                "roughnessFactor": 0.8,
+            },
+        }
+        if m["color"][3] < 1.0:
+            mat["alphaMode"] = "BLEND"
+        if m["double_sided"]:
+            mat["doubleSided"] = True
+        materials.append(mat)
+        gltf_meshes.append(gmesh)
+        nodes.append(node)
+    scene_nodes = list(range(len(nodes)))
+
+    gltf_skins: list[dict[str, Any]] = []
+    if skel is not None:
+        jpos, parents, names = skel
         first = len(nodes)
-        for i in range(n_j):
+        for i in range(len(names)):
             rel = jpos[i] - (jpos[parents[i]] if parents[i] >= 0 else 0.0)
-            node: dict[str, Any] = {"name": str(names[i]), "translation": [float(x) for x in rel]}
-            children = [first + c for c in range(n_j) if parents[c] == i]
+            jn: dict[str, Any] = {"name": names[i], "translation": [float(x) for x in rel]}
+            children = [first + c for c in range(len(names)) if parents[c] == i]
             if children:
-                node["children"] = children
-            nodes.append(node)
-        roots = [first + i for i in range(n_j) if parents[i] == -1]
+                jn["children"] = children
+            nodes.append(jn)
+        roots = [first + i for i in range(len(names)) if parents[i] == -1]
         scene_nodes += roots
-        gltf_skins.append(
-            {
-                "name": f"{name}_skeleton",
-                "inverseBindMatrices": ibm_acc,
-                "joints": list(range(first, first + n_j)),
-                "skeleton": roots[0],
-            }
-        )
-        nodes[0]["skin"] = 0
+        if skinned:
+            ibm = np.tile(np.eye(4), (len(names), 1, 1))
+            ibm[:, :3, 3] = -jpos
+            if skin_grid is not None:  # bake the dequantization into the bind: IBM @ D
+                s, t = skin_grid
+                dq = np.eye(4)
+                dq[:3, :3] *= s
+                dq[:3, 3] = t
+                ibm = ibm @ dq
+            ibm_col = np.transpose(ibm, (0, 2, 1)).reshape(len(names), 16)  # column-major
+            gltf_skins.append(
+                {
+                    "name": skin_name,
+                    "inverseBindMatrices": b.add(ibm_col, FLOAT, "MAT4"),
+                    "joints": list(range(first, first + len(names))),
+                    "skeleton": roots[0],
+                }
+            )
 
-    itype = UNSIGNED_SHORT if n < 65535 else UNSIGNED_INT
-    indices = b.add(f.reshape(-1), itype, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
-
-    doc: dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": "tryon service.model.gltf"},
-        "scene": 0,
-        "scenes": [{"name": "scene", "nodes": scene_nodes}],
-        "nodes": nodes,
-        "meshes": [
-            {
-                "name": name,
-                "primitives": [
-                    {"attributes": attributes, "indices": indices, "material": 0, "mode": TRIANGLES}
-                ],
-            }
-        ],
-        "materials": [
-            {
-                "name": f"{name}_material",
-                "pbrMetallicRoughness": {
-                    "baseColorFactor": [float(c) for c in color],
-                    "metallicFactor": 0.0,
-                    "roughnessFactor": 0.8,
-                },
-            }
-        ],
-        "accessors": b.accessors,
-        "bufferViews": b.buffer_views,
-        "buffers": [{"byteLength": 0}],
-    }
+    blob, buffers = b.finish(meshopt=compression == "meshopt")
+    doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": "tryon service.model.gltf"}}
+    ext = {"quantize": ["KHR_mesh_quantization"], "meshopt": ["KHR_mesh_quantization", "EXT_meshopt_compression"]}
+    if compression is not None:
+        doc["extensionsUsed"] = ext[compression]
+        doc["extensionsRequired"] = ext[compression]
+    doc.update(
+        {
+            "scene": 0,
+            "scenes": [{"name": "scene", "nodes": scene_nodes}],
+            "nodes": nodes,
+            "meshes": gltf_meshes,
+            "materials": materials,
+            "accessors": b.accessors,
+            "bufferViews": b.buffer_views,
+            "buffers": buffers,
+        }
+    )
     if gltf_skins:
         doc["skins"] = gltf_skins
-    while len(b.blob) % 4:
-        b.blob.append(0)
-    doc["buffers"][0]["byteLength"] = len(b.blob)
 
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * (-len(js) % 4)
-    total = 12 + 8 + len(js) + 8 + len(b.blob)
+    total = 12 + 8 + len(js) + 8 + len(blob)
     out = bytearray(struct.pack("<III", GLB_MAGIC, GLB_VERSION, total))
     out += struct.pack("<II", len(js), CHUNK_JSON) + js
-    out += struct.pack("<II", len(b.blob), CHUNK_BIN) + bytes(b.blob)
+    out += struct.pack("<II", len(blob), CHUNK_BIN) + blob
     return bytes(out)
 
 
-def _read_accessor(doc: dict[str, Any], blob: bytes, index: int) -> np.ndarray:
-    """Accessor ``index`` as an array (count,) or (count, ncomp) of its component dtype."""
-    acc = doc["accessors"][index]
-    dtype = _DTYPES[acc["componentType"]]
-    ncomp = _NCOMP[acc["type"]]
-    count = int(acc["count"])
-    view = doc["bufferViews"][acc["bufferView"]]
-    start = int(view.get("byteOffset", 0)) + int(acc.get("byteOffset", 0))
-    elem = dtype.itemsize * ncomp
-    stride = int(view.get("byteStride", elem))
-    if count == 0:
-        return np.zeros((0, ncomp) if ncomp > 1 else (0,), dtype)
-    raw = np.frombuffer(blob, np.uint8, count=(count - 1) * stride + elem, offset=start)
-    rows = np.lib.stride_tricks.as_strided(raw, shape=(count, elem), strides=(stride, 1))
-    arr = np.ascontiguousarray(rows).view(dtype).reshape(count, ncomp)
-    return arr[:, 0] if ncomp == 1 else arr
+def mesh_to_glb(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    normals: np.ndarray | None = None,
+    color: tuple[float, float, float, float] = DEFAULT_COLOR,
+    name: str = "avatar",
+    skin: Skin | dict[str, Any] | None = None,
+    compression: str | None = None,
+) -> bytes:
+    """A triangle mesh as GLB 2.0 bytes.
 
-
-def read_glb(data: bytes) -> dict[str, Any]:
-    """Minimal GLB reader (first mesh, first primitive), for round-trip tests.
-
-    Returns ``{"json": dict, "positions": (N, 3) float32, "indices": (F, 3) int64,
-    "normals": (N, 3) float32 | None, "joints": (N, 4) | None, "weights": (N, 4) | None}``.
+    vertices: (N, 3) float (metres, Y up), faces: (F, 3) int (counter-clockwise = outside),
+    normals: (N, 3) or None (smooth area-weighted normals are computed),
+    color: linear RGBA base colour of the PBR material, name: mesh/node name,
+    skin: optional :class:`Skin`; adds a joint node hierarchy (translations relative to the
+    parent, identity rotations), inverse bind matrices (translation by -joint) and
+    JOINTS_0/WEIGHTS_0 attributes,
+    compression: None (float32), "quantize" or "meshopt" (see :func:`scene_to_glb`).
     """
+    mesh: dict[str, Any] = {"vertices": vertices, "faces": faces, "normals": normals, "color": color, "name": name}
+    skeleton = None
+    if skin is not None:
+        mesh["vertex_joints"], mesh["vertex_weights"] = skin["vertex_joints"], skin["vertex_weights"]
+        skeleton = {k: skin[k] for k in ("joints", "parents", "joint_names")}  # type: ignore[literal-required]
+    return _build_glb([mesh], skeleton, compression, skin_name=f"{name}_skeleton")
+
+
+def scene_to_glb(
+    meshes: list[dict[str, Any]],
+    *,
+    skin: dict[str, Any] | None = None,
+    compression: str | None = None,
+) -> bytes:
+    """Several triangle meshes in one scene (e.g. an avatar and the garments it wears) as GLB.
+
+    Each mesh dict: ``vertices`` (N, 3) float, ``faces`` (F, 3) int, optional ``normals``
+    (N, 3), ``color`` RGBA (linear, PBR base colour; alpha < 1 gives alphaMode BLEND),
+    ``name``, ``double_sided`` (bool, e.g. for garments), ``vertex_joints`` (N, 4) int +
+    ``vertex_weights`` (N, 4) float (skinned meshes; need ``skin``), and ``targets`` (K, N, 3)
+    morph POSITION deltas with ``target_names`` (K) (see :func:`basis_to_glb`).
+    Mesh i is node i and mesh i, with material i.
+
+    skin: {joints (J, 3) rest world positions, parents (J,) (-1 for roots, parents first),
+    joint_names (J)}: ONE joint node hierarchy and ONE glTF skin (skins[0]) shared by every
+    mesh that has vertex_joints, so posing the skeleton poses the body and its clothes together.
+
+    compression:
+      None: float32 positions/normals/weights/morph deltas (default).
+      "quantize": KHR_mesh_quantization. Positions and morph POSITION deltas as SHORT
+        (non-normalized) on a uniform grid of step s: the original is q * s + t; the
+        dequantization is the node's scale/translation, or for skinned meshes it is baked into
+        the shared skin's inverse bind matrices (a skinned node's own transform is ignored by
+        glTF), using one grid for all skinned meshes. Normals as normalized BYTE, weights as
+        normalized UNSIGNED_BYTE (rows sum to 255, joint 0 where the weight is 0).
+      "meshopt": "quantize" plus EXT_meshopt_compression: every vertex attribute and index
+        bufferView is encoded with meshoptimizer's vertex / index codecs (Python package
+        ``meshopt``); the bufferViews point into a data-less fallback buffer (buffers[1],
+        ``fallback: true``) and the extension is required.
+    Raises ValueError on bad input or an unknown compression.
+    """
+    return _build_glb(list(meshes), skin, compression)
+
+
+def basis_to_glb(
+    g: np.ndarray,
+    B: np.ndarray,
+    faces: np.ndarray,
+    *,
+    color: tuple[float, float, float, float] = (0.25, 0.35, 0.6, 1.0),
+    name: str = "garment",
+    target_names: list[str] | tuple[str, ...] | None = None,
+    normals: np.ndarray | None = None,
+    compression: str | None = None,
+    skin: Skin | dict[str, Any] | None = None,
+) -> bytes:
+    """A garment's clothing basis as one GLB mesh with morph targets.
+
+    g: (M, 3) mean garment (the base POSITION), B: (N, M, 3) basis, stored as N morph targets
+    whose POSITION deltas are B[i]; faces: (F, 3). The morph weights default to 0 and
+    ``mesh.extras.targetNames`` holds ``target_names`` (default "basis_0".."basis_{N-1}").
+    glTF's morph formula, POSITION = g + sum_i weight_i * B[i], is exactly the basis
+    synthesis g + sum_i w_i B_i: a client holding a customer's PCA weights w sets the mesh's
+    morph weights to w[:N] to render that customer's fit (with compression the targets are
+    quantized to the position grid, see :func:`scene_to_glb`). Normals are those of g.
+    The material is double sided. skin: optional :class:`Skin` (as for :func:`mesh_to_glb`).
+    """
+    Bf = np.asarray(B)
+    mesh: dict[str, Any] = {
+        "vertices": g,
+        "faces": faces,
+        "normals": normals,
+        "color": color,
+        "name": name,
+        "double_sided": True,
+        "targets": Bf,
+        "target_names": target_names,
+    }
+    if Bf.ndim != 3:
+        raise ValueError(f"B must be (N, M, 3), got {Bf.shape}")
+    skeleton = None
+    if skin is not None:
+        mesh["vertex_joints"], mesh["vertex_weights"] = skin["vertex_joints"], skin["vertex_weights"]
+        skeleton = {k: skin[k] for k in ("joints", "parents", "joint_names")}  # type: ignore[literal-required]
+    return _build_glb([mesh], skeleton, compression, skin_name=f"{name}_skeleton")
+
+
+# ----------------------------------------------------------------------------------- reading
+
+
+def _parse_glb(data: bytes) -> tuple[dict[str, Any], bytes]:
     if len(data) < 20:
         raise ValueError("not a GLB: too short")
     magic, version, length = struct.unpack_from("<III", data, 0)
@@ -302,22 +595,169 @@ def read_glb(data: bytes) -> dict[str, Any]:
         pos += 8 + clen
     if doc is None:
         raise ValueError("GLB has no JSON chunk")
-    prim = doc["meshes"][0]["primitives"][0]
+    return doc, blob
+
+
+def _view_bytes(doc: dict[str, Any], blob: bytes, index: int) -> bytes:
+    """Bytes of bufferView ``index`` (GLB buffer 0), decoding EXT_meshopt_compression."""
+    view = doc["bufferViews"][index]
+    ext = view.get("extensions", {}).get("EXT_meshopt_compression")
+    if ext is not None:
+        if int(ext.get("buffer", 0)) != 0:
+            raise ValueError("only GLB-stored (buffer 0) meshopt data can be read")
+        off = int(ext.get("byteOffset", 0))
+        src = blob[off : off + int(ext["byteLength"])]
+        count, size = int(ext["count"]), int(ext["byteStride"])
+        filt = ext.get("filter", "NONE")
+        raw = _mo().decode_gltf_buffer(src, count, size, ext.get("mode", "ATTRIBUTES"), filt)
+        return np.ascontiguousarray(raw).tobytes()
+    if int(view.get("buffer", 0)) != 0:
+        raise ValueError("only GLB-stored (buffer 0) data can be read")
+    off = int(view.get("byteOffset", 0))
+    return blob[off : off + int(view["byteLength"])]
+
+
+def _read_accessor(doc: dict[str, Any], blob: bytes, index: int) -> np.ndarray:
+    """Accessor ``index`` as an array (count,) or (count, ncomp) of its component dtype
+    (raw stored values; meshopt-encoded views are decoded)."""
+    acc = doc["accessors"][index]
+    dtype = _DTYPES[acc["componentType"]]
+    ncomp = _NCOMP[acc["type"]]
+    count = int(acc["count"])
+    view = doc["bufferViews"][acc["bufferView"]]
+    data = _view_bytes(doc, blob, acc["bufferView"])
+    start = int(acc.get("byteOffset", 0))
+    elem = dtype.itemsize * ncomp
+    stride = int(view.get("byteStride", elem))
+    if count == 0:
+        return np.zeros((0, ncomp) if ncomp > 1 else (0,), dtype)
+    raw = np.frombuffer(data, np.uint8, count=(count - 1) * stride + elem, offset=start)
+    rows = np.lib.stride_tricks.as_strided(raw, shape=(count, elem), strides=(stride, 1))
+    arr = np.ascontiguousarray(rows).view(dtype).reshape(count, ncomp)
+    return arr[:, 0] if ncomp == 1 else arr
+
+
+_NORM_DIV = {BYTE: 127.0, UNSIGNED_BYTE: 255.0, SHORT: 32767.0, UNSIGNED_SHORT: 65535.0}
+
+
+def _read_float(doc: dict[str, Any], blob: bytes, index: int) -> np.ndarray:
+    """Accessor ``index`` as float64, normalized integers mapped to [-1, 1] / [0, 1]."""
+    acc = doc["accessors"][index]
+    arr = _read_accessor(doc, blob, index).astype(np.float64)
+    if acc.get("normalized"):
+        arr = np.maximum(arr / _NORM_DIV[acc["componentType"]], -1.0)
+    return arr
+
+
+def _quat_matrix(q: list[float]) -> np.ndarray:
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _world_matrices(doc: dict[str, Any]) -> list[np.ndarray]:
+    """Each node's rest world matrix (4, 4)."""
+    nodes = doc.get("nodes", [])
+    local = []
+    for nd in nodes:
+        if "matrix" in nd:
+            mat = np.array(nd["matrix"], np.float64).reshape(4, 4).T
+        else:
+            mat = np.eye(4)
+            mat[:3, :3] = _quat_matrix(nd.get("rotation", [0, 0, 0, 1])) * np.array(nd.get("scale", [1, 1, 1]))
+            mat[:3, 3] = nd.get("translation", [0, 0, 0])
+        local.append(mat)
+    parent = [-1] * len(nodes)
+    for i, nd in enumerate(nodes):
+        for c in nd.get("children", []):
+            parent[c] = i
+    world: list[np.ndarray | None] = [None] * len(nodes)
+
+    def get(i: int) -> np.ndarray:
+        if world[i] is None:
+            world[i] = local[i] if parent[i] < 0 else get(parent[i]) @ local[i]
+        return world[i]  # type: ignore[return-value]
+
+    return [get(i) for i in range(len(nodes))]
+
+
+def _read_mesh(doc: dict[str, Any], blob: bytes, mi: int, world: list[np.ndarray]) -> dict[str, Any]:
+    gm = doc["meshes"][mi]
+    prim = gm["primitives"][0]
     attrs = prim["attributes"]
+    pos_acc = doc["accessors"][attrs["POSITION"]]
+    positions = _read_float(doc, blob, attrs["POSITION"])
+    # Quantized positions are dequantized by the mesh node's transform or, when skinned, by the
+    # skin's bind (world(joint) @ IBM is that transform for a skeleton at rest).
+    deq = np.eye(4)
+    quantized = pos_acc["componentType"] != FLOAT
+    if quantized:
+        ni = next((i for i, nd in enumerate(doc.get("nodes", [])) if nd.get("mesh") == mi), None)
+        if ni is not None:
+            nd = doc["nodes"][ni]
+            if "skin" in nd:
+                sk = doc["skins"][nd["skin"]]
+                ibm = _read_float(doc, blob, sk["inverseBindMatrices"])[0].reshape(4, 4).T
+                deq = world[sk["joints"][0]] @ ibm
+            else:
+                deq = world[ni]
+        positions = positions @ deq[:3, :3].T + deq[:3, 3]
 
     def opt(key: str) -> np.ndarray | None:
         return _read_accessor(doc, blob, attrs[key]) if key in attrs else None
 
-    positions = _read_accessor(doc, blob, attrs["POSITION"])
+    normals = None
+    if "NORMAL" in attrs:
+        normals = _read_float(doc, blob, attrs["NORMAL"])
+        if doc["accessors"][attrs["NORMAL"]]["componentType"] != FLOAT:
+            normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        normals = normals.astype(np.float32)
+    weights = None
+    if "WEIGHTS_0" in attrs:
+        weights = _read_float(doc, blob, attrs["WEIGHTS_0"]).astype(np.float32)
+    targets = []
+    for tg in prim.get("targets", []):
+        d = _read_float(doc, blob, tg["POSITION"])
+        if quantized:
+            d = d @ deq[:3, :3].T
+        targets.append(d.astype(np.float32))
     if "indices" in prim:
         indices = _read_accessor(doc, blob, prim["indices"]).astype(np.int64).reshape(-1, 3)
     else:
         indices = np.arange(positions.shape[0], dtype=np.int64).reshape(-1, 3)
     return {
-        "json": doc,
-        "positions": positions,
+        "name": gm.get("name"),
+        "positions": positions.astype(np.float32),
         "indices": indices,
-        "normals": opt("NORMAL"),
+        "normals": normals,
         "joints": opt("JOINTS_0"),
-        "weights": opt("WEIGHTS_0"),
+        "weights": weights,
+        "targets": np.stack(targets) if targets else None,
+        "target_names": gm.get("extras", {}).get("targetNames"),
+        "morph_weights": gm.get("weights"),
+        "material": prim.get("material"),
     }
+
+
+def read_glb(data: bytes) -> dict[str, Any]:
+    """Minimal GLB reader (first primitive of each mesh), for round-trip tests.
+
+    Returns the first mesh's ``{"positions": (N, 3) float32, "indices": (F, 3) int64,
+    "normals": (N, 3) float32 | None, "joints": (N, 4) | None, "weights": (N, 4) float32 | None,
+    "targets": (K, N, 3) float32 morph POSITION deltas | None, "target_names", "morph_weights",
+    "name", "material"}`` plus ``"json"`` (the glTF document) and ``"meshes"`` (that dict for
+    every mesh). KHR_mesh_quantization data is dequantized (positions and deltas back in the
+    writer's units, normalized normals/weights as floats); EXT_meshopt_compression views are
+    decoded with the ``meshopt`` package.
+    """
+    doc, blob = _parse_glb(data)
+    world = _world_matrices(doc)
+    meshes = [_read_mesh(doc, blob, i, world) for i in range(len(doc.get("meshes", [])))]
+    if not meshes:
+        raise ValueError("GLB has no mesh")
+    return {"json": doc, **meshes[0], "meshes": meshes}

@@ -2,7 +2,8 @@
 
 1. Validate: known names, numbers, finite, inside the accepted range (``MeasurementError``).
 2. Condition the population's joint Gaussian of (attributes, PCA weights) on whatever subset
-   was given (gender as 0 = female, 1 = male). With all 12 given this is the editing paper's
+   was given (gender as 0 = female, 1 = male); the Gaussian is that of the avatars fitted to
+   ANSUR II training subjects (see ``_prior``). With all 12 given this is the editing paper's
    linear regression from biometric attributes to shape (Sec. 4.1); with none, the population
    mean.
 3. Refine by Gauss-Newton so the avatar re-measures what was entered:
@@ -109,7 +110,12 @@ class JointGaussian:
 
 @functools.lru_cache(maxsize=4)
 def _prior(model) -> JointGaussian:
-    return JointGaussian.from_population(model.population["attributes"], model.population["weights"])
+    """The Gaussian of the avatars fitted to ANSUR II training subjects (the population's first
+    rows). The heavy civilians that follow extend the shape space, but only 4 of their 12
+    attributes were measured (the rest are the body model's defaults), so they stay out of
+    the attribute regression."""
+    n = int(model.meta["population"]["ansur_training"])
+    return JointGaussian.from_population(model.population["attributes"][:n], model.population["weights"][:n])
 
 
 def _gender_code(attrs: dict) -> float:

@@ -1,0 +1,484 @@
+"""Customers and garments between the HTTP layer and the model: upload parsing and validation,
+garment builds (mesh sets, MakeHuman ``.mhclo``, the demo catalogue), try-on GLBs.
+
+No FastAPI imports: errors are :class:`UploadError` (``loc`` + message) that the routes turn
+into 422 answers. Shapes follow ``service.model``: avatar vertices (V, 3) metres, garment
+vertices (M, 3), faces (F, 3).
+"""
+from __future__ import annotations
+
+import functools
+import inspect
+import io
+import logging
+import threading
+import time
+from collections import OrderedDict
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+
+from service.model.body import BONES, BodyModel
+from service.storage import Storage, new_id
+
+log = logging.getLogger("tryon.catalogue")
+
+MAX_GARMENT_VERTICES = 100_000
+MAX_GARMENT_FACES = 400_000
+NEAR_MEDIAN_M = 0.08  # median distance of a fitted garment to its example body
+NEAR_MAX_M = 0.40  # largest distance of any garment vertex to its example body
+ORDER_MIN_BODY_RMS_M = 0.005  # components that barely move the body under the garment are skipped
+ORDER_SWAP_COS = -0.3  # a +/- pair whose garment moves against its body: swapped files
+ORDER_MIN_COS = 0.3  # body-motion-weighted mean cosine below this: files in the wrong order
+UNIT_SCALES = (("m", 1.0), ("cm", 0.01), ("mm", 0.001))
+DEFAULT_COLOR = (0.55, 0.55, 0.58, 1.0)
+DEFAULT_LAYER = 1
+DEMO_OWNER = "demo"
+MESH_TYPES = ("obj", "ply", "glb")
+
+
+class UploadError(ValueError):
+    """An unusable upload: ``loc`` (as in a 422 detail entry) and a message saying why."""
+
+    def __init__(self, loc: tuple[Any, ...], message: str):
+        super().__init__(message)
+        self.loc = loc
+        self.message = message
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+# -- example avatars --------------------------------------------------------------------------
+class Examples:
+    """The example avatars of a model (listing order) and KD-trees of their body surfaces."""
+
+    def __init__(self, model: BodyModel):
+        from service.model.tryon import example_set, example_vertices
+
+        self.model = model
+        self.set = example_set(model)
+        self.vertices = example_vertices(model, self.set)  # (1 + 2N, V, 3)
+        self.listing = self.set.listing()
+        self.ids = [e["id"] for e in self.listing]
+        self._trees: dict[int, Any] = {}
+        self._lock = threading.Lock()
+
+    def tree(self, i: int):
+        from scipy.spatial import cKDTree
+
+        with self._lock:
+            if i not in self._trees:
+                self._trees[i] = cKDTree(self.model.body_vertices(self.vertices[i]).astype(np.float64))
+            return self._trees[i]
+
+    def index(self, example_id: str) -> int | None:
+        try:
+            return self.ids.index(example_id)
+        except ValueError:
+            return None
+
+
+@functools.lru_cache(maxsize=4)
+def examples(model: BodyModel) -> Examples:
+    return Examples(model)
+
+
+# -- mesh files --------------------------------------------------------------------------------
+def mesh_type(data: bytes, filename: str | None) -> str:
+    """'glb', 'ply' or 'obj' from the file's magic bytes, else its extension, else 'obj'."""
+    if data[:4] == b"glTF":
+        return "glb"
+    if data[:3].lower() == b"ply":
+        return "ply"
+    ext = (filename or "").rsplit(".", 1)[-1].lower() if filename and "." in filename else ""
+    if ext in MESH_TYPES:
+        return ext
+    return "obj"
+
+
+def read_mesh(data: bytes, filename: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) float64 and faces (F, 3) of an OBJ/PLY/GLB file, in the file's vertex
+    order (trimesh, ``process=False``). Raises ValueError with a reason."""
+    import trimesh
+
+    if not data:
+        raise ValueError("the file is empty")
+    kind = mesh_type(data, filename)
+    kwargs: dict[str, Any] = {"process": False}
+    if kind == "obj":
+        kwargs["maintain_order"] = True
+    try:
+        mesh = trimesh.load(io.BytesIO(data), file_type=kind, force="mesh", **kwargs)
+    except Exception as exc:  # trimesh raises many kinds of errors on garbage
+        raise ValueError(f"cannot read the file as {kind.upper()}: {exc or type(exc).__name__}") from exc
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise ValueError(f"no vertices found in the {kind.upper()} file")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise ValueError(f"no triangle faces found in the {kind.upper()} file")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError("the mesh has non-finite vertex coordinates")
+    return vertices, faces
+
+
+def obj_text(vertices: np.ndarray, faces: np.ndarray, comment: str = "") -> str:
+    """A minimal OBJ (``v`` and 1-based ``f`` lines)."""
+    out = io.StringIO()
+    if comment:
+        for line in comment.splitlines():
+            out.write(f"# {line}\n")
+    np.savetxt(out, np.asarray(vertices, np.float64), fmt="v %.6f %.6f %.6f")
+    np.savetxt(out, np.asarray(faces, np.int64) + 1, fmt="f %d %d %d")
+    return out.getvalue()
+
+
+# -- customers ------------------------------------------------------------------------------
+def estimate_gender(model: BodyModel, weights: np.ndarray) -> str:
+    """The population's more likely gender for a shape (Gaussian conditioning on weights)."""
+    try:
+        from service.model import measurements as M
+        from service.model.shape import _prior
+
+        prior = _prior(model)
+        n_attr = len(M.ATTRIBUTES)
+        w = np.asarray(weights, np.float64)
+        cond = {n_attr + k: float(w[k]) for k in range(len(w))}
+        mean, _ = prior.condition(cond, {i: 1e-6 for i in cond})
+        return "male" if mean[0] >= 0.5 else "female"
+    except Exception:  # pragma: no cover - an estimate only
+        log.exception("gender estimate failed")
+        return "female"
+
+
+def customer_from_mesh(model: BodyModel, data: bytes, filename: str | None,
+                       gender: str | None) -> dict[str, Any]:
+    """A customer record from an uploaded avatar mesh (template topology)."""
+    from service.model.avatar_io import AvatarMeshError, project_mesh
+
+    try:
+        vertices, _ = read_mesh(data, filename)
+    except ValueError as exc:
+        raise UploadError(("body", "mesh"), str(exc)) from exc
+    try:
+        proj = project_mesh(model, vertices)
+    except AvatarMeshError as exc:
+        raise UploadError(("body", "mesh"), str(exc)) from exc
+    w = np.asarray(proj.weights, np.float64)
+    estimated = [] if gender else ["gender"]
+    gender = gender or estimate_gender(model, w)
+    measured = model.measure(model.vertices(w), gender)
+    return {
+        "id": new_id(), "status": "ready", "source": "mesh", "created": now_iso(),
+        "weights": [float(x) for x in w],
+        "measurements": {k: (v if isinstance(v, str) else float(v)) for k, v in measured.items()},
+        "estimated": estimated,
+        "unit": proj.unit, "residual_mm": float(proj.residual_mm),
+    }
+
+
+class BodyCache:
+    """LRU of ``customer_body`` per customer id (invalidated on delete)."""
+
+    def __init__(self, size: int = 64):
+        self.size = size
+        self._d: OrderedDict[str, tuple[tuple[float, ...], Any]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, model: BodyModel, cid: str, weights: list[float]):
+        from service.model.tryon import customer_body
+
+        key = tuple(weights)
+        with self._lock:
+            hit = self._d.get(cid)
+            if hit is not None and hit[0] == key:
+                self._d.move_to_end(cid)
+                return hit[1]
+        body = customer_body(model, np.asarray(weights, np.float64))
+        with self._lock:
+            self._d[cid] = (key, body)
+            self._d.move_to_end(cid)
+            while len(self._d) > self.size:
+                self._d.popitem(last=False)
+        return body
+
+    def drop(self, cid: str) -> None:
+        with self._lock:
+            self._d.pop(cid, None)
+
+
+# -- garments ----------------------------------------------------------------------------------
+def parse_color(value: str | None) -> tuple[float, float, float, float]:
+    """'#rrggbb' (sRGB) -> linear RGBA; None -> the default grey."""
+    if not value:
+        return DEFAULT_COLOR
+    h = value.lstrip("#")
+    srgb = np.array([int(h[i:i + 2], 16) / 255.0 for i in (0, 2, 4)])
+    lin = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    return (float(lin[0]), float(lin[1]), float(lin[2]), 1.0)
+
+
+def check_near_bodies(ex: Examples, fits: np.ndarray, labels: list[str], locs: list[tuple]) -> None:
+    """Every fitted garment must lie near its example avatar's body surface."""
+    for i, F in enumerate(fits):
+        d, _ = ex.tree(i).query(np.asarray(F, np.float64))
+        med, mx = float(np.median(d)), float(d.max())
+        where = f"{labels[i]} (example avatar {ex.ids[i]})"
+        if med > NEAR_MEDIAN_M:
+            raise UploadError(locs[i], f"{where}: the garment is not fitted to this example avatar: its vertices "
+                                       f"are {100 * med:.1f} cm from the body surface (median; limit "
+                                       f"{100 * NEAR_MEDIAN_M:.0f} cm). Fit it to /v1/example-avatars/"
+                                       f"{ex.ids[i]}.obj, in metres, Y up")
+        if mx > NEAR_MAX_M:
+            raise UploadError(locs[i], f"{where}: a vertex is {100 * mx:.1f} cm from the body surface (limit "
+                                       f"{100 * NEAR_MAX_M:.0f} cm)")
+
+
+def check_order(ex: Examples, fits: np.ndarray, labels: list[str]) -> None:
+    """The garment must follow the example avatars: for each component i, the change of the
+    garment between E(i,+) and E(i,-) must point the way the body under it changes (cosine),
+    weighted by how much the body changes there. Catches files in the wrong order."""
+    near = ex.tree(0).query(np.asarray(fits[0], np.float64))[1]
+    cos, wts = [], []
+    for i in range(ex.set.n):
+        p, m = 1 + 2 * i, 2 + 2 * i
+        dg = np.asarray(fits[p] - fits[m], np.float64)
+        db = np.asarray(ex.vertices[p][near] - ex.vertices[m][near], np.float64)
+        rms = float(np.sqrt((db ** 2).sum(axis=1).mean()))
+        ng, nbd = np.linalg.norm(dg), np.linalg.norm(db)
+        if rms < ORDER_MIN_BODY_RMS_M or ng == 0 or nbd == 0:
+            continue
+        c = float((dg * db).sum() / (ng * nbd))
+        if c < ORDER_SWAP_COS:
+            raise UploadError(("body", "meshes", p), f"{labels[p]} and {labels[m]} look swapped: the garment "
+                                                     f"changes against the body between {ex.ids[p]} and {ex.ids[m]}")
+        cos.append(c)
+        wts.append(rms)
+    if wts and float(np.average(cos, weights=wts)) < ORDER_MIN_COS:
+        raise UploadError(("body", "meshes"), "the meshes do not follow the example avatars' shapes: send them in "
+                                              "the order of /v1/example-avatars, each fitted to its avatar")
+
+
+def detect_scale(ex: Examples, vertices: np.ndarray) -> tuple[str, float]:
+    """The unit (m, cm, mm) that puts a garment closest to the mean example body."""
+    best = None
+    for name, scale in UNIT_SCALES:
+        d, _ = ex.tree(0).query(vertices * scale)
+        med = float(np.median(d))
+        if best is None or med < best[2]:
+            best = (name, scale, med)
+    return best[0], best[1]
+
+
+def fits_from_meshes(model: BodyModel, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:
+    """(fits (1 + 2N, M, 3), faces (F, 3), unit) from one mesh per example avatar."""
+    ex = examples(model)
+    n = len(ex.ids)
+    if len(files) != n:
+        raise UploadError(("body", "meshes"), f"expected {n} meshes, one per example avatar in the order of "
+                                              f"/v1/example-avatars; got {len(files)}")
+    fits: list[np.ndarray] = []
+    faces0: np.ndarray | None = None
+    labels = [f"file {i + 1} '{name}'" for i, (name, _) in enumerate(files)]
+    locs = [("body", "meshes", i) for i in range(n)]
+    unit, scale = "m", 1.0
+    for i, (name, data) in enumerate(files):
+        try:
+            v, f = read_mesh(data, name)
+        except ValueError as exc:
+            raise UploadError(locs[i], f"{labels[i]}: {exc}") from exc
+        if len(v) > MAX_GARMENT_VERTICES:
+            raise UploadError(locs[i], f"{labels[i]}: {len(v)} vertices; at most {MAX_GARMENT_VERTICES} per garment")
+        if len(f) > MAX_GARMENT_FACES:
+            raise UploadError(locs[i], f"{labels[i]}: {len(f)} faces; at most {MAX_GARMENT_FACES} per garment")
+        if faces0 is None:
+            faces0 = f
+            unit, scale = detect_scale(ex, v)
+        else:
+            if len(v) != len(fits[0]):
+                raise UploadError(locs[i], f"{labels[i]}: {len(v)} vertices, but file 1 has {len(fits[0])}: every "
+                                           "mesh must be the same garment (same vertices and faces)")
+            if f.shape != faces0.shape or not np.array_equal(f, faces0):
+                raise UploadError(locs[i], f"{labels[i]}: its faces differ from file 1's: every mesh must be the "
+                                           "same garment (same vertices and faces, in the same order)")
+        fits.append(v * scale)
+    assert faces0 is not None
+    F = np.stack(fits)
+    check_near_bodies(ex, F, labels, locs)
+    check_order(ex, F, labels)
+    return F, faces0.astype(np.int32), unit
+
+
+def fits_from_mhclo(model: BodyModel, mhclo: bytes, obj: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(fits (1 + 2N, M, 3), faces) of a MakeHuman garment (``.mhclo`` binding + its ``.obj``)."""
+    from service.model.mhclo import MhcloError, parse_mhclo, parse_obj_faces
+
+    texts = []
+    for field, data in (("mhclo", mhclo), ("obj", obj)):
+        if not data:
+            raise UploadError(("body", field), f"the {field} file is empty")
+        try:
+            texts.append(data.decode("utf-8"))
+        except UnicodeDecodeError:
+            try:
+                texts.append(data.decode("latin-1"))
+            except UnicodeDecodeError as exc:  # pragma: no cover - latin-1 decodes anything
+                raise UploadError(("body", field), f"the {field} file is not text") from exc
+    try:
+        binding = parse_mhclo(texts[0], model.mean.shape[0])
+    except MhcloError as exc:
+        raise UploadError(("body", "mhclo"), f"mhclo: {exc}") from exc
+    try:
+        n_v, faces = parse_obj_faces(texts[1])
+    except MhcloError as exc:
+        raise UploadError(("body", "obj"), f"obj: {exc}") from exc
+    n_b = len(binding.indices)
+    if n_v != n_b:
+        raise UploadError(("body", "obj"), f"the OBJ has {n_v} vertices but the mhclo binds {n_b}: "
+                                           "they are not the same garment")
+    if n_v > MAX_GARMENT_VERTICES:
+        raise UploadError(("body", "obj"), f"{n_v} vertices; at most {MAX_GARMENT_VERTICES} per garment")
+    if len(faces) > MAX_GARMENT_FACES:
+        raise UploadError(("body", "obj"), f"{len(faces)} faces; at most {MAX_GARMENT_FACES} per garment")
+    ex = examples(model)
+    fits = np.stack([binding.fit(E) for E in ex.vertices])
+    if not np.all(np.isfinite(fits)):
+        raise UploadError(("body", "mhclo"), "the binding gives non-finite vertex positions")
+    check_near_bodies(ex, fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
+    return fits, faces.astype(np.int32)
+
+
+def build_and_store(model: BodyModel, storage: Storage, fits: np.ndarray, faces: np.ndarray, *,
+                    name: str, owner: str, source: str, color: tuple[float, ...], layer: int,
+                    extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Build the clothing basis, store it (files, then metadata) and return the record."""
+    from service.model.tryon import build_garment_basis
+
+    ex = examples(model)
+    gid = new_id()
+    meta = {"name": name, "owner": owner, "source": source, "color": [float(c) for c in color],
+            "layer": int(layer), "created": now_iso()}
+    basis = build_garment_basis(model, fits, faces, ex.set, meta=meta)
+    record = {"id": gid, **meta, **(extra or {}),
+              "n_vertices": int(basis.meta["n_vertices"]), "n_faces": int(basis.meta["n_faces"]),
+              "n_components": int(basis.meta["n_components"]), "etag": basis.etag()}
+    basis.meta["id"] = gid
+    storage.put_garment(record, basis)
+    return record
+
+
+def ensure_demo_garments(model: BodyModel, storage: Storage) -> list[str]:
+    """Build and store the demo garments that are missing (idempotent; one process builds,
+    the others wait on the Redis lock). Returns the ids of the demo garments."""
+    from service.model.demo_garments import COLORS, LAYER, make_demo_garments
+
+    ids: list[str] = []
+    with storage.lock("demo-garments", ttl=120, wait=120) as held:
+        if not held:
+            log.warning("demo garments: lock not obtained; not building them")
+        templates = None
+        for name in ("tshirt", "trousers", "skirt"):
+            gid = storage.get_str(f"demo:{name}")
+            if gid and storage.get_garment(gid) is not None:
+                ids.append(gid)
+                continue
+            if not held:
+                continue
+            if templates is None:
+                templates = make_demo_garments(model)
+            t0 = time.perf_counter()
+            ex = examples(model)
+            fits = np.stack([templates[name].fit(model, E) for E in ex.vertices])
+            rec = build_and_store(model, storage, fits, templates[name].faces, name=name, owner=DEMO_OWNER,
+                                  source="demo", color=COLORS[name], layer=LAYER[name])
+            storage.set_str(f"demo:{name}", rec["id"])
+            ids.append(rec["id"])
+            log.info("demo garment %s built (%s) in %.2fs", name, rec["id"], time.perf_counter() - t0)
+    return ids
+
+
+# -- GLB ---------------------------------------------------------------------------------------
+def _accepts(fn: Any, kw: str) -> bool:
+    try:
+        return kw in inspect.signature(fn).parameters
+    except (TypeError, ValueError):  # pragma: no cover
+        return False
+
+
+def compression_kwargs(fn: Any, compression: str | None) -> dict[str, Any]:
+    """``{"compression": c}`` when ``fn`` takes it (the GLB writers), else {}."""
+    return {"compression": compression} if compression and _accepts(fn, "compression") else {}
+
+
+def skin_of(model: BodyModel, body: Any) -> dict[str, Any]:
+    """The customer's skeleton (rest joints of their body) for GLB skins."""
+    return {"joints": model.joints(body.vertices), "parents": np.asarray(model.bone_parents),
+            "joint_names": list(BONES)}
+
+
+def garment_mesh(basis: Any, record: dict[str, Any], body: Any, layer: int) -> dict[str, Any]:
+    """The garment tried on ``body`` as a scene mesh dict (skinned with the basis' skinning)."""
+    from service.model.tryon import try_on
+
+    v, _moved = try_on(basis, body, layer=layer)
+    return {"vertices": np.asarray(v, np.float32), "faces": np.asarray(basis.faces),
+            "normals": basis.normals(v), "color": tuple(record.get("color") or DEFAULT_COLOR),
+            "name": str(record.get("name") or "garment"), "double_sided": True,
+            "vertex_joints": np.asarray(basis.skin_idx), "vertex_weights": np.asarray(basis.skin_w)}
+
+
+def avatar_mesh(model: BodyModel, body: Any) -> dict[str, Any]:
+    nb = model.n_body_vertices
+    return {"vertices": model.body_vertices(body.vertices), "faces": model.body_faces,
+            "normals": body.normals, "color": (0.8, 0.7, 0.62, 1.0), "name": "avatar",
+            "vertex_joints": model.lbs_indices[:nb], "vertex_weights": model.lbs_weights[:nb]}
+
+
+def single_mesh_glb(mesh: dict[str, Any], skin: dict[str, Any], compression: str | None) -> bytes:
+    from service.model import gltf
+
+    if hasattr(gltf, "scene_to_glb"):
+        return gltf.scene_to_glb([mesh], skin=skin, **compression_kwargs(gltf.scene_to_glb, compression))
+
+    mesh = {k: v for k, v in mesh.items() if k != "double_sided"}
+    full_skin = {**skin, "vertex_joints": mesh["vertex_joints"], "vertex_weights": mesh["vertex_weights"]}
+    return gltf.mesh_to_glb(mesh["vertices"], mesh["faces"], normals=mesh.get("normals"), color=mesh["color"],
+                            name=mesh["name"], skin=full_skin, **compression_kwargs(gltf.mesh_to_glb, compression))
+
+
+def scene_glb(meshes: list[dict[str, Any]], skin: dict[str, Any], compression: str | None) -> bytes:
+    """Several meshes sharing one skin: ``scene_to_glb`` when the GLB writer has it, else the
+    meshes merged into one (the first mesh's colour)."""
+    from service.model import gltf
+
+    if hasattr(gltf, "scene_to_glb"):
+        return gltf.scene_to_glb(meshes, skin=skin, **compression_kwargs(gltf.scene_to_glb, compression))
+    offsets = np.cumsum([0] + [len(m["vertices"]) for m in meshes])
+    merged = {
+        "vertices": np.concatenate([np.asarray(m["vertices"], np.float32) for m in meshes]),
+        "faces": np.concatenate([np.asarray(m["faces"], np.int64) + o for m, o in zip(meshes, offsets)]),
+        "normals": np.concatenate([np.asarray(m["normals"], np.float32) for m in meshes]),
+        "vertex_joints": np.concatenate([np.asarray(m["vertex_joints"]) for m in meshes]),
+        "vertex_weights": np.concatenate([np.asarray(m["vertex_weights"]) for m in meshes]),
+        "color": meshes[0]["color"], "name": "outfit",
+    }
+    return single_mesh_glb(merged, skin, compression)
+
+
+def basis_glb(basis: Any, record: dict[str, Any], compression: str | None) -> bytes:
+    """The mean garment with the clothing basis rows as morph targets (``basis_to_glb``), or
+    the mean garment alone while the GLB writer lacks it."""
+    from service.model import gltf
+
+    color = tuple(record.get("color") or DEFAULT_COLOR)
+    name = str(record.get("name") or "garment")
+    g, B, faces = np.asarray(basis.g), np.asarray(basis.B), np.asarray(basis.faces)
+    if hasattr(gltf, "basis_to_glb"):
+        names = [f"pc{i:02d}" for i in range(B.shape[0])]
+        return gltf.basis_to_glb(g, B, faces, color=color, name=name, target_names=names,
+                                 **compression_kwargs(gltf.basis_to_glb, compression))
+    return gltf.mesh_to_glb(g, faces, normals=basis.normals(g), color=color, name=name,
+                            **compression_kwargs(gltf.mesh_to_glb, compression))

