@@ -425,7 +425,7 @@ def garment_mesh(basis: Any, record: dict[str, Any], body: Any, layer: int) -> d
 
     v, _moved = try_on(basis, body, layer=layer)
     return {"vertices": np.asarray(v, np.float32), "faces": np.asarray(basis.faces),
-            "normals": basis.normals(v), "color": tuple(record.get("color") or DEFAULT_COLOR),
+            "normals": basis.normals(v, body.weights), "color": tuple(record.get("color") or DEFAULT_COLOR),
             "name": str(record.get("name") or "garment"), "double_sided": True,
             "vertex_joints": np.asarray(basis.skin_idx), "vertex_weights": np.asarray(basis.skin_w)}
 

@@ -158,3 +158,14 @@ def test_projection_of_uploaded_avatars(model):
         avatar_io.project_mesh(model, X * 0.01)
     with pytest.raises(avatar_io.AvatarMeshError, match="not an avatar"):
         avatar_io.project_mesh(model, np.random.default_rng(0).random((model.n_body_vertices, 3)) * 1.7)
+
+
+def test_winding_numbers_tell_inside_from_outside():
+    import trimesh
+
+    from service.model.geometry import winding_numbers
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    pts = np.array([[0, 0, 0], [0.49, 0.49, 0.49], [0.51, 0, 0], [2, 2, 2], [0.6, 0.6, 0.0]])
+    w = winding_numbers(pts, box.vertices, box.faces)
+    np.testing.assert_allclose(w, [1, 1, 0, 0, 0], atol=1e-9)

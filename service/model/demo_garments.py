@@ -25,7 +25,8 @@ B = {b: i for i, b in enumerate(BONES)}
 EASE = {"tshirt": 0.012, "trousers": 0.010}
 FIT_CLEARANCE = 0.006  # skin-to-cloth clearance the offline fit guarantees on each example
 SKIRT = {"rings": 24, "angles": 72, "waist_below_navel": 0.03, "hem_above_knee": 0.06,
-         "ease_top": 0.012, "ease_hem": 0.03, "flare": 0.12}
+         "ease_top": 0.012, "ease_hem": 0.03, "flare": 0.12,
+         "thigh_above_crotch": 0.02}
 COLORS = {"tshirt": (0.16, 0.35, 0.75, 1.0), "trousers": (0.12, 0.13, 0.18, 1.0),
           "skirt": (0.62, 0.12, 0.22, 1.0)}
 LAYER = {"trousers": 1, "skirt": 1, "tshirt": 2}
@@ -129,7 +130,7 @@ def skirt_rings(model, X: np.ndarray, rings: int | None = None, angles: int | No
     """The skirt on an avatar (V, 3): (rings x angles, 3).
 
     Rings run from the waist (below the navel) to the hem (above the knee) around a vertical
-    axis through the hip section's centre. Between waist and hip a ring's radius blends the
+    axis between the hip joints. Between waist and hip a ring's radius blends the
     waist and hip sections' convex hulls; below the hip it is the hip hull flared linearly (an
     A-line hangs from the hip; it does not follow the thighs in)."""
     from scipy.spatial import ConvexHull
@@ -150,9 +151,13 @@ def skirt_rings(model, X: np.ndarray, rings: int | None = None, angles: int | No
         return p2[ConvexHull(p2).vertices]
 
     hip_hull = hull_at(hip_y)
-    center = hip_hull.mean(axis=0)
+    # axis through the midpoint of the hip joints: linear in the vertices, so the skirt moves
+    # smoothly with the body (a mean of hull vertices jumps when the hull changes)
+    center = 0.5 * (J[B["thigh_l"], [0, 2]] + J[B["thigh_r"], [0, 2]])
     r_hip = _ray_hull(hip_hull, center, dirs)
     r_waist = _ray_hull(hull_at(waist_y), center, dirs)
+    # below the hip it hangs from the wider of the hip and upper-thigh sections
+    r_hang = np.maximum(r_hip, _ray_hull(hull_at(X[spec.crotch, 1] + SKIRT["thigh_above_crotch"]), center, dirs))
     levels = np.linspace(waist_y, hem_y, R)
     out = np.zeros((R, A, 3))
     for k, lv in enumerate(levels):
@@ -161,7 +166,8 @@ def skirt_rings(model, X: np.ndarray, rings: int | None = None, angles: int | No
             r = (1 - t) * r_waist + t * r_hip + SKIRT["ease_top"]
         else:
             u = (hip_y - lv) / (hip_y - hem_y)
-            r = r_hip * (1 + SKIRT["flare"] * u) + SKIRT["ease_top"] + u * (SKIRT["ease_hem"] - SKIRT["ease_top"])
+            r = (1 - u) * r_hip + u * r_hang * (1 + SKIRT["flare"]) + SKIRT["ease_top"] \
+                + u * (SKIRT["ease_hem"] - SKIRT["ease_top"])
         out[k, :, 0] = center[0] + r * dirs[:, 0]
         out[k, :, 2] = center[1] + r * dirs[:, 1]
         out[k, :, 1] = lv

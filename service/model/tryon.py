@@ -21,8 +21,9 @@ from service.model import garment as G
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
-EXAMPLES = {"n": 16, "c": 1.0}
-ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w")
+EXAMPLES = {"n": 32, "c": 0.5}
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn")
+OPTIONAL = ("gn", "Bn")  # normal basis: bases saved before it existed load without it
 
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
@@ -45,6 +46,8 @@ class GarmentBasis:
     binding: np.ndarray
     skin_idx: np.ndarray
     skin_w: np.ndarray
+    gn: np.ndarray | None = None  # (M, 3) normals of the mean garment
+    Bn: np.ndarray | None = None  # (N, M, 3) their basis (central differences, like B)
     meta: dict = field(default_factory=dict)
     _smoother: object = None
     _incidence: object = None
@@ -58,8 +61,13 @@ class GarmentBasis:
             self._smoother = G.laplacian_smoother(np.asarray(self.faces), self.n_vertices)
         return self._smoother
 
-    def normals(self, vertices: np.ndarray) -> np.ndarray:
-        """Vertex normals (M, 3) of this garment's mesh with the given vertices."""
+    def normals(self, vertices: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Unit vertex normals (M, 3) float32 of the garment. With the customer's ``weights``
+        and a normal basis: synthesized like the positions (gn + w Bn, renormalised; 3MN
+        multiply-adds) instead of recomputed from the mesh."""
+        if weights is not None and self.gn is not None:
+            n = G.synthesize(np.asarray(self.gn), np.asarray(self.Bn), weights)
+            return n / np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
         if self._incidence is None:
             self._incidence = G.face_incidence(np.asarray(self.faces), self.n_vertices)
         return G.vertex_normals(vertices, self.faces, self._incidence)
@@ -71,7 +79,8 @@ class GarmentBasis:
         tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=directory.parent))
         try:
             for k in ARRAYS:
-                np.save(tmp / f"{k}.npy", np.ascontiguousarray(getattr(self, k)))
+                if getattr(self, k) is not None:
+                    np.save(tmp / f"{k}.npy", np.ascontiguousarray(getattr(self, k)))
             (tmp / "meta.json").write_text(json.dumps(self.meta, sort_keys=True))
             if directory.exists():
                 shutil.rmtree(directory)
@@ -83,7 +92,8 @@ class GarmentBasis:
     @classmethod
     def load(cls, directory: Path, mmap: bool = True) -> "GarmentBasis":
         directory = Path(directory)
-        arrs = {k: np.load(directory / f"{k}.npy", mmap_mode="r" if mmap else None) for k in ARRAYS}
+        arrs = {k: np.load(directory / f"{k}.npy", mmap_mode="r" if mmap else None) for k in ARRAYS
+                if k not in OPTIONAL or (directory / f"{k}.npy").exists()}
         meta = json.loads((directory / "meta.json").read_text())
         return cls(**arrs, meta=meta)
 
@@ -95,6 +105,8 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
                         meta: dict | None = None) -> GarmentBasis:
     """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order)."""
     g, B = G.build_basis(fits, examples)
+    inc = G.face_incidence(np.asarray(faces), fits.shape[1])
+    gn, Bn = G.build_basis(np.stack([G.vertex_normals(f, faces, inc) for f in fits]), examples)
     nb = model.n_body_vertices
     body0 = model.mean[:nb]
     binding = G.bind_to_body(g, body0)
@@ -107,7 +119,8 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
         h.update(np.ascontiguousarray(a).tobytes())
     meta["etag"] = h.hexdigest()[:32]
     return GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
-                        skin_idx=model.lbs_indices[near].copy(), skin_w=model.lbs_weights[near].copy(), meta=meta)
+                        skin_idx=model.lbs_indices[near].copy(), skin_w=model.lbs_weights[near].copy(),
+                        gn=gn, Bn=Bn, meta=meta)
 
 
 @dataclass
