@@ -41,6 +41,16 @@ def format_issues(report: dict[str, Any]) -> str:
     )
 
 
+def valid_glb(validate: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[str, Any]:
+    """Assert ``data`` is a GLB with 0 validator errors; return it read back (``read_glb``)."""
+    from service.model.gltf import read_glb
+
+    assert data[:4] == b"glTF"
+    report = validate(data)
+    assert report["issues"]["numErrors"] == 0, format_issues(report)
+    return read_glb(data)
+
+
 @pytest.fixture
 def validate_glb(tmp_path: Path) -> Callable[[bytes], dict[str, Any]]:
     """``validate_glb(bytes) -> report`` using the Khronos glTF validator."""

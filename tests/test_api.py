@@ -2,12 +2,7 @@
 from __future__ import annotations
 
 import math
-import os
 import re
-import socket
-import subprocess
-import sys
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -19,57 +14,18 @@ import pytest
 from service.model.body import BONES
 from service.model.gltf import read_glb
 from tests.conftest import format_issues
+from tests.tryon_server import run_server
 
 REPO = Path(__file__).resolve().parent.parent
 GLB = "model/gltf-binary"
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
-    """An httpx client against `python -m service.cli serve` on a free port."""
-    port = _free_port()
-    data_dir = tmp_path_factory.mktemp("tryon-data")
-    log_path = data_dir.parent / "server.log"
-    env = {**os.environ, "TRYON_DATA_DIR": str(data_dir), "TRYON_MAX_UPLOAD_BYTES": "1000000"}
-    env.pop("TRYON_BODY_MODEL", None)
-    env.pop("REDIS_URL", None)
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
-            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
-        )
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"server exited ({proc.returncode}):\n{log_path.read_text()}")
-            try:
-                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"server did not start:\n{log_path.read_text()}")
-            time.sleep(0.2)
-        assert data_dir.is_dir()
-        with httpx.Client(base_url=base, timeout=120) as c:
-            yield c
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    log_text = log_path.read_text(errors="replace")
-    assert "Traceback" not in log_text, log_text
+    """An httpx client against `python -m service.cli serve` (embedded default) on a free port."""
+    with run_server(tmp_path_factory.mktemp("tryon-data"), "embedded", 0, TRYON_MAX_UPLOAD_BYTES="1000000") as s:
+        assert s.data_dir.is_dir()
+        yield s.client
 
 
 @pytest.fixture(scope="module")

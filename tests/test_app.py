@@ -91,5 +91,5 @@ def test_server_fault_gives_generic_500(tmp_path: Path) -> None:
 def test_app_settings_are_the_dependency(tmp_path: Path) -> None:
     settings = Settings(data_dir=tmp_path)
     app = create_app(settings)
-    assert app.dependency_overrides[get_settings]() is settings
+    assert app.state.settings is settings  # what the routes' settings dependency reads
     assert get_settings() is get_settings()  # cached process-wide default

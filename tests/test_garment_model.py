@@ -8,6 +8,7 @@ import pytest
 
 from service.model import avatar_io, demo_garments as D, garment as G, mhclo, skinning, tryon as T
 from service.model.body import load_body_model
+from service.model.geometry import vertex_normals
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -45,7 +46,8 @@ def test_synthesis_matches_slow_loop():
 def test_push_out_leaves_no_vertex_inside(model):
     from scipy.spatial import cKDTree
 
-    from service.bench import _vertex_faces, penetration_depths
+    from service.bench import penetration_depths
+    from service.model.geometry import vertex_faces
     from service.model.body import BONES
 
     body = T.customer_body(model, np.zeros(model.n_components))
@@ -59,7 +61,7 @@ def test_push_out_leaves_no_vertex_inside(model):
     depth = np.where(rng.random(n) < 0.5, -0.005, 0.004)
     garment = body.vertices[ids] + depth[:, None] * body.normals[ids]
     X = body.vertices[:nb].astype(np.float64)
-    args = (X, model.body_faces, cKDTree(X), _vertex_faces(model.body_faces, nb))
+    args = (X, model.body_faces, cKDTree(X), vertex_faces(model.body_faces, nb))
     assert penetration_depths(garment.astype(np.float64), *args).max() > 0.004
     binding = G.bind_to_body(garment, model.mean[:nb])
     out, moved = G.push_out(garment, body.vertices[:nb], body.normals, binding)
@@ -100,7 +102,7 @@ def test_demo_garments_are_outside_the_body_they_were_fitted_to(model):
     nb = model.n_body_vertices
     from scipy.spatial import cKDTree
 
-    normals = G.vertex_normals(X[:nb], model.body_faces)
+    normals = vertex_normals(X[:nb], model.body_faces)
     tree = cKDTree(X[:nb])
     for name, g in D.make_demo_garments(model).items():
         P = g.fit(model, X)

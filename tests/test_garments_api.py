@@ -17,7 +17,7 @@ from service.model.body import BONES, BodyModel, load_body_model
 from service.model.demo_garments import make_demo_garments
 from service.model.gltf import read_glb
 from service.model.tryon import example_set, example_vertices
-from tests.conftest import format_issues
+from tests.conftest import valid_glb
 from tests.tryon_server import GLB, RETAILERS, Server, run_server
 
 DB = 12
@@ -60,13 +60,6 @@ def _mh_files() -> list[tuple[str, tuple[str, bytes, str]]]:
         pytest.skip(f"MakeHuman garment not found at {MH_DIR}")
     return [("mhclo", ("male_casualsuit04.mhclo", (MH_DIR / "male_casualsuit04.mhclo").read_bytes(), "text/plain")),
             ("obj", ("male_casualsuit04.obj", (MH_DIR / "male_casualsuit04.obj").read_bytes(), "model/obj"))]
-
-
-def _valid(validate_glb: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[str, Any]:
-    assert data[:4] == b"glTF"
-    report = validate_glb(data)
-    assert report["issues"]["numErrors"] == 0, format_issues(report)
-    return read_glb(data)
 
 
 def _assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str, ...] = ()) -> str:
@@ -139,7 +132,7 @@ def test_upload_mesh_set_in_cm(server: Server, tshirt_fits: tuple[np.ndarray, np
     cid = _customer(server)
     r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb")
     assert r.status_code == 200 and r.headers["content-type"] == GLB
-    glb = _valid(validate_glb, r.content)
+    glb = valid_glb(validate_glb, r.content)
     assert glb["positions"].shape == (fits.shape[1], 3)
     doc = glb["json"]
     assert [doc["nodes"][j]["name"] for j in doc["skins"][0]["joints"]] == list(BONES)
@@ -158,7 +151,7 @@ def test_upload_makehuman(server: Server, validate_glb: Callable[[bytes], dict[s
     cid = _customer(server)
     r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"compression": "quantize"})
     assert r.status_code == 200
-    _valid(validate_glb, r.content)
+    valid_glb(validate_glb, r.content)
 
 
 def test_upload_errors_leave_nothing(server: Server, model: BodyModel,
@@ -234,7 +227,7 @@ def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict
     etag = r.headers["etag"]
     assert etag == f'"{g["etag"]}"' and not etag.startswith("W/")
     assert "public" in r.headers["cache-control"] and "max-age=" in r.headers["cache-control"]
-    glb = _valid(validate_glb, r.content)
+    glb = valid_glb(validate_glb, r.content)
     assert glb["positions"].shape == (g["n_vertices"], 3)
     if hasattr(gltf, "basis_to_glb"):
         targets = glb["json"]["meshes"][0]["primitives"][0].get("targets", [])
@@ -248,7 +241,7 @@ def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict
     for c in ("quantize", "meshopt"):
         r = server.client.get(url, params={"compression": c})
         assert r.status_code == 200 and r.headers["etag"] != etag
-        _valid(validate_glb, r.content)
+        valid_glb(validate_glb, r.content)
     _assert_422(server.client.get(url, params={"compression": "draco"}), ["query", "compression"])
 
 
@@ -258,7 +251,7 @@ def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]])
     ids = f"{demo['tshirt']['id']},{demo['trousers']['id']}"
     r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids})
     assert r.status_code == 200 and r.headers["content-type"] == GLB
-    glb = _valid(validate_glb, r.content)
+    glb = valid_glb(validate_glb, r.content)
     n_avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb").content)["positions"].shape[0]
     doc = glb["json"]
     if hasattr(gltf, "scene_to_glb"):
@@ -269,7 +262,7 @@ def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]])
         assert glb["positions"].shape[0] == total
     r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "meshopt"})
     assert r.status_code == 200
-    _valid(validate_glb, r.content)
+    valid_glb(validate_glb, r.content)
     r = server.client.get(f"/v1/customers/{cid}/outfit.glb")  # no garments: the avatar alone
     assert r.status_code == 200
     _assert_422(server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "x"}))

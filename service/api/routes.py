@@ -74,13 +74,13 @@ def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None =
 
 
 @router.get("/healthz", response_model=HealthResponse, tags=["ops"])
-def healthz() -> HealthResponse:
+async def healthz() -> HealthResponse:
     """Liveness probe."""
     return HealthResponse()
 
 
 @router.get("/v1/body-model", response_model=BodyModelResponse, tags=["body"])
-def get_body_model_info(model: BodyModelDep) -> BodyModelResponse:
+async def get_body_model_info(model: BodyModelDep) -> BodyModelResponse:
     """The attributes accepted by ``POST /v1/avatars`` (with ranges), bones and components."""
     return BodyModelResponse(
         attributes=[

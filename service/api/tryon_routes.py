@@ -38,14 +38,14 @@ OBJ_RESPONSE = {200: {"description": "Wavefront OBJ (metres, Y up)",
                 404: {"description": "Unknown id"}}
 
 
-def get_storage(request: Request) -> Storage:
+async def get_storage(request: Request) -> Storage:
     storage = getattr(request.app.state, "storage", None)
     if storage is None:  # pragma: no cover - the lifespan always sets it
         raise HTTPException(503, "storage is not available")
     return storage
 
 
-def get_body_cache(request: Request) -> C.BodyCache:
+async def get_body_cache(request: Request) -> C.BodyCache:
     cache = getattr(request.app.state, "body_cache", None)
     if cache is None:
         cache = request.app.state.body_cache = C.BodyCache()
@@ -58,7 +58,7 @@ api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False,
                               description="Retailer API key (TRYON_RETAILER_KEYS)")
 
 
-def get_retailer(settings: SettingsDep, key: Annotated[str | None, Depends(api_key_header)] = None) -> str:
+async def get_retailer(settings: SettingsDep, key: Annotated[str | None, Depends(api_key_header)] = None) -> str:
     """The retailer name of the request's ``X-API-Key`` (401 without one, 403 if unknown)."""
     if not key:
         raise HTTPException(401, "missing X-API-Key header (retailer API key)",
@@ -112,7 +112,7 @@ def template_glb(model: BodyModelDep, compression: Compression = None) -> Respon
 
 
 @router.get("/v1/example-avatars", response_model=list[ExampleAvatarOut], tags=["garments"])
-def list_example_avatars(model: BodyModelDep) -> list[dict[str, Any]]:
+async def list_example_avatars(model: BodyModelDep) -> list[dict[str, Any]]:
     """The example avatars, in the order ``POST /v1/garments`` expects its ``meshes``: the
     mean, then mean +/- c sqrt(var_i) U_i for each component i."""
     return C.examples(model).listing
@@ -218,7 +218,7 @@ def _customer_from_measurements(model: BodyModel, measurements: dict[str, Any]) 
 
 @router.get("/v1/customers/{cid}", response_model=CustomerResponse, tags=["customers"],
             responses={404: {"description": "Unknown customer"}})
-def get_customer(cid: str, storage: StorageDep) -> dict[str, Any]:
+async def get_customer(cid: str, storage: StorageDep) -> dict[str, Any]:
     """A stored customer."""
     return _customer(storage, cid)
 
@@ -246,7 +246,7 @@ def delete_customer(cid: str, storage: StorageDep, bodies: BodyCacheDep) -> Resp
 
 # -- garments ----------------------------------------------------------------------------------
 @router.get("/v1/garments", response_model=list[GarmentResponse], tags=["garments"])
-def list_garments(storage: StorageDep) -> list[dict[str, Any]]:
+async def list_garments(storage: StorageDep) -> list[dict[str, Any]]:
     """Every stored garment (the demo catalogue included), oldest first."""
     return storage.list_garments()
 
@@ -295,7 +295,7 @@ async def create_garment(
 
 @router.get("/v1/garments/{gid}", response_model=GarmentResponse, tags=["garments"],
             responses={404: {"description": "Unknown garment"}})
-def get_garment(gid: str, storage: StorageDep) -> dict[str, Any]:
+async def get_garment(gid: str, storage: StorageDep) -> dict[str, Any]:
     """A stored garment."""
     rec = storage.get_garment(gid)
     if rec is None:
@@ -340,7 +340,7 @@ def garment_basis_glb(gid: str, request: Request, storage: StorageDep,
 # -- try-on ------------------------------------------------------------------------------------
 @router.get("/v1/customers/{cid}/garments/{gid}.glb", tags=["try-on"], response_class=Response,
             responses=GLB_RESPONSE)
-def try_on_glb(cid: str, gid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
+async def try_on_glb(cid: str, gid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
                compression: Compression = None) -> Response:
     """The garment fitted to the customer, skinned with the customer's skeleton."""
     crec = _customer(storage, cid)
@@ -351,7 +351,7 @@ def try_on_glb(cid: str, gid: str, model: BodyModelDep, storage: StorageDep, bod
 
 
 @router.get("/v1/customers/{cid}/outfit.glb", tags=["try-on"], response_class=Response, responses=GLB_RESPONSE)
-def outfit_glb(cid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
+async def outfit_glb(cid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
                garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
                compression: Compression = None) -> Response:
     """The customer's avatar wearing the garments (one scene, one skeleton), layered: inner

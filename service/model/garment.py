@@ -25,8 +25,6 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import face_incidence, vertex_normals  # noqa: F401 (re-exported)
-
 CLEARANCE = 0.003  # metres between skin and cloth after push-out
 LAYER_GAP = 0.004  # extra clearance per layer (outer garments over inner ones)
 # Body vertices bound per garment vertex. Garment and body move with the same weights, so the
@@ -107,7 +105,10 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     """Move garment vertices that are inside the body (or within ``clearance`` of it) out
     along the body normal, then smooth the displacement so the garment stays smooth.
 
-    garment (M, 3); body (Vb, 3) and body_normals (Vb, 3) of the customer; binding (M, k).
+    garment (M, 3); body (Vb, 3) and body_normals (Vb, 3) of the customer; binding (M, k)
+    body vertices per garment vertex (the nearest of them is used; with k = 1, pass the
+    nearest body vertex of this body, see ``tryon.CustomerBody.binding``). The distance to the
+    skin is that to the bound vertex's tangent plane.
     Returns (garment (M, 3) float32, number of vertices moved)."""
     G = np.asarray(garment, np.float32)
     body = np.asarray(body, np.float32)

@@ -60,3 +60,49 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                + np.einsum("pfi,pfi->pf", c, a) * lb)
         out[s:s + chunk] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
     return out
+
+
+def closest_point_on_triangles(p, a, b, c):
+    """Closest points on triangles (..., 3) to points p (Ericson, Real-Time Collision
+    Detection 5.1.5), vectorised."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        v = vb * denom
+        w = vc * denom
+        res = a + ab * v[..., None] + ac * w[..., None]  # interior
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    cases = [
+        ((d1 <= 0) & (d2 <= 0), a),
+        ((d3 >= 0) & (d4 <= d3), b),
+        ((d6 >= 0) & (d5 <= d6), c),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + ab * t_ab[..., None]),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + ac * t_ac[..., None]),
+        ((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), b + (c - b) * t_bc[..., None]),
+    ]
+    for cond, val in reversed(cases):
+        res = np.where(cond[..., None], val, res)
+    return res
+
+
+def vertex_faces(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n, max valence) face ids around each vertex, -1 padded."""
+    order = np.argsort(faces.reshape(-1), kind="stable")
+    vid = faces.reshape(-1)[order]
+    fid = order // 3
+    counts = np.bincount(vid, minlength=n)
+    out = np.full((n, counts.max()), -1, np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(vid)) - start[vid]
+    out[vid, pos] = fid
+    return out

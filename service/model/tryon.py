@@ -16,8 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from service.model import garment as G
+from service.model.geometry import face_incidence, vertex_normals
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
@@ -69,8 +71,8 @@ class GarmentBasis:
             n = G.synthesize(np.asarray(self.gn), np.asarray(self.Bn), weights)
             return n / np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
         if self._incidence is None:
-            self._incidence = G.face_incidence(np.asarray(self.faces), self.n_vertices)
-        return G.vertex_normals(vertices, self.faces, self._incidence)
+            self._incidence = face_incidence(np.asarray(self.faces), self.n_vertices)
+        return vertex_normals(vertices, self.faces, self._incidence)
 
     def save(self, directory: Path) -> None:
         """Write atomically: a temporary sibling directory renamed into place."""
@@ -105,8 +107,8 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
                         meta: dict | None = None) -> GarmentBasis:
     """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order)."""
     g, B = G.build_basis(fits, examples)
-    inc = G.face_incidence(np.asarray(faces), fits.shape[1])
-    gn, Bn = G.build_basis(np.stack([G.vertex_normals(f, faces, inc) for f in fits]), examples)
+    inc = face_incidence(np.asarray(faces), fits.shape[1])
+    gn, Bn = G.build_basis(np.stack([vertex_normals(f, faces, inc) for f in fits]), examples)
     nb = model.n_body_vertices
     body0 = model.mean[:nb]
     binding = G.bind_to_body(g, body0)
@@ -125,17 +127,36 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
 
 @dataclass
 class CustomerBody:
-    """What a try-on needs of a customer's body, computed once per customer."""
+    """What a try-on needs of a customer's body, computed once per customer (and, lazily,
+    once per garment: the exact nearest body vertex of each synthesized garment vertex)."""
 
     weights: np.ndarray  # (K,)
     vertices: np.ndarray  # (V, 3) float32
     normals: np.ndarray  # (n_body, 3) float32
+    _tree: object = None
+    _bindings: dict = field(default_factory=dict)
+
+    def binding(self, basis: "GarmentBasis", garment: np.ndarray) -> np.ndarray:
+        """(M, 1) nearest body vertex of each garment vertex on this body (cached per garment)."""
+        key = basis.etag() or id(basis)
+        hit = self._bindings.get(key)
+        if hit is None:
+            if self._tree is None:
+                self._tree = cKDTree(self.vertices[: len(self.normals)])
+            hit = self._tree.query(garment)[1].astype(np.int32)[:, None]
+            if len(self._bindings) >= MAX_BINDINGS_PER_BODY:
+                self._bindings.pop(next(iter(self._bindings)))
+            self._bindings[key] = hit
+        return hit
+
+
+MAX_BINDINGS_PER_BODY = 32
 
 
 def customer_body(model, weights: np.ndarray) -> CustomerBody:
     X = model.vertices(weights)
     nb = model.n_body_vertices
-    n = G.vertex_normals(X[:nb], model.body_faces).astype(np.float32)
+    n = vertex_normals(X[:nb], model.body_faces).astype(np.float32)
     return CustomerBody(np.asarray(weights, np.float64), X, n)
 
 
@@ -143,7 +164,9 @@ def try_on(basis: GarmentBasis, body: CustomerBody, layer: int = 0) -> tuple[np.
     """The fitted garment (M, 3) float32 for a customer and how many vertices were pushed out.
 
     Synthesis g + w B (3MN multiply-adds), then push-out of the customer's body with a
-    clearance growing with the layer (outer garments over inner ones)."""
+    clearance growing with the layer (outer garments over inner ones). The first try-on of a
+    garment on a body also finds each garment vertex's nearest body vertex (a k-d tree query,
+    cached on the body)."""
     v = G.synthesize(np.asarray(basis.g), np.asarray(basis.B), body.weights)
     clearance = G.CLEARANCE + layer * G.LAYER_GAP
-    return G.push_out(v, body.vertices, body.normals, np.asarray(basis.binding), basis.smoother(), clearance)
+    return G.push_out(v, body.vertices, body.normals, body.binding(basis, v), basis.smoother(), clearance)
