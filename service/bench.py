@@ -494,6 +494,20 @@ def bench_http(levels: tuple[int, ...] = (1, 4, 8, 16), seconds: float = 6.0, wo
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+        _stop_embedded_redis(Path(tmp))
+
+
+def _stop_embedded_redis(data_dir: Path) -> None:
+    """Shut down the embedded redis-server a server left under ``data_dir`` (with several
+    server processes the one that started it may exit while another is still connected)."""
+    import redis
+
+    sock = data_dir / "redis" / "redis.sock"
+    if sock.exists():
+        try:
+            redis.Redis(unix_socket_path=str(sock), socket_timeout=5).shutdown(nosave=True)
+        except redis.ConnectionError:
+            pass  # shutting down closes the connection: expected
 
 
 def bench_examples(limit: int, repeats: int) -> dict:
