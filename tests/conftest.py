@@ -55,3 +55,11 @@ def valid_glb(validate: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[
 def validate_glb(tmp_path: Path) -> Callable[[bytes], dict[str, Any]]:
     """``validate_glb(bytes) -> report`` using the Khronos glTF validator."""
     return lambda glb: run_gltf_validator(glb, tmp_path)
+
+
+@pytest.fixture(scope="session")
+def model():
+    """The packaged body model, loaded once for the whole test session."""
+    from service.model.body import load_body_model
+
+    return load_body_model()

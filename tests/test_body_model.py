@@ -2,14 +2,10 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
-from service.model.body import BONES, DEFAULT_MODEL_PATH, load_body_model
+from service.model.body import BONES, DEFAULT_MODEL_PATH
 
 
-@pytest.fixture(scope="module")
-def model():
-    return load_body_model()
 
 
 def test_artifact_is_compact_and_loads_with_numpy_only(model):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.body import BONES, BodyModel, load_body_model
+from service.model.body import BONES, BodyModel
 from tests.conftest import valid_glb
 from tests.tryon_server import GLB, Server, run_server
 
@@ -24,9 +24,6 @@ def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
         yield s
 
 
-@pytest.fixture(scope="module")
-def model() -> BodyModel:
-    return load_body_model()
 
 
 def _obj_vertices(text: str) -> np.ndarray:

@@ -7,15 +7,12 @@ import numpy as np
 import pytest
 
 from service.model import avatar_io, demo_garments as D, garment as G, mhclo, skinning, tryon as T
-from service.model.body import load_body_model
+
 from service.model.geometry import vertex_normals
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-@pytest.fixture(scope="module")
-def model():
-    return load_body_model()
 
 
 def test_basis_is_exact_for_garments_linear_in_the_weights(model):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from service.model import gltf
-from service.model.body import BONES, BodyModel, load_body_model
+from service.model.body import BONES, BodyModel
 from service.model.demo_garments import make_demo_garments
 from service.model.gltf import read_glb
 from service.model.tryon import example_set, example_vertices
@@ -32,9 +32,6 @@ def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
         yield s
 
 
-@pytest.fixture(scope="module")
-def model() -> BodyModel:
-    return load_body_model()
 
 
 def _obj(vertices: np.ndarray, faces: np.ndarray) -> bytes:

@@ -6,12 +6,9 @@ import numpy as np
 import pytest
 
 from service.model import measurements as M
-from service.model.body import load_body_model
 
 
-@pytest.fixture(scope="module")
-def model():
-    return load_body_model()
+
 
 
 def avatars(model, n=6, seed=0):

@@ -10,12 +10,9 @@ import pytest
 from service.bench import read_ansur
 from service.model import measurements as M
 from service.model import shape as S
-from service.model.body import load_body_model
 
 
-@pytest.fixture(scope="module")
-def model():
-    return load_body_model()
+
 
 
 @pytest.mark.parametrize("bad, field, words", [

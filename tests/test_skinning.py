@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from service.model import skinning as sk
-from service.model.body import BONES, load_body_model
+from service.model.body import BONES
 
 
 def slow_pose(vertices, joints, parents, rotvecs, idx, w):
@@ -47,9 +47,6 @@ def test_rodrigues_is_a_rotation():
     assert np.linalg.det(R[0]) == pytest.approx(1.0)
 
 
-@pytest.fixture(scope="module")
-def model():
-    return load_body_model()
 
 
 def test_avatar_pose(model):

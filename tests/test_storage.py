@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from service import catalogue as C
-from service.model.body import BodyModel, load_body_model
+from service.model.body import BodyModel
 from service.settings import Settings
 from service.storage import Storage, embedded_socket
 from tests.tryon_server import REPO, flush_db, redis_url
@@ -22,9 +22,6 @@ from tests.tryon_server import REPO, flush_db, redis_url
 DB = 13
 
 
-@pytest.fixture(scope="module")
-def model() -> BodyModel:
-    return load_body_model()
 
 
 @pytest.fixture(params=["embedded", "redis"])
