@@ -150,6 +150,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(Exception, _unhandled_error)
     app.include_router(router)
     app.include_router(tryon_router)
+    three = next((c for c in (REPO_ROOT / "node_modules" / "three", Path.cwd() / "node_modules" / "three")
+                  if c.is_dir()), None)
+    if three is not None:  # three.js from the npm lockfile (npm ci), for the customer page
+        app.mount("/vendor/three", StaticFiles(directory=three), name="three")
     static = web_client_dir()
     if static is not None:  # mounted last: API routes take precedence
         app.mount("/", StaticFiles(directory=static, html=True), name="web_client")

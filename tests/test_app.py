@@ -65,8 +65,8 @@ def test_measurement_values_validated() -> None:
 
 def test_healthz_and_index(client: TestClient) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
-    r = client.get("/")
-    assert r.status_code == 200 and "coming" in r.text
+    r = client.get("/")  # the customer page: three.js through an importmap, its app module
+    assert r.status_code == 200 and '<script type="importmap">' in r.text and "app.js" in r.text
 
 
 def test_malformed_json_is_422(client: TestClient) -> None:
