@@ -61,6 +61,10 @@ def test_customer_page_end_to_end(tmp_path: Path) -> None:
     assert out["customerStatusBefore"] == 200
     assert deleted.status_code == 404
     assert out["storedAfterDelete"] is None
+    # after a reload the remembered customer's own measurements are back in the form
+    assert out["restored"]["customer"] == out["dressed"]["customer"]
+    assert float(out["restored"]["height"]) == pytest.approx(195, abs=0.6)
+    assert float(out["restored"]["weight"]) == pytest.approx(80, abs=0.6)
     # the error path: the API's message inline next to the field
     assert "outside the allowed range" in out["inlineError"]
     assert out["lastError"].startswith("height_cm:")

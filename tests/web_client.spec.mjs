@@ -106,6 +106,12 @@ try {
   out.dressedCanvas = await canvasVariation(page);
   await shot(page, '03-dressed');
 
+  // a reload remembers the customer and brings back what they entered
+  await page.reload();
+  await page.waitForFunction(() => window.__tryon.ready && !window.__tryon.busy, null, { timeout: 60000 });
+  out.restored = { customer: await page.evaluate(() => window.__tryon.customerId()),
+                   height: await page.inputValue('#in-height_cm'), weight: await page.inputValue('#in-weight_kg') };
+
   // delete my data
   const cid = out.dressed.customer;
   out.customerStatusBefore = (await fetch(`${base}/v1/customers/${cid}`)).status;

@@ -435,6 +435,20 @@ $('#delete').addEventListener('click', async () => {
   refresh();
 });
 
+// A remembered customer (localStorage) brings back the measurements they entered (not the
+// estimated ones); a customer deleted elsewhere is forgotten.
+async function restoreCustomer() {
+  if (!state.customerId) return;
+  try {
+    const rec = await api(`/v1/customers/${state.customerId}`).then((r) => r.json());
+    const estimated = new Set(rec.estimated || []);
+    const given = Object.fromEntries(Object.entries(rec.measurements || {}).filter(([k]) => !estimated.has(k)));
+    if (Object.keys(given).length) state.values = given;
+  } catch (err) {
+    if (err instanceof ApiError && err.status === 404) setCustomer(null); else showError(err);
+  }
+}
+
 // ---- start --------------------------------------------------------------------------------
 async function start() {
   setCustomer(state.customerId);
@@ -444,6 +458,7 @@ async function start() {
     state.attributes = model.attributes;
     state.garments = garments;
   } catch (err) { showError(err); return; }
+  await restoreCustomer();
   buildForm();
   buildCatalogue();
   resize();
