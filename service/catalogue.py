@@ -8,19 +8,17 @@ vertices (M, 3), faces (F, 3).
 from __future__ import annotations
 
 import functools
-import inspect
 import io
 import logging
 import threading
 import time
-from collections import OrderedDict
 from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
 
 from service.model.body import BONES, BodyModel
-from service.storage import Storage, new_id
+from service.storage import Storage, VersionedLRU, new_id
 
 log = logging.getLogger("tryon.catalogue")
 
@@ -181,33 +179,24 @@ def customer_from_mesh(model: BodyModel, data: bytes, filename: str | None,
 
 
 class BodyCache:
-    """LRU of ``customer_body`` per customer id (invalidated on delete)."""
+    """LRU of ``customer_body`` per customer id, valid while the customer's weights are
+    unchanged (dropped on delete)."""
 
     def __init__(self, size: int = 64):
-        self.size = size
-        self._d: OrderedDict[str, tuple[tuple[float, ...], Any]] = OrderedDict()
-        self._lock = threading.Lock()
+        self._lru = VersionedLRU(size)
 
     def get(self, model: BodyModel, cid: str, weights: list[float]):
         from service.model.tryon import customer_body
 
         key = tuple(weights)
-        with self._lock:
-            hit = self._d.get(cid)
-            if hit is not None and hit[0] == key:
-                self._d.move_to_end(cid)
-                return hit[1]
-        body = customer_body(model, np.asarray(weights, np.float64))
-        with self._lock:
-            self._d[cid] = (key, body)
-            self._d.move_to_end(cid)
-            while len(self._d) > self.size:
-                self._d.popitem(last=False)
+        body = self._lru.get(cid, key)
+        if body is None:
+            body = customer_body(model, np.asarray(weights, np.float64))
+            self._lru.put(cid, key, body)
         return body
 
     def drop(self, cid: str) -> None:
-        with self._lock:
-            self._d.pop(cid, None)
+        self._lru.drop(cid)
 
 
 # -- garments ----------------------------------------------------------------------------------
@@ -401,18 +390,6 @@ def ensure_demo_garments(model: BodyModel, storage: Storage) -> list[str]:
 
 
 # -- GLB ---------------------------------------------------------------------------------------
-def _accepts(fn: Any, kw: str) -> bool:
-    try:
-        return kw in inspect.signature(fn).parameters
-    except (TypeError, ValueError):  # pragma: no cover
-        return False
-
-
-def compression_kwargs(fn: Any, compression: str | None) -> dict[str, Any]:
-    """``{"compression": c}`` when ``fn`` takes it (the GLB writers), else {}."""
-    return {"compression": compression} if compression and _accepts(fn, "compression") else {}
-
-
 def skin_of(model: BodyModel, body: Any) -> dict[str, Any]:
     """The customer's skeleton (rest joints of their body) for GLB skins."""
     return {"joints": model.joints(body.vertices), "parents": np.asarray(model.bone_parents),
@@ -440,45 +417,22 @@ def avatar_mesh(model: BodyModel, body: Any) -> dict[str, Any]:
 def single_mesh_glb(mesh: dict[str, Any], skin: dict[str, Any], compression: str | None) -> bytes:
     from service.model import gltf
 
-    if hasattr(gltf, "scene_to_glb"):
-        return gltf.scene_to_glb([mesh], skin=skin, **compression_kwargs(gltf.scene_to_glb, compression))
-
-    mesh = {k: v for k, v in mesh.items() if k != "double_sided"}
-    full_skin = {**skin, "vertex_joints": mesh["vertex_joints"], "vertex_weights": mesh["vertex_weights"]}
-    return gltf.mesh_to_glb(mesh["vertices"], mesh["faces"], normals=mesh.get("normals"), color=mesh["color"],
-                            name=mesh["name"], skin=full_skin, **compression_kwargs(gltf.mesh_to_glb, compression))
+    return gltf.scene_to_glb([mesh], skin=skin, compression=compression)
 
 
 def scene_glb(meshes: list[dict[str, Any]], skin: dict[str, Any], compression: str | None) -> bytes:
-    """Several meshes sharing one skin: ``scene_to_glb`` when the GLB writer has it, else the
-    meshes merged into one (the first mesh's colour)."""
+    """Several meshes sharing one skin (avatar and garments)."""
     from service.model import gltf
 
-    if hasattr(gltf, "scene_to_glb"):
-        return gltf.scene_to_glb(meshes, skin=skin, **compression_kwargs(gltf.scene_to_glb, compression))
-    offsets = np.cumsum([0] + [len(m["vertices"]) for m in meshes])
-    merged = {
-        "vertices": np.concatenate([np.asarray(m["vertices"], np.float32) for m in meshes]),
-        "faces": np.concatenate([np.asarray(m["faces"], np.int64) + o for m, o in zip(meshes, offsets)]),
-        "normals": np.concatenate([np.asarray(m["normals"], np.float32) for m in meshes]),
-        "vertex_joints": np.concatenate([np.asarray(m["vertex_joints"]) for m in meshes]),
-        "vertex_weights": np.concatenate([np.asarray(m["vertex_weights"]) for m in meshes]),
-        "color": meshes[0]["color"], "name": "outfit",
-    }
-    return single_mesh_glb(merged, skin, compression)
+    return gltf.scene_to_glb(meshes, skin=skin, compression=compression)
 
 
 def basis_glb(basis: Any, record: dict[str, Any], compression: str | None) -> bytes:
-    """The mean garment with the clothing basis rows as morph targets (``basis_to_glb``), or
-    the mean garment alone while the GLB writer lacks it."""
+    """The mean garment with the clothing basis rows as morph targets."""
     from service.model import gltf
 
-    color = tuple(record.get("color") or DEFAULT_COLOR)
-    name = str(record.get("name") or "garment")
-    g, B, faces = np.asarray(basis.g), np.asarray(basis.B), np.asarray(basis.faces)
-    if hasattr(gltf, "basis_to_glb"):
-        names = [f"pc{i:02d}" for i in range(B.shape[0])]
-        return gltf.basis_to_glb(g, B, faces, color=color, name=name, target_names=names,
-                                 **compression_kwargs(gltf.basis_to_glb, compression))
-    return gltf.mesh_to_glb(g, faces, normals=basis.normals(g), color=color, name=name,
-                            **compression_kwargs(gltf.mesh_to_glb, compression))
+    B = np.asarray(basis.B)
+    return gltf.basis_to_glb(np.asarray(basis.g), B, np.asarray(basis.faces),
+                             color=tuple(record.get("color") or DEFAULT_COLOR),
+                             name=str(record.get("name") or "garment"),
+                             target_names=[f"pc{i:02d}" for i in range(B.shape[0])], compression=compression)

@@ -130,6 +130,35 @@ def run_worker(settings: Settings, *, burst: bool = False, worker_ttl: int = WOR
 
 
 # -- the store ------------------------------------------------------------------------------
+class VersionedLRU:
+    """Thread-safe LRU of values per key, each valid only for the version it was stored with
+    (a garment's etag, a customer's weights): ``get`` misses on a version change."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self._d: OrderedDict[str, tuple[Any, Any]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: str, version: Any) -> Any | None:
+        with self._lock:
+            hit = self._d.get(key)
+            if hit is None or hit[0] != version:
+                return None
+            self._d.move_to_end(key)
+            return hit[1]
+
+    def put(self, key: str, version: Any, value: Any) -> None:
+        with self._lock:
+            self._d[key] = (version, value)
+            self._d.move_to_end(key)
+            while len(self._d) > self.size:
+                self._d.popitem(last=False)
+
+    def drop(self, key: str) -> None:
+        with self._lock:
+            self._d.pop(key, None)
+
+
 class Storage:
     """Customers, garments and the job queue (see module docstring). Thread-safe."""
 
@@ -141,9 +170,7 @@ class Storage:
         self.garments_dir.mkdir(parents=True, exist_ok=True)
         self.prefix = settings.redis_prefix
         self.redis = connection if connection is not None else connect(settings)
-        self._cache: OrderedDict[str, tuple[str, Any]] = OrderedDict()
-        self._cache_size = basis_cache_size
-        self._lock = threading.Lock()
+        self._bases = VersionedLRU(basis_cache_size)
         self._queue = None
 
     # keys
@@ -217,8 +244,7 @@ class Storage:
         pipe.delete(self.key("garment", gid))
         pipe.zrem(self.key("garments"), gid)
         existed = bool(pipe.execute()[0])
-        with self._lock:
-            self._cache.pop(gid, None)
+        self._bases.drop(gid)
         shutil.rmtree(self.garment_dir(gid), ignore_errors=True)
         return existed
 
@@ -229,24 +255,17 @@ class Storage:
 
         record = record or self.get_garment(gid)
         if record is None:
-            with self._lock:
-                self._cache.pop(gid, None)
+            self._bases.drop(gid)
             return None
         etag = record.get("etag", "")
-        with self._lock:
-            hit = self._cache.get(gid)
-            if hit is not None and hit[0] == etag:
-                self._cache.move_to_end(gid)
-                return hit[1]
+        hit = self._bases.get(gid, etag)
+        if hit is not None:
+            return hit
         try:
             basis = GarmentBasis.load(self.garment_dir(gid), mmap=True)
         except FileNotFoundError:
             return None
-        with self._lock:
-            self._cache[gid] = (etag, basis)
-            self._cache.move_to_end(gid)
-            while len(self._cache) > self._cache_size:
-                self._cache.popitem(last=False)
+        self._bases.put(gid, etag, basis)
         return basis
 
     # -- locks and small keys ----------------------------------------------------------------

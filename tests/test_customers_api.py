@@ -6,14 +6,13 @@ import math
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
 import trimesh
 
 from service.model.body import BONES, BodyModel
 from tests.conftest import valid_glb
-from tests.tryon_server import GLB, Server, run_server
+from tests.tryon_server import GLB, Server, assert_422, run_server
 
 DB = 11
 
@@ -34,18 +33,6 @@ def _obj(vertices: np.ndarray, faces: np.ndarray) -> bytes:
     lines = [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in vertices]
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
     return ("\n".join(lines) + "\n").encode()
-
-
-def _assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str, ...] = ()) -> str:
-    assert r.status_code == 422, (r.status_code, r.text)
-    detail = r.json()["detail"]
-    assert isinstance(detail, list) and detail
-    if loc is not None:
-        assert any(d["loc"] == loc for d in detail), detail
-    msg = " ".join(d["msg"] for d in detail)
-    for w in words:
-        assert w in msg, msg
-    return msg
 
 
 # -- template and example avatars -------------------------------------------------------------
@@ -89,7 +76,7 @@ def test_glb_compression_parameter(server: Server, validate_glb: Callable[[bytes
         assert r.status_code == 200, r.text
         valid_glb(validate_glb, r.content)
     r = server.client.get("/v1/body-model/template.glb", params={"compression": "zip"})
-    _assert_422(r, ["query", "compression"])
+    assert_422(r, ["query", "compression"])
 
 
 # -- customers from measurements ---------------------------------------------------------------
@@ -119,14 +106,14 @@ def test_customer_from_measurements(server: Server, model: BodyModel,
 
 def test_customer_measurement_errors(server: Server) -> None:
     post = server.client.post
-    _assert_422(post("/v1/customers", json={"measurements": {"height_cm": 20}}),
+    assert_422(post("/v1/customers", json={"measurements": {"height_cm": 20}}),
                 ["body", "measurements", "height_cm"])
-    _assert_422(post("/v1/customers", json={"measurements": {"shoe_size": 42}}),
+    assert_422(post("/v1/customers", json={"measurements": {"shoe_size": 42}}),
                 ["body", "measurements", "shoe_size"])
-    _assert_422(post("/v1/customers", json={"measurements": {"height_cm": "tall"}}))
-    _assert_422(post("/v1/customers", content=b'{"measurements": {', headers={"Content-Type": "application/json"}))
-    _assert_422(post("/v1/customers", json=[1, 2]))
-    _assert_422(post("/v1/customers"))
+    assert_422(post("/v1/customers", json={"measurements": {"height_cm": "tall"}}))
+    assert_422(post("/v1/customers", content=b'{"measurements": {', headers={"Content-Type": "application/json"}))
+    assert_422(post("/v1/customers", json=[1, 2]))
+    assert_422(post("/v1/customers"))
 
 
 # -- customers from meshes ---------------------------------------------------------------------
@@ -172,23 +159,23 @@ def test_customer_from_ply_and_glb(server: Server, model: BodyModel) -> None:
 def test_customer_mesh_errors(server: Server, model: BodyModel) -> None:
     post = server.client.post
     # not a mesh at all
-    msg = _assert_422(post("/v1/customers", files={"mesh": ("x.obj", b"hello world\n", "model/obj")}), ["body", "mesh"])
+    msg = assert_422(post("/v1/customers", files={"mesh": ("x.obj", b"hello world\n", "model/obj")}), ["body", "mesh"])
     assert "no vertices" in msg or "cannot read" in msg
-    _assert_422(post("/v1/customers", files={"mesh": ("x.glb", b"glTF\x02\x00\x00\x00garbage", GLB)}), ["body", "mesh"])
-    _assert_422(post("/v1/customers", files={"mesh": ("x.ply", b"", "application/octet-stream")}), ["body", "mesh"],
+    assert_422(post("/v1/customers", files={"mesh": ("x.glb", b"glTF\x02\x00\x00\x00garbage", GLB)}), ["body", "mesh"])
+    assert_422(post("/v1/customers", files={"mesh": ("x.ply", b"", "application/octet-stream")}), ["body", "mesh"],
                 ("empty",))
     # a valid mesh in the wrong topology
     box = trimesh.creation.box(extents=(0.5, 1.7, 0.3))
-    msg = _assert_422(post("/v1/customers", files={"mesh": ("box.obj", _obj(box.vertices, box.faces), "model/obj")}),
+    msg = assert_422(post("/v1/customers", files={"mesh": ("box.obj", _obj(box.vertices, box.faces), "model/obj")}),
                       ["body", "mesh"], ("vertices", "template"))
     # the template topology, but not a body (vertices shuffled)
     X = model.body_vertices(model.mean).astype(np.float64)
     shuffled = X[np.random.default_rng(0).permutation(len(X))]
-    _assert_422(post("/v1/customers", files={"mesh": ("s.obj", _obj(shuffled, model.body_faces), "model/obj")}),
+    assert_422(post("/v1/customers", files={"mesh": ("s.obj", _obj(shuffled, model.body_faces), "model/obj")}),
                 ["body", "mesh"], ("not an avatar",))
     # no file, or another field
-    _assert_422(post("/v1/customers", files={"other": ("a.obj", b"v 0 0 0\n", "model/obj")}), ["body", "mesh"])
-    _assert_422(post("/v1/customers", files={"mesh": ("a.obj", _obj(X, model.body_faces), "model/obj")},
+    assert_422(post("/v1/customers", files={"other": ("a.obj", b"v 0 0 0\n", "model/obj")}), ["body", "mesh"])
+    assert_422(post("/v1/customers", files={"mesh": ("a.obj", _obj(X, model.body_faces), "model/obj")},
                      data={"gender": "robot"}), ["body", "gender"])
 
 

@@ -8,7 +8,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
 
@@ -18,7 +17,7 @@ from service.model.demo_garments import make_demo_garments
 from service.model.gltf import read_glb
 from service.model.tryon import example_set, example_vertices
 from tests.conftest import valid_glb
-from tests.tryon_server import GLB, RETAILERS, Server, run_server
+from tests.tryon_server import GLB, RETAILERS, Server, assert_422, run_server
 
 DB = 12
 MH_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "makehuman_clothes" / "male_casualsuit04"
@@ -57,17 +56,6 @@ def _mh_files() -> list[tuple[str, tuple[str, bytes, str]]]:
         pytest.skip(f"MakeHuman garment not found at {MH_DIR}")
     return [("mhclo", ("male_casualsuit04.mhclo", (MH_DIR / "male_casualsuit04.mhclo").read_bytes(), "text/plain")),
             ("obj", ("male_casualsuit04.obj", (MH_DIR / "male_casualsuit04.obj").read_bytes(), "model/obj"))]
-
-
-def _assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str, ...] = ()) -> str:
-    assert r.status_code == 422, (r.status_code, r.text)
-    detail = r.json()["detail"]
-    if loc is not None:
-        assert any(d["loc"] == loc for d in detail), detail
-    msg = " ".join(d["msg"] for d in detail)
-    for w in words:
-        assert w in msg, msg
-    return msg
 
 
 def _ids(server: Server) -> list[str]:
@@ -159,43 +147,43 @@ def test_upload_errors_leave_nothing(server: Server, model: BodyModel,
         "/v1/garments", data={"name": name}, files=files, headers=ACME)
     n = len(fits)
     # wrong number of files
-    _assert_422(post(_mesh_files(fits[:5], faces)), ["body", "meshes"], (f"expected {n} meshes",))
+    assert_422(post(_mesh_files(fits[:5], faces)), ["body", "meshes"], (f"expected {n} meshes",))
     # one mesh far from its example body (moved by 1 m): names the file
     moved = fits.copy()
     moved[7] += np.array([1.0, 0.0, 0.0])
-    _assert_422(post(_mesh_files(moved, faces)), ["body", "meshes", 7], ("tshirt_07.obj", "cm from the body"))
+    assert_422(post(_mesh_files(moved, faces)), ["body", "meshes", 7], ("tshirt_07.obj", "cm from the body"))
     # meshes in the wrong order (fitted to other example avatars)
     swapped = fits[::-1].copy()
-    _assert_422(post(_mesh_files(swapped, faces)), ["body", "meshes"], ("order of /v1/example-avatars",))
+    assert_422(post(_mesh_files(swapped, faces)), ["body", "meshes"], ("order of /v1/example-avatars",))
     swapped = fits.copy()
     swapped[[1, 2]] = swapped[[2, 1]]
-    _assert_422(post(_mesh_files(swapped, faces)), ["body", "meshes", 1], ("swapped",))
+    assert_422(post(_mesh_files(swapped, faces)), ["body", "meshes", 1], ("swapped",))
     # inconsistent vertex counts / faces
     files = _mesh_files(fits, faces)
     files[3] = ("meshes", ("short.obj", _obj(fits[3][:-10], faces[faces.max(axis=1) < len(fits[3]) - 10]), "model/obj"))
-    _assert_422(post(files), ["body", "meshes", 3], ("short.obj", "vertices"))
+    assert_422(post(files), ["body", "meshes", 3], ("short.obj", "vertices"))
     files = _mesh_files(fits, faces)
     files[4] = ("meshes", ("flipped.obj", _obj(fits[4], faces[:, ::-1]), "model/obj"))
-    _assert_422(post(files), ["body", "meshes", 4], ("faces differ",))
+    assert_422(post(files), ["body", "meshes", 4], ("faces differ",))
     # unparsable / non-finite files
     files = _mesh_files(fits, faces)
     files[2] = ("meshes", ("junk.ply", b"ply\nthis is not a ply file", "application/octet-stream"))
-    _assert_422(post(files), ["body", "meshes", 2], ("junk.ply",))
+    assert_422(post(files), ["body", "meshes", 2], ("junk.ply",))
     files = _mesh_files(fits, faces)
     nan_obj = _obj(np.where(np.arange(len(fits[0]))[:, None] == 0, np.nan, fits[0]), faces)
     files[0] = ("meshes", ("nan.obj", nan_obj, "model/obj"))
-    _assert_422(post(files), ["body", "meshes", 0])
+    assert_422(post(files), ["body", "meshes", 0])
     # MakeHuman: obj of another garment, missing obj, both kinds, neither
     mh = _mh_files()
-    _assert_422(post([mh[0], ("obj", ("other.obj", _obj(fits[0], faces), "model/obj"))]), ["body", "obj"],
+    assert_422(post([mh[0], ("obj", ("other.obj", _obj(fits[0], faces), "model/obj"))]), ["body", "obj"],
                 ("1696",))
-    _assert_422(post([mh[0]]), ["body", "obj"], ("missing",))
-    _assert_422(post(mh + _mesh_files(fits, faces)), ["body"], ("either",))
-    _assert_422(post([("mhclo", ("x.mhclo", b"name x\nverts 0\n1 2 3\n", "text/plain")), mh[1]]), ["body", "mhclo"])
+    assert_422(post([mh[0]]), ["body", "obj"], ("missing",))
+    assert_422(post(mh + _mesh_files(fits, faces)), ["body"], ("either",))
+    assert_422(post([("mhclo", ("x.mhclo", b"name x\nverts 0\n1 2 3\n", "text/plain")), mh[1]]), ["body", "mhclo"])
     r = server.client.post("/v1/garments", data={}, files=mh, headers=ACME)
-    _assert_422(r, ["body", "name"])
-    _assert_422(server.client.post("/v1/garments", data={"name": "x"}, headers=ACME), ["body"], ("either",))
-    _assert_422(post(mh, name=""), ["body", "name"])
+    assert_422(r, ["body", "name"])
+    assert_422(server.client.post("/v1/garments", data={"name": "x"}, headers=ACME), ["body"], ("either",))
+    assert_422(post(mh, name=""), ["body", "name"])
     # nothing half-written
     assert _ids(server) == before
     assert server.garment_dirs() == dirs_before
@@ -239,7 +227,7 @@ def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict
         r = server.client.get(url, params={"compression": c})
         assert r.status_code == 200 and r.headers["etag"] != etag
         valid_glb(validate_glb, r.content)
-    _assert_422(server.client.get(url, params={"compression": "draco"}), ["query", "compression"])
+    assert_422(server.client.get(url, params={"compression": "draco"}), ["query", "compression"])
 
 
 def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
@@ -262,7 +250,7 @@ def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]])
     valid_glb(validate_glb, r.content)
     r = server.client.get(f"/v1/customers/{cid}/outfit.glb")  # no garments: the avatar alone
     assert r.status_code == 200
-    _assert_422(server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "x"}))
+    assert_422(server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "x"}))
 
 
 def test_delete_garment(server: Server) -> None:

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -98,3 +99,17 @@ def run_server(data_dir: Path, backend: str, db: int, **env_extra: str) -> Itera
             flush_db(db)
     log_text = log_path.read_text(errors="replace")
     assert "Traceback" not in log_text, log_text
+
+
+def assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str, ...] = ()) -> str:
+    """Assert a 422 in the API's error format (optionally at ``loc``, with ``words`` in the
+    messages); return the joined messages."""
+    assert r.status_code == 422, (r.status_code, r.text)
+    detail = r.json()["detail"]
+    assert isinstance(detail, list) and detail
+    if loc is not None:
+        assert any(d["loc"] == loc for d in detail), detail
+    msg = " ".join(d["msg"] for d in detail)
+    for w in words:
+        assert w in msg, msg
+    return msg

@@ -54,9 +54,7 @@ def wants_glb(accept: str | None) -> bool:
 
 def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None = None) -> bytes:
     """The customer-visible skinned body surface of a (V, 3) avatar as GLB bytes
-    (``compression``: None, "quantize" or "meshopt", when the GLB writer supports it)."""
-    from service.catalogue import compression_kwargs
-
+    (``compression``: None, "quantize" or "meshopt")."""
     n_body = model.n_body_vertices
     return mesh_to_glb(
         model.body_vertices(vertices),
@@ -69,7 +67,7 @@ def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None =
             "vertex_joints": model.lbs_indices[:n_body],
             "vertex_weights": model.lbs_weights[:n_body],
         },
-        **compression_kwargs(mesh_to_glb, compression),
+        compression=compression,
     )
 
 
