@@ -13,6 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
+from service.api.jobs_routes import router as jobs_router
 from service.api.routes import router
 from service.api.tryon_routes import router as tryon_router
 from service.model.body import load_body_model
@@ -128,12 +129,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.storage = storage
         app.state.body_cache = BodyCache()
         storage_mod.set_default(storage)
-        ids = ensure_demo_garments(model, storage)
-        log.info("storage ready (%s); demo garments: %s",
-                 settings.redis_url or f"embedded redis under {settings.data_dir}", ", ".join(ids))
+        worker = storage_mod.EmbeddedWorker.start(settings) if settings.runs_embedded_worker() else None
         try:
+            ids = ensure_demo_garments(model, storage)
+            log.info("storage ready (%s); demo garments: %s",
+                     settings.redis_url or f"embedded redis under {settings.data_dir}", ", ".join(ids))
             yield
         finally:
+            if worker is not None:
+                worker.stop()
             storage_mod.set_default(None)
             storage.close()
 
@@ -150,6 +154,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(Exception, _unhandled_error)
     app.include_router(router)
     app.include_router(tryon_router)
+    app.include_router(jobs_router)
     three = next((c for c in (REPO_ROOT / "node_modules" / "three", Path.cwd() / "node_modules" / "three")
                   if c.is_dir()), None)
     if three is not None:  # three.js from the npm lockfile (npm ci), for the customer page

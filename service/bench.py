@@ -6,6 +6,9 @@ Suites:
         estimation error beside a linear regression fitted on the training subjects in the
         same run); median times of measurements -> avatar and of measuring an avatar, beside
         baselines timed in the same run.
+  fitting  body fitting of synthetic clothed/unclothed scans and point clouds of held-out
+        avatars (``service/bench_fitting.py``; default 12 avatars, ``--limit`` sets the number),
+        then jobs lost while workers are killed (``--no-kill`` skips it; needs Redis).
 
 Held-out ANSUR subjects are those whose row index in their file is a multiple of 5 (no build
 step sees them). ANSUR II is read from ``../shared/data`` (or ``TRYON_SHARED_DATA``).
@@ -550,8 +553,21 @@ def format_examples(r: dict) -> str:
     return "\n".join(L)
 
 
+def bench_fitting(limit: int, repeats: int, kill: bool = True) -> dict:
+    """Body fitting of synthetic scans, and jobs under worker kills: ``service.bench_fitting``."""
+    from service import bench_fitting as F
+
+    return F.bench_fitting(limit, repeats, kill=kill)
+
+
+def format_fitting(r: dict) -> str:
+    from service import bench_fitting as F
+
+    return F.format_fitting(r)
+
+
 SUITES = {"body": (bench_body, format_body), "tryon": (bench_tryon, format_tryon),
-          "examples": (bench_examples, format_examples)}
+          "examples": (bench_examples, format_examples), "fitting": (bench_fitting, format_fitting)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -561,9 +577,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print JSON for machines")
     ap.add_argument("--limit", type=int, default=0, help="held-out subjects to use (0 = all)")
     ap.add_argument("--repeats", type=int, default=50, help="repetitions per timing")
+    ap.add_argument("--no-kill", action="store_true", help="fitting: skip the jobs-under-worker-kills part")
     args = ap.parse_args(argv)
     run, fmt = SUITES[args.suite]
-    res = run(args.limit, args.repeats)
+    res = run(args.limit, args.repeats, **({"kill": not args.no_kill} if args.suite == "fitting" else {}))
     print(json.dumps(res, indent=2) if args.json else fmt(res))
     return 0
 

@@ -165,17 +165,135 @@ def customer_from_mesh(model: BodyModel, data: bytes, filename: str | None,
         proj = project_mesh(model, vertices)
     except AvatarMeshError as exc:
         raise UploadError(("body", "mesh"), str(exc)) from exc
-    w = np.asarray(proj.weights, np.float64)
+    return {
+        "id": new_id(), "status": "ready", "source": "mesh", "created": now_iso(),
+        **shape_fields(model, proj.weights, gender),
+        "unit": proj.unit, "residual_mm": float(proj.residual_mm),
+    }
+
+
+def shape_fields(model: BodyModel, weights: np.ndarray, gender: str | None) -> dict[str, Any]:
+    """A customer's ``weights``, ``measurements`` (the 12 attributes measured on the avatar)
+    and ``estimated`` (``["gender"]`` when not given: estimated from the shape)."""
+    w = np.asarray(weights, np.float64).ravel()
     estimated = [] if gender else ["gender"]
     gender = gender or estimate_gender(model, w)
     measured = model.measure(model.vertices(w), gender)
     return {
-        "id": new_id(), "status": "ready", "source": "mesh", "created": now_iso(),
         "weights": [float(x) for x in w],
         "measurements": {k: (v if isinstance(v, str) else float(v)) for k, v in measured.items()},
         "estimated": estimated,
-        "unit": proj.unit, "residual_mm": float(proj.residual_mm),
     }
+
+
+# -- customers from scans (fitted by a job: worker.fitting.fit_customer) ---------------------
+FIT_JOB = "worker.fitting.fit_customer"
+SCAN_FORMATS = "OBJ, PLY, STL, GLB/glTF (embedded buffers only) or XYZ"
+MISSING_JOB_GRACE_S = 60  # a fitting customer without its job for this long has failed
+
+
+def fit_job_id(cid: str) -> str:
+    """The deterministic id of a customer's fitting job."""
+    return f"fit-{cid}"
+
+
+def read_upload(model: BodyModel, data: bytes, filename: str | None) -> Any | None:
+    """Parse and validate an uploaded ``mesh`` file: None for an avatar in the template
+    topology (a mesh with the template's body or full vertex count: :func:`customer_from_mesh`),
+    else the :class:`~service.model.scan_io.Scan` to fit. Raises :class:`UploadError`."""
+    from service.model.scan_io import ScanError, read_scan
+
+    counts = (model.n_body_vertices, int(model.mean.shape[0]))
+    try:
+        scan = read_scan(data, filename)
+    except ScanError as exc:
+        message = str(exc)
+        try:  # a template-topology mesh the scan reader refuses still takes the template path
+            vertices, _ = read_mesh(data, filename)
+        except ValueError:
+            raise UploadError(("body", "mesh"), message) from exc
+        if len(vertices) in counts:
+            return None
+        raise UploadError(("body", "mesh"), f"{message} (an avatar in the template topology has "
+                                            f"{counts[0]} vertices: /v1/body-model/template.obj)") from exc
+    if scan.faces is not None and len(scan.points) in counts:
+        return None
+    from service.model.fitting import FitError, detect_scan_unit
+
+    try:  # a file that is no person in m, cm or mm would only become a failed job
+        detect_scan_unit(scan.points)
+    except FitError as exc:
+        raise UploadError(("body", "mesh"), str(exc)) from exc
+    return scan
+
+
+def scan_customer(scan: Any, gender: str | None, clothed: bool) -> dict[str, Any]:
+    """The record of a customer whose scan waits for its fitting job (``status: fitting``)."""
+    cid = new_id()
+    job_id = fit_job_id(cid)
+    return {
+        "id": cid, "status": "fitting", "source": "scan", "created": now_iso(),
+        "gender_given": gender, "clothed": bool(clothed),
+        "scan": {"format": scan.kind, "points": int(len(scan.points)),
+                 "faces": None if scan.faces is None else int(len(scan.faces))},
+        "job": {"id": job_id, "url": f"/v1/jobs/{job_id}"},
+    }
+
+
+def submit_scan(storage: Storage, record: dict[str, Any], scan: Any, timeout: int) -> Any:
+    """Store the scan (``scan:<id>``, for any worker) and the customer, then enqueue its
+    fitting job (deterministic id, retried); on failure nothing is left behind. The rq job."""
+    from service.model.scan_io import scan_to_npz_bytes
+
+    cid = record["id"]
+    storage.put_scan(cid, scan_to_npz_bytes(scan))
+    try:
+        storage.put_customer(record)
+        return storage.enqueue(FIT_JOB, cid, job_id=record["job"]["id"], job_timeout=timeout,
+                               description=f"fit the scan of customer {cid}",
+                               meta={"customer_id": cid, "progress": 0.0, "message": "waiting for a worker"})
+    except BaseException:
+        storage.delete_customer(cid)
+        raise
+
+
+def customer_from_fit(model: BodyModel, record: dict[str, Any], fit: Any) -> dict[str, Any]:
+    """The ready customer from its fitting record and a ``FitResult``: shape fields, ``pose``
+    (bone -> local axis-angle radians, ``BONES`` order), ``translation`` (metres, model
+    frame), ``unit`` and ``up`` of the file, ``residual_mm``, ``fit`` statistics."""
+    rotvecs = np.asarray(fit.rotvecs, np.float64).reshape(len(BONES), 3)
+    out = {k: v for k, v in record.items() if k != "error"}
+    out.update({
+        "status": "ready", **shape_fields(model, fit.weights, record.get("gender_given")),
+        "pose": {bone: [float(x) for x in r] for bone, r in zip(BONES, rotvecs)},
+        "translation": [float(x) for x in np.asarray(fit.translation, np.float64).ravel()],
+        "unit": str(fit.unit), "up": str(fit.up), "residual_mm": float(fit.residual_mm),
+        "fit": {"outer_iterations": int(fit.outer_iterations), "inner_iterations": int(fit.inner_iterations),
+                "seconds": round(float(fit.seconds), 3)},
+    })
+    return out
+
+
+def customer_view(storage: Storage, record: dict[str, Any]) -> dict[str, Any]:
+    """A customer as the API shows it: a scan customer's job with its live status; a
+    ``fitting`` customer whose job failed (retries exhausted) or vanished shows as failed."""
+    job_ref = record.get("job")
+    if not job_ref:
+        return record
+    from service.storage import job_state
+
+    out = dict(record)
+    job = storage.get_job(job_ref["id"])
+    state = job_state(job) if job is not None else None
+    out["job"] = {**job_ref, "status": state["status"] if state else None}
+    if out.get("status") == "fitting":
+        if state is not None and state["status"] == "failed":
+            out.update(status="failed", error=state["error"] or "the fitting job failed")
+        elif state is None:
+            created = datetime.fromisoformat(record["created"])
+            if (datetime.now(timezone.utc) - created).total_seconds() > MISSING_JOB_GRACE_S:
+                out.update(status="failed", error="the fitting job was lost; upload the scan again")
+    return out
 
 
 class BodyCache:

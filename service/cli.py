@@ -33,11 +33,16 @@ def _parser() -> argparse.ArgumentParser:
     )
     worker.add_argument("--burst", action="store_true", help="exit when the queue is empty")
     worker.add_argument("--worker-ttl", type=int, default=30,
-                        help="seconds the worker's heartbeat lives (default 30)")
+                        help="seconds after its last heartbeat at which a worker, and the job it ran, "
+                        "count as dead (default 30)")
     worker.add_argument("--job-monitoring-interval", type=int, default=5,
                         help="seconds between heartbeats of a running job (default 5)")
     worker.add_argument("--maintenance-interval", type=int, default=15,
-                        help="seconds between registry clean-ups (default 15)")
+                        help="seconds between registry clean-ups, which re-enqueue the jobs of dead "
+                        "workers (default 15)")
+    worker.add_argument("--parent-pid", type=int, default=None,
+                        help="stop (after the current job) when this process exits (tryon serve's "
+                        "embedded worker)")
 
     openapi = sub.add_parser("openapi", help="Write the OpenAPI document.")
     openapi.add_argument(
@@ -91,12 +96,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "serve":
         return _serve(args.host, args.port, args.log_level, args.workers)
     if args.command == "worker":
+        import logging
+
         from service.settings import get_settings
         from service.storage import run_worker
+        from worker.fitting import body_model
 
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s", "%H:%M:%S"))
+        logging.getLogger("tryon").addHandler(handler)  # rq configures its own loggers
+        logging.getLogger("tryon").setLevel(logging.INFO)
+        body_model()  # loaded once: every work-horse is a fork of this process
         return run_worker(get_settings(), burst=args.burst, worker_ttl=args.worker_ttl,
                           job_monitoring_interval=args.job_monitoring_interval,
-                          maintenance_interval=args.maintenance_interval)
+                          maintenance_interval=args.maintenance_interval, parent_pid=args.parent_pid)
     if args.command == "openapi":
         text = openapi_text()
         if str(args.out) == "-":

@@ -12,7 +12,9 @@ class Settings(BaseSettings):
     """Process settings.
 
     Environment variables: ``TRYON_DATA_DIR``, ``REDIS_URL``, ``TRYON_REDIS_PREFIX``,
-    ``TRYON_BODY_MODEL``, ``TRYON_MAX_UPLOAD_BYTES``, ``TRYON_RETAILER_KEYS``. Fields may also be passed by name (``Settings(data_dir=...)``).
+    ``TRYON_BODY_MODEL``, ``TRYON_MAX_UPLOAD_BYTES``, ``TRYON_RETAILER_KEYS``,
+    ``TRYON_EMBEDDED_WORKER``, ``TRYON_FIT_TIMEOUT``. Fields may also be passed by name
+    (``Settings(data_dir=...)``).
     """
 
     model_config = SettingsConfigDict(env_prefix="", populate_by_name=True, extra="ignore")
@@ -49,6 +51,26 @@ class Settings(BaseSettings):
         validation_alias="TRYON_RETAILER_KEYS",
         description="Retailer API keys for the garment endpoints: comma-separated name:key.",
     )
+    embedded_worker: bool = Field(
+        default=True,
+        validation_alias="TRYON_EMBEDDED_WORKER",
+        description="`tryon serve` runs one `tryon worker` subprocess for the job queue. Applies to "
+        "the embedded redis-server (REDIS_URL unset); with REDIS_URL set, only when set explicitly "
+        "to true (otherwise separate `tryon worker` processes run the jobs).",
+    )
+    fit_timeout: int = Field(
+        default=600,
+        validation_alias="TRYON_FIT_TIMEOUT",
+        gt=0,
+        description="Seconds a body-fitting job may run before the worker kills it (then retried).",
+    )
+
+    def runs_embedded_worker(self) -> bool:
+        """Whether the API process starts a worker: ``TRYON_EMBEDDED_WORKER`` (default true)
+        with the embedded redis-server; with ``REDIS_URL`` only when explicitly true."""
+        if not self.embedded_worker:
+            return False
+        return self.redis_url is None or "embedded_worker" in self.model_fields_set
 
     def retailers(self) -> dict[str, str]:
         """API key -> retailer name, from ``TRYON_RETAILER_KEYS`` (``name:key,name:key``)."""

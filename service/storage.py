@@ -12,16 +12,27 @@
   process, invalidated when the etag changes or the garment is deleted).
 * Jobs: an rq ``Queue("tryon")`` on the same connection (:meth:`Storage.enqueue`, jobs by
   dotted path with retries; a job reports progress with :func:`report_progress`). Run a worker
-  with ``tryon worker`` (see :func:`run_worker`).
+  with ``tryon worker`` (see :func:`run_worker`); ``tryon serve`` runs one itself with the
+  embedded redis-server (:class:`EmbeddedWorker`). Scans waiting for their fitting job:
+  ``scan:<customer id>`` (bytes, expire after :data:`SCAN_TTL`).
+* Recovery: a job whose worker dies (SIGKILL, lost machine) stops getting heartbeats; its
+  entry in rq's StartedJobRegistry expires ``worker_ttl`` seconds after the last one (rq's own
+  margin is 60 s, see :func:`worker_class`) and the next registry clean-up of any live worker
+  (every ``maintenance_interval`` s) re-enqueues it at once while it has retries left
+  (``Retry``), else moves it to the failed registry. Jobs must therefore be idempotent.
 """
 from __future__ import annotations
 
 import fcntl
 import json
 import logging
+import os
 import re
 import secrets
 import shutil
+import signal
+import subprocess
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -43,7 +54,15 @@ ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 WORKER_TTL = 30
 JOB_MONITORING_INTERVAL = 5
 MAINTENANCE_INTERVAL = 15
-JOB_RETRIES = {"max": 3, "interval": [5, 30, 120]}
+# Retries: the first at once (a job abandoned by a dead worker runs again without waiting for
+# an rq scheduler, whose lock a killed worker holds for 60 s more), then after 30 s and 120 s
+# (scheduled: every worker runs rq's scheduler).
+JOB_RETRIES = {"max": 3, "interval": [0, 30, 120]}
+JOB_RESULT_TTL = 7 * 86400  # seconds rq keeps a finished job and its result
+JOB_FAILURE_TTL = 7 * 86400  # ... a failed one
+SCAN_TTL = 3 * 86400  # seconds an uploaded scan waits for its fitting job
+EMBEDDED_WORKER_WARM_STOP = 5.0  # seconds the embedded worker may finish its job at shutdown
+EMBEDDED_WORKER_COLD_STOP = 10.0  # then seconds after a cold shutdown before SIGKILL
 
 
 def new_id() -> str:
@@ -112,21 +131,164 @@ def ping_job(value: Any = None) -> dict[str, Any]:
     return {"pong": value}
 
 
+def worker_class():
+    """rq's ``Worker`` with a faster verdict on dead workers: the StartedJobRegistry entry of a
+    running job expires ``worker_ttl`` seconds after the worker's last heartbeat (sent every
+    ``job_monitoring_interval`` s while the job runs) instead of rq's fixed 60 s, so a job
+    whose worker was killed is re-enqueued by any worker's next registry clean-up."""
+    from rq import Worker
+
+    class TryonWorker(Worker):
+        def get_heartbeat_ttl(self, job: Any, working_time: float = 0.0) -> int:
+            interval = self.job_monitoring_interval
+            if job.timeout and job.timeout > 0:
+                interval = min(max(job.timeout - working_time, 0), interval)
+            return int(interval) + int(self.worker_ttl)
+
+    return TryonWorker
+
+
+def _watch_parent(parent_pid: int) -> None:
+    """Warm-stop this worker (SIGTERM to itself) once ``parent_pid`` is no longer its parent."""
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        log.warning("parent process %d is gone: stopping the worker", parent_pid)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def run_worker(settings: Settings, *, burst: bool = False, worker_ttl: int = WORKER_TTL,
                job_monitoring_interval: int = JOB_MONITORING_INTERVAL,
-               maintenance_interval: int = MAINTENANCE_INTERVAL) -> int:
-    """Run an rq worker on the ``tryon`` queue of ``settings``' connection (the embedded
-    server's socket when ``REDIS_URL`` is unset). Equivalent to ``rq worker tryon --url URL
-    --worker-ttl 30 --job-monitoring-interval 5 --maintenance-interval 15``."""
-    from rq import Queue, Worker
+               maintenance_interval: int = MAINTENANCE_INTERVAL, parent_pid: int | None = None) -> int:
+    """Run an rq worker (:func:`worker_class`, with rq's scheduler for delayed retries) on the
+    ``tryon`` queue of ``settings``' connection (the embedded server's socket when
+    ``REDIS_URL`` is unset). Like ``rq worker tryon --url URL --with-scheduler --worker-ttl 30
+    --job-monitoring-interval 5 --maintenance-interval 15``. ``parent_pid``: stop when that
+    process exits (the embedded worker of ``tryon serve``)."""
+    from rq import Queue
 
     conn = connect(settings)
+    server = None
+    if hasattr(conn, "_cleanup"):  # this process started the embedded redis-server: keep it,
+        server = conn  # but give rq a plain client (its scheduler rebuilds the client's class)
+        conn = redis.Redis(unix_socket_path=str(embedded_socket(settings.data_dir)))
     queue = Queue(QUEUE_NAME, connection=conn)
-    worker = Worker([queue], connection=conn, worker_ttl=worker_ttl,
-                    job_monitoring_interval=job_monitoring_interval,
-                    maintenance_interval=maintenance_interval)
-    worker.work(burst=burst)
+    worker = worker_class()([queue], connection=conn, worker_ttl=worker_ttl,
+                            job_monitoring_interval=job_monitoring_interval,
+                            maintenance_interval=maintenance_interval)
+    if parent_pid:
+        _watch_parent(parent_pid)
+    try:
+        worker.work(burst=burst, with_scheduler=True)
+    finally:
+        if server is not None:
+            server._cleanup()
     return 0
+
+
+def child_pids(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux ``/proc``; empty elsewhere)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        fields = text[text.rfind(")") + 2:].split()
+        if len(fields) > 1 and int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def kill_process_tree(pid: int, sig: int = signal.SIGKILL) -> None:
+    """Send ``sig`` to ``pid``'s process group and to the groups of its descendants (an rq
+    work-horse puts itself in a process group of its own)."""
+    groups, todo = [], [pid]
+    while todo:  # collect first: children of a killed process are re-parented
+        p = todo.pop()
+        try:
+            groups.append(os.getpgid(p))
+        except ProcessLookupError:
+            continue
+        todo.extend(child_pids(p))
+    for g in dict.fromkeys(groups):
+        try:
+            os.killpg(g, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def settings_env(settings: Settings) -> dict[str, str]:
+    """The environment of a subprocess that must see ``settings`` (a worker of this API)."""
+    env = dict(os.environ)
+    for var in ("REDIS_URL", "TRYON_BODY_MODEL"):
+        env.pop(var, None)
+    env["TRYON_DATA_DIR"] = str(Path(settings.data_dir).resolve())
+    env["TRYON_REDIS_PREFIX"] = settings.redis_prefix
+    env["TRYON_FIT_TIMEOUT"] = str(settings.fit_timeout)
+    if settings.redis_url:
+        env["REDIS_URL"] = settings.redis_url
+    if settings.body_model_path:
+        env["TRYON_BODY_MODEL"] = str(Path(settings.body_model_path).resolve())
+    return env
+
+
+class EmbeddedWorker:
+    """The ``tryon worker`` subprocess that ``tryon serve`` runs (see
+    ``Settings.runs_embedded_worker``): one per data directory, whatever the number of API
+    processes (the one that gets the file lock ``TRYON_DATA_DIR/embedded-worker.lock`` starts
+    it), in a process group of its own, with the API's settings; it stops by itself if the API
+    process dies."""
+
+    def __init__(self, proc: subprocess.Popen, lock_file: Any):
+        self.proc = proc
+        self._lock_file = lock_file
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    @classmethod
+    def start(cls, settings: Settings) -> "EmbeddedWorker | None":
+        """Start the worker, or None when another process of this data directory runs it."""
+        data_dir = Path(settings.data_dir).resolve()
+        data_dir.mkdir(parents=True, exist_ok=True)
+        lock_file = open(data_dir / "embedded-worker.lock", "w")
+        try:
+            fcntl.flock(lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock_file.close()
+            return None
+        cmd = [sys.executable, "-m", "service.cli", "worker", "--parent-pid", str(os.getpid())]
+        proc = subprocess.Popen(cmd, env=settings_env(settings), start_new_session=True)
+        log.info("embedded worker started (pid %d)", proc.pid)
+        return cls(proc, lock_file)
+
+    def stop(self, warm: float = EMBEDDED_WORKER_WARM_STOP, cold: float = EMBEDDED_WORKER_COLD_STOP) -> None:
+        """SIGTERM (rq's warm shutdown: the running job may finish), after ``warm`` seconds a
+        second SIGTERM (cold: rq kills the job, which is retried after the next start), after
+        ``cold`` more seconds SIGKILL to the worker and its work-horse."""
+        try:
+            for sig, wait in ((signal.SIGTERM, warm), (signal.SIGTERM, cold)):
+                if self.proc.poll() is not None:
+                    break
+                try:
+                    os.killpg(self.proc.pid, sig)
+                except ProcessLookupError:
+                    break
+                try:
+                    self.proc.wait(timeout=max(wait, 1.1))  # rq ignores a 2nd signal within 1 s
+                except subprocess.TimeoutExpired:
+                    continue
+            if self.proc.poll() is None:
+                log.warning("embedded worker did not stop: killing it")
+                kill_process_tree(self.proc.pid)
+                self.proc.wait()
+        finally:
+            self._lock_file.close()
+        log.info("embedded worker stopped (exit status %s)", self.proc.returncode)
 
 
 # -- the store ------------------------------------------------------------------------------
@@ -202,9 +364,50 @@ class Storage:
         return self._get_json(self.key("customer", cid))
 
     def delete_customer(self, cid: str) -> bool:
+        """Delete the customer and its stored scan, then its fitting job (a running fit is
+        stopped first: :meth:`cancel_job`). False if unknown."""
         if not valid_id(cid):
             return False
-        return bool(self.redis.delete(self.key("customer", cid)))
+        rec = self.get_customer(cid)
+        pipe = self.redis.pipeline(transaction=True)
+        pipe.delete(self.key("customer", cid))
+        pipe.delete(self.key("scan", cid))
+        existed = bool(pipe.execute()[0])
+        job_id = ((rec or {}).get("job") or {}).get("id")
+        if job_id:
+            self.cancel_job(job_id)
+        return existed
+
+    def put_customer_if_exists(self, record: dict[str, Any], *, drop_scan: bool = False) -> bool:
+        """Replace an existing customer (a fitting job's result) atomically, unless it was
+        deleted meanwhile (WATCH): returns whether it was written. ``drop_scan``: delete its
+        stored scan in the same transaction."""
+        key = self.key("customer", record["id"])
+        with self.redis.pipeline(transaction=True) as pipe:
+            while True:
+                try:
+                    pipe.watch(key)
+                    if not pipe.exists(key):
+                        pipe.unwatch()
+                        return False
+                    pipe.multi()
+                    pipe.set(key, json.dumps(record))
+                    if drop_scan:
+                        pipe.delete(self.key("scan", record["id"]))
+                    pipe.execute()
+                    return True
+                except redis.WatchError:
+                    continue
+
+    # -- scans waiting for their fitting job -------------------------------------------------
+    def put_scan(self, cid: str, data: bytes, ttl: int = SCAN_TTL) -> None:
+        self.redis.set(self.key("scan", cid), data, ex=ttl)
+
+    def get_scan(self, cid: str) -> bytes | None:
+        return self.redis.get(self.key("scan", cid)) if valid_id(cid) else None
+
+    def delete_scan(self, cid: str) -> None:
+        self.redis.delete(self.key("scan", cid))
 
     # -- garments --------------------------------------------------------------------------
     def garment_dir(self, gid: str) -> Path:
@@ -310,11 +513,57 @@ class Storage:
         return self._queue
 
     def enqueue(self, dotted_path: str, *args: Any, **kwargs: Any):
-        """Enqueue ``dotted_path(*args, **kwargs)`` for a ``tryon worker``, retried up to
-        3 times; the job reports progress in ``job.meta`` (:func:`report_progress`)."""
+        """Enqueue ``dotted_path(*args)`` for a ``tryon worker``, retried up to 3 times (see
+        :data:`JOB_RETRIES`), its result kept 7 days; ``kwargs`` are rq's ``enqueue`` options
+        (``job_id``, ``job_timeout``, ``meta``, ...). The job reports progress in ``job.meta``
+        (:func:`report_progress`)."""
         from rq import Retry
 
-        return self.queue.enqueue(dotted_path, *args, retry=Retry(**JOB_RETRIES), **kwargs)
+        kwargs.setdefault("retry", Retry(**JOB_RETRIES))
+        kwargs.setdefault("result_ttl", JOB_RESULT_TTL)
+        kwargs.setdefault("failure_ttl", JOB_FAILURE_TTL)
+        return self.queue.enqueue(dotted_path, *args, **kwargs)
+
+    def get_job(self, job_id: str):
+        """The rq job of this queue with that id, or None."""
+        from rq.exceptions import NoSuchJobError
+        from rq.job import Job
+
+        if not valid_id(job_id):
+            return None
+        try:
+            job = Job.fetch(job_id, connection=self.redis)
+        except NoSuchJobError:
+            return None
+        return job if job.origin == QUEUE_NAME else None
+
+    def cancel_job(self, job_id: str, wait: float = 3.0) -> None:
+        """Forget a job: deleted when waiting or ended; when running, its worker is told to
+        stop it (the work-horse is killed; rq marks the job stopped, not retried), and it is
+        deleted once stopped (after ``wait`` seconds it is left: a dead worker's job is
+        re-run by the recovery, which must then find nothing to do)."""
+        from rq.command import send_stop_job_command
+        from rq.exceptions import InvalidJobOperation
+        from rq.job import JobStatus
+
+        job = self.get_job(job_id)
+        if job is None:
+            return
+        if job.get_status(refresh=False) == JobStatus.STARTED:
+            try:
+                send_stop_job_command(self.redis, job.id)
+            except InvalidJobOperation:  # it has just ended
+                pass
+            deadline = time.monotonic() + wait
+            try:
+                while job.get_status(refresh=True) == JobStatus.STARTED:
+                    if time.monotonic() > deadline:
+                        log.warning("job %s did not stop in %.0f s; left to the recovery", job.id, wait)
+                        return
+                    time.sleep(0.05)
+            except InvalidJobOperation:  # gone already
+                return
+        job.delete()
 
 
 _default: Storage | None = None
@@ -336,6 +585,59 @@ def default_storage() -> Storage:
     return _default
 
 
-def enqueue(dotted_path: str, *args: Any):
-    """Enqueue ``dotted_path(*args)`` on the default storage's ``tryon`` queue (rq job)."""
-    return default_storage().enqueue(dotted_path, *args)
+def enqueue(dotted_path: str, *args: Any, **kwargs: Any):
+    """Enqueue ``dotted_path(*args)`` on the default storage's ``tryon`` queue (rq job;
+    ``kwargs`` as :meth:`Storage.enqueue`)."""
+    return default_storage().enqueue(dotted_path, *args, **kwargs)
+
+
+# -- job state for the API -----------------------------------------------------------------
+JOB_STATES = {"queued": "queued", "deferred": "queued", "scheduled": "queued", "created": "queued",
+              "rate_limited": "queued", "ready_to_enqueue": "queued", "started": "running",
+              "finished": "done", "failed": "failed", "stopped": "failed", "canceled": "failed"}
+
+
+def _last_line(text: str | None) -> str | None:
+    """The last non-empty line of a traceback ('ValueError: ...'), never the traceback."""
+    lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
+    if not lines:
+        return None
+    line = lines[-1]
+    return line if len(line) <= 500 else line[:497] + "..."
+
+
+def _iso(value: Any) -> str | None:
+    return value.isoformat(timespec="seconds") if value is not None else None
+
+
+def job_state(job: Any) -> dict[str, Any]:
+    """An rq job as the API shows it: ``{id, status: queued|running|done|failed, progress,
+    message, error, customer_id, created, started, ended}``. A finished job whose result is
+    ``{"status": "failed", "error": ...}`` (a deterministic failure, not retried) is failed."""
+    rq_status = job.get_status(refresh=False)
+    rq_status = getattr(rq_status, "value", rq_status) or "queued"
+    status = JOB_STATES.get(str(rq_status), "queued")
+    meta = job.meta or {}
+    error = None
+    result = job.latest_result() if status in ("done", "failed") else None
+    if status == "done":
+        value = result.return_value if result is not None else None
+        if isinstance(value, dict) and value.get("status") == "failed":
+            status, error = "failed", str(value.get("error") or "the job failed")
+    elif status == "failed":
+        if rq_status == "stopped":
+            error = "the job was stopped"
+        elif rq_status == "canceled":
+            error = "the job was canceled"
+        else:
+            text = getattr(result, "exc_string", None) or ""
+            error = ("its worker died and no retries were left" if "AbandonedJobError" in text
+                     else _last_line(text) or "the job failed")
+    progress = float(meta.get("progress", 0.0) or 0.0)
+    return {
+        "id": job.id, "status": status,
+        "progress": 1.0 if status == "done" else min(max(progress, 0.0), 1.0),
+        "message": meta.get("message") or None, "error": error,
+        "customer_id": meta.get("customer_id"),
+        "created": _iso(job.created_at), "started": _iso(job.started_at), "ended": _iso(job.ended_at),
+    }

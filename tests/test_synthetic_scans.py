@@ -1,0 +1,207 @@
+"""Synthetic clothed scans (``service.model.synthetic_scans``), the ground truth of
+``tryon bench fitting``: hidden skin removed, frames and units as recorded, readable files,
+determinism. Needs the MakeHuman garments of ``../shared/data`` (or ``TRYON_SHARED_DATA``)."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from service.bench import penetration_depths, shared_data_dir
+from service.bench_fitting import BodySurface
+from service.model.body import BONES
+from service.model import measurements as M
+from service.model import synthetic_scans as SS
+from service.model.geometry import vertex_faces
+
+CLOTHES = shared_data_dir() / "makehuman_clothes"
+pytestmark = pytest.mark.skipif(not CLOTHES.is_dir(), reason=f"no MakeHuman garments at {CLOTHES}")
+
+
+@pytest.fixture(scope="module")
+def person(model):
+    """A held-out avatar's shape (projected on the PCA basis) and gender."""
+    z = np.load(model.path.parent / "heldout_avatars.npz")
+    i = int(np.flatnonzero(z["gender"] == "female")[0])
+    X = model.mean.astype(np.float64) + z["offsets"][i].astype(np.float64) * float(z["scale"])
+    return model.project(X), str(z["gender"][i])
+
+
+@pytest.fixture(scope="module")
+def scans(model, person):
+    """The same person, pose and frame clothed and unclothed (noise-free meshes), and a noisy
+    clothed point cloud."""
+    w, g = person
+    kw = dict(n_points=5000, clothes_dir=CLOTHES)
+    return {
+        "clothed": SS.make_scan(model, np.random.default_rng(5), w, g, clothed=True, point_cloud=False,
+                                noise_mm=0.0, garments=["female_casualsuit01", "shoes01"], **kw),
+        "naked": SS.make_scan(model, np.random.default_rng(5), w, g, clothed=False, point_cloud=False,
+                              noise_mm=0.0, **kw),
+        "cloud": SS.make_scan(model, np.random.default_rng(6), w, g, clothed=True, point_cloud=True, **kw),
+    }
+
+
+def test_same_person_pose_and_frame_with_and_without_clothes(scans):
+    c, n = scans["clothed"], scans["naked"]
+    np.testing.assert_array_equal(c.rotvecs, n.rotvecs)
+    np.testing.assert_array_equal(c.to_model, n.to_model)
+    np.testing.assert_array_equal(c.true_posed, n.true_posed)
+    assert (c.unit, c.up, c.clothed, n.clothed) == (n.unit, n.up, True, False)
+    assert c.garments == ["female_casualsuit01", "shoes01"] and n.garments == []
+    assert set(M.ATTRIBUTES) <= set(c.measurements) and c.measurements["gender"] == "female"
+
+
+def test_hidden_skin_is_removed_visible_skin_kept(model, scans):
+    c, n = scans["clothed"], scans["naked"]
+    assert n.point_is_body.all()
+    # the suit covers torso and legs, the shoes the feet: most skin is gone
+    assert c.point_is_body.sum() < 0.4 * n.point_is_body.sum()
+    # ... but head and hands are still there
+    P = c.points_in_model_frame()[c.point_is_body]
+    head, hand_l, hand_r = (c.true_joints[BONES.index(b)] for b in ("head", "hand_l", "hand_r"))
+    for j in (head, hand_l, hand_r):
+        assert (np.linalg.norm(P - j, axis=1) < 0.12).sum() > 20
+    # no skin under the shirt and the trousers: count skin points by their body vertex's
+    # dominant bone
+    nb = model.n_body_vertices
+    dom = model.lbs_indices[np.arange(nb), np.argmax(model.lbs_weights[:nb], axis=1)]
+
+    def per_bone(scan):
+        _, nn = cKDTree(scan.true_posed[:nb]).query(scan.points_in_model_frame()[scan.point_is_body])
+        return np.bincount(dom[nn], minlength=len(BONES))
+
+    pc, pn = per_bone(c), per_bone(n)
+    covered = [BONES.index(b) for b in ("pelvis", "spine", "thigh_l", "thigh_r", "shin_l", "shin_r")]
+    assert pc[covered].sum() < 0.05 * pn[covered].sum()
+    for b in ("head", "hand_l", "hand_r"):
+        assert pc[BONES.index(b)] > 0.8 * pn[BONES.index(b)], b
+
+
+def test_no_scan_point_deep_inside_the_true_body(model, scans):
+    nb = model.n_body_vertices
+    for key in ("clothed", "cloud"):
+        s = scans[key]
+        P = s.points_in_model_frame()
+        idx = np.random.default_rng(0).choice(len(P), 250, replace=False)
+        B = s.true_posed[:nb]
+        depth = penetration_depths(P[idx], B, model.body_faces, cKDTree(B), vertex_faces(model.body_faces, nb))
+        assert depth.max() < (0.02 if key == "clothed" else 0.02 + 4 * 0.002), key  # cloud: 2 mm noise
+
+
+def test_to_model_maps_the_scan_onto_the_true_body(model, scans):
+    s = scans["naked"]  # noise-free, unclothed: every vertex lies on the true posed body
+    d = BodySurface(model.body_faces, model.n_body_vertices).distances(s.points_in_model_frame(), s.true_posed)
+    assert d.max() < 1e-6
+    # a similarity: rotation times 1/scale of the unit
+    A = s.to_model[:3, :3] * SS.UNIT_SCALE[s.unit]
+    np.testing.assert_allclose(A @ A.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(A) > 0
+    np.testing.assert_array_equal(s.to_model[3], [0, 0, 0, 1])
+    # the true joints of the posed body are the ones its skeleton gives
+    assert s.true_joints.shape == (17, 3) and s.true_posed.shape == (model.mean.shape[0], 3)
+    assert abs(s.true_posed[: model.n_body_vertices, 1].min()) < 1e-9  # standing on y = 0
+
+
+@pytest.mark.parametrize("unit,up", [("m", "+y"), ("cm", "+z"), ("mm", "+y"), ("mm", "+z")])
+def test_units_and_up_axes_are_what_they_claim(model, person, unit, up):
+    w, g = person
+    s = SS.make_scan(model, np.random.default_rng(1), w, g, clothed=False, point_cloud=True, n_points=1500,
+                     max_pose_deg=0.0, unit=unit, up=up, clothes_dir=CLOTHES)
+    assert (s.unit, s.up) == (unit, up)
+    axis = {"+y": 1, "+z": 2}[up]
+    ext = np.ptp(s.points, axis=0) / SS.UNIT_SCALE[unit]  # metres
+    height = s.measurements["height_cm"] / 100
+    assert abs(ext[axis] - height) < 0.05
+    assert np.argmax(ext) == axis
+    # the scan's up axis maps to the model's +Y
+    e = np.zeros(3)
+    e[axis] = 1.0
+    up_model = s.to_model[:3, :3] @ e
+    np.testing.assert_allclose(up_model / np.linalg.norm(up_model), [0, 1, 0], atol=1e-9)
+    assert abs(s.points_in_model_frame()[:, 1].min()) < 0.01  # feet on the floor (2 mm noise)
+
+
+def test_point_clouds_have_unit_outward_normals(model, scans):
+    s = scans["cloud"]
+    assert s.faces is None and s.point_cloud
+    assert s.points.shape == s.normals.shape == (5000, 3)
+    np.testing.assert_allclose(np.linalg.norm(s.normals, axis=1), 1.0, atol=1e-9)
+    # skin points: normals agree with the true body's vertex normals
+    from service.model.geometry import vertex_normals
+
+    nb = model.n_body_vertices
+    B = s.true_posed[:nb]
+    bn = vertex_normals(B, model.body_faces)
+    P = s.points_in_model_frame()[s.point_is_body]
+    N = (s.normals @ s.to_model[:3, :3].T)[s.point_is_body]
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    _, nn = cKDTree(B).query(P)
+    assert np.median(np.einsum("ij,ij->i", N, bn[nn])) > 0.9
+
+
+def test_meshes_are_remeshed_to_about_n_points(model, scans):
+    for key in ("clothed", "naked"):
+        s = scans[key]
+        assert 0.9 * 5000 <= len(s.points) <= 1.1 * 5000
+        assert s.faces.min() >= 0 and s.faces.max() < len(s.points)
+        assert len(np.unique(s.faces)) == len(s.points)  # no unreferenced vertex
+        assert s.normals.shape == s.points.shape
+    assert len(scans["naked"].points) != model.n_body_vertices
+
+
+@pytest.mark.parametrize("fmt", SS.FORMATS)
+def test_files_are_readable_with_the_right_counts(scans, fmt):
+    for key in ("naked", "cloud"):
+        s = scans[key]
+        if s.point_cloud and fmt not in SS.POINT_CLOUD_FORMATS:
+            with pytest.raises(ValueError):
+                SS.scan_file_bytes(s, fmt)
+            continue
+        data = SS.scan_file_bytes(s, fmt)
+        if fmt == "xyz":
+            arr = np.loadtxt(io.BytesIO(data))
+            assert arr.shape == (len(s.points), 6)
+            np.testing.assert_allclose(arr[:, :3], s.points, atol=1e-5)
+            continue
+        got = trimesh.load(io.BytesIO(data), file_type=fmt, process=False)
+        if isinstance(got, trimesh.Scene):
+            got = got.to_geometry()
+        if s.point_cloud:
+            assert isinstance(got, trimesh.PointCloud) and len(got.vertices) == len(s.points)
+        else:
+            assert len(got.faces) == len(s.faces)
+            if fmt != "stl":  # STL is a triangle soup
+                assert len(got.vertices) == len(s.points)
+        scale = np.abs(s.points).max()
+        np.testing.assert_allclose(np.ptp(got.vertices, axis=0), np.ptp(s.points, axis=0), rtol=1e-5,
+                                   atol=1e-6 * scale)
+
+
+def test_deterministic_for_a_seed(model, person):
+    w, g = person
+    a, b, c = (SS.make_scan(model, np.random.default_rng(seed), w, g, clothed=True, point_cloud=False,
+                            n_points=2000, clothes_dir=CLOTHES) for seed in (9, 9, 10))
+    for f in ("points", "normals", "faces", "to_model", "rotvecs", "true_posed", "point_is_body"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    assert (a.unit, a.up, a.garments) == (b.unit, b.up, b.garments)
+    assert not np.array_equal(a.rotvecs, c.rotvecs)
+    d, e = (SS.make_scan(model, np.random.default_rng(9), w, g, clothed=True, point_cloud=True, n_points=2000,
+                         clothes_dir=CLOTHES) for _ in range(2))
+    np.testing.assert_array_equal(d.points, e.points)
+    np.testing.assert_array_equal(d.normals, e.normals)
+
+
+def test_random_pose_angles():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        rv = SS.random_pose(rng, 45.0)
+        assert rv.shape == (17, 3)
+        assert np.degrees(np.linalg.norm(rv[1:], axis=1)).max() <= 45.0 + 1e-9
+        # the root: any yaw about +Y, tilted at most 10 degrees
+        R = SS.skinning.axis_angle_to_matrix(rv[0])
+        assert np.degrees(np.arccos(np.clip(R[1, 1], -1, 1))) <= SS.ROOT_MAX_TILT_DEG + 1e-6
+    assert np.allclose(SS.random_pose(rng, 0.0)[1:], 0.0)
