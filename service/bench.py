@@ -553,11 +553,11 @@ def format_examples(r: dict) -> str:
     return "\n".join(L)
 
 
-def bench_fitting(limit: int, repeats: int, kill: bool = True) -> dict:
+def bench_fitting(limit: int, repeats: int, kill: bool = True, max_pose_deg: float = 45.0) -> dict:
     """Body fitting of synthetic scans, and jobs under worker kills: ``service.bench_fitting``."""
     from service import bench_fitting as F
 
-    return F.bench_fitting(limit, repeats, kill=kill)
+    return F.bench_fitting(limit, repeats, kill=kill, max_pose_deg=max_pose_deg)
 
 
 def format_fitting(r: dict) -> str:
@@ -578,9 +578,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=0, help="held-out subjects to use (0 = all)")
     ap.add_argument("--repeats", type=int, default=50, help="repetitions per timing")
     ap.add_argument("--no-kill", action="store_true", help="fitting: skip the jobs-under-worker-kills part")
+    ap.add_argument("--max-pose-deg", type=float, default=45.0,
+                    help="fitting: largest random rotation per bone of the synthetic scans (default 45)")
     args = ap.parse_args(argv)
     run, fmt = SUITES[args.suite]
-    res = run(args.limit, args.repeats, **({"kill": not args.no_kill} if args.suite == "fitting" else {}))
+    extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg} if args.suite == "fitting" else {}
+    res = run(args.limit, args.repeats, **extra)
     print(json.dumps(res, indent=2) if args.json else fmt(res))
     return 0
 

@@ -147,7 +147,7 @@ def _stats(values: list[float]) -> dict:
 
 
 # -- 1. accuracy ------------------------------------------------------------------------------
-def bench_fitting_accuracy(limit: int = 0, progress=None) -> dict:
+def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = MAX_POSE_DEG) -> dict:
     from service.model import synthetic_scans as SS
     from service.model.fitting import fit_body
 
@@ -165,7 +165,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None) -> dict:
             t0 = time.perf_counter()
             scan = SS.make_scan(model, np.random.default_rng([SEED, person["index"]]), person["weights"],
                                 person["gender"], clothed=clothed, point_cloud=cloud, n_points=N_POINTS,
-                                noise_mm=NOISE_MM, max_pose_deg=MAX_POSE_DEG, clothes_dir=clothes)
+                                noise_mm=NOISE_MM, max_pose_deg=max_pose_deg, clothes_dir=clothes)
             scan_seconds.append(time.perf_counter() - t0)
             base[name].append(baseline(model, scan, surface))
             t0 = time.perf_counter()
@@ -182,7 +182,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None) -> dict:
             rows[name].append(row)
             if progress:
                 progress(f"[{k + 1}/{len(people)}] {name}: {row['p2s_mm']:.2f} mm, {seconds:.1f} s")
-    out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": MAX_POSE_DEG,
+    out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
            "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
            "goal": GOALS, "conditions": {}}
     for name, clothed, cloud in CONDITIONS:
@@ -361,10 +361,11 @@ def bench_job_kills(n_jobs: int = 50, n_workers: int = 3, kill_every_s: float = 
 
 
 # -- the suite --------------------------------------------------------------------------------
-def bench_fitting(limit: int = 0, repeats: int = 0, kill: bool = True) -> dict:
+def bench_fitting(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float = MAX_POSE_DEG) -> dict:
     """The ``fitting`` suite (``repeats`` is unused: each fit is timed once)."""
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
-    res: dict = {"suite": "fitting", "accuracy": bench_fitting_accuracy(limit, progress=say)}
+    res: dict = {"suite": "fitting",
+                 "accuracy": bench_fitting_accuracy(limit, progress=say, max_pose_deg=max_pose_deg)}
     res["job_kills"] = bench_job_kills(progress=say) if kill else {"skipped": "--no-kill"}
     return res
 

@@ -83,9 +83,13 @@ class FitParams:
     yaw_steps: int = 8
     coarse_candidates: int = 3
     limb_search: bool = True
+    # neighbouring-bone smoothness while the pose is found (against per-point residuals
+    # normalised to the subsample size): a prior that prefers the smaller of two rotations
+    # that explain the scan equally well
+    coarse_bone_smoothness: float = 0.1
     # refinement before Alg. 1: the same parametric ICP on more points with every component
     refine_points: int = 8000
-    refine_iterations: int = 12
+    refine_iterations: int = 24
     run_alg1: bool = True
     damping: float = 1e-6
 
@@ -181,14 +185,12 @@ def rotvecs_of(R: np.ndarray) -> np.ndarray:
 @dataclass
 class _Sub:
     """A subset of the template's vertices with its data laid out for the updates: idx (m,),
-    mean (m, 3), Ut (m, 3, K) shape directions, W (m, 17) LBS weights, Wsub (m, 17, 17) with
-    Wsub[i, b, j] = w_ij when j is in bone b's subtree."""
+    mean (m, 3), Ut (m, 3, K) shape directions, W (m, 17) LBS weights."""
 
     idx: np.ndarray
     mean: np.ndarray
     Ut: np.ndarray
     W: np.ndarray
-    Wsub: np.ndarray
 
 
 def _subset(rig: _Rig, idx: np.ndarray) -> _Sub:
@@ -198,7 +200,7 @@ def _subset(rig: _Rig, idx: np.ndarray) -> _Sub:
         return rig.subsets[key]
     W = rig.W[idx]
     sub = _Sub(idx=idx, mean=rig.mean[idx], Ut=np.ascontiguousarray(rig.U[:, idx].transpose(1, 2, 0)),
-               W=W, Wsub=W[:, None, :] * rig.subtree[None])
+               W=W)
     if len(rig.subsets) < 8:  # the fit's fixed subsets, kept with the model
         rig.subsets[key] = sub
     return sub
@@ -230,29 +232,25 @@ def _pose_model(rig: _Rig, s: _State, sub: _Sub) -> _Posed:
     return _Posed(v=v, rest=rest, joints=joints, G=G, M=M, sub=sub)
 
 
-def _skew_rows(a: np.ndarray) -> np.ndarray:
-    """(m, 3) -> (m, 3, 3) cross-product matrices [a]x."""
-    z = np.zeros(len(a))
-    return np.stack([z, -a[:, 2], a[:, 1], a[:, 2], z, -a[:, 0], -a[:, 1], a[:, 0], z], 1).reshape(-1, 3, 3)
-
-
 def _pose_jacobian(rig: _Rig, p: _Posed, bones: np.ndarray) -> np.ndarray:
     """(m, 3, 3 + 3 len(bones)): d v_i / d(translation, dw_b for b in bones), where dw_b rotates
     bone b's subtree in the world frame about its posed joint q_b, moving v_i by
     dw_b x (S_b(i) - W_b(i) q_b) with S_b(i) = sum_{j in subtree(b)} w_ij G_j(x_i)."""
     m = len(p.v)
     nb = len(bones)
-    Jac = np.empty((m, 3, 3 + 3 * nb))
-    Jac[:, :, :3] = np.eye(3)
     q = np.einsum("jab,jb->ja", p.G[:, :3, :3], p.joints) + p.G[:, :3, 3]  # posed joints (17, 3)
-    Ws = p.sub.Wsub[:, bones]  # (m, nb, 17)
-    A = (Ws.reshape(-1, 17) @ _flat(p.G)).reshape(m, nb, 12)
-    S = (A[:, :, :9].reshape(m, nb, 3, 3) @ p.rest[:, None, :, None])[..., 0] + A[:, :, 9:]
-    arm = S - Ws.sum(2)[:, :, None] * q[bones][None]  # (m, nb, 3)
-    z = np.zeros((m, nb))
-    sk = np.stack([z, -arm[..., 2], arm[..., 1], arm[..., 2], z, -arm[..., 0], -arm[..., 1], arm[..., 0], z], -1)
-    Jac[:, :, 3:] = -sk.reshape(m, nb, 3, 3).transpose(0, 2, 1, 3).reshape(m, 3, 3 * nb)
-    return Jac
+    per_bone = p.rest @ p.G[:, :3, :3].transpose(0, 2, 1) + p.G[:, None, :3, 3]  # (17, m, 3)
+    contrib = p.sub.W.T[:, :, None] * per_bone  # w_ij G_j(x_i)
+    sub = rig.subtree[bones]  # (nb, 17)
+    S = np.tensordot(sub, contrib, axes=1)  # (nb, m, 3)
+    arm = S - (p.sub.W @ sub.T).T[:, :, None] * q[bones][:, None, :]  # (nb, m, 3)
+    J4 = np.zeros((m, 3, nb + 1, 3))
+    J4[:, :, 0, :] = np.eye(3)
+    # -[arm]x, the cross-product matrix of dw x arm
+    J4[:, 0, 1:, 1], J4[:, 0, 1:, 2] = arm[..., 2].T, -arm[..., 1].T
+    J4[:, 1, 1:, 0], J4[:, 1, 1:, 2] = -arm[..., 2].T, arm[..., 0].T
+    J4[:, 2, 1:, 0], J4[:, 2, 1:, 1] = arm[..., 1].T, -arm[..., 0].T
+    return J4.reshape(m, 3, 3 + 3 * nb)
 
 
 def _shape_jacobian(rig: _Rig, p: _Posed, comps: np.ndarray) -> np.ndarray:
@@ -322,34 +320,37 @@ class EdgeSystem:
     for x, y and z and changes only with the correspondences: ``precompute`` factors it once
     (CHOLMOD when scikit-sparse is installed, else SuperLU) and ``solve`` back-substitutes."""
 
-    def __init__(self, laplacian: sp.csc_matrix, diag: np.ndarray, eps: float = 1e-8):
+    def __init__(self, laplacian: sp.csc_matrix, diag: np.ndarray, eps: float = 1e-8,
+                 backend: str | None = None):
         self.eps = eps
         self.diag = diag
         A = (laplacian + sp.diags(diag + eps)).tocsc()
-        self.backend, self._solve = _factor(A)
+        self.backend, self._solve = _factor(A, backend or solver_backend())
 
     @classmethod
-    def precompute(cls, laplacian: sp.csc_matrix, diag: np.ndarray) -> "EdgeSystem":
-        return cls(laplacian, diag)
+    def precompute(cls, laplacian: sp.csc_matrix, diag: np.ndarray, backend: str | None = None) -> "EdgeSystem":
+        return cls(laplacian, diag, backend=backend)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """rhs: (n, 3) -> v' (n, 3)."""
         return self._solve(rhs)
 
 
-def _factor(A: sp.csc_matrix):
-    """A symmetric positive definite sparse matrix -> (backend name, solve(rhs))."""
-    try:
+def _factor(A: sp.csc_matrix, backend: str):
+    """A symmetric positive definite sparse matrix -> (backend, solve(rhs)): CHOLMOD's
+    Cholesky (scikit-sparse) or SciPy's SuperLU."""
+    if backend == "cholmod":
         from sksparse.cholmod import cholesky  # type: ignore[import-not-found]
 
         f = cholesky(A)
-        return "cholmod", lambda b: f(b)
-    except ImportError:
-        from scipy.sparse.linalg import splu
+        return "cholmod", lambda b: f(np.asarray(b, np.float64))
+    from scipy.sparse.linalg import splu
 
-        lu = splu(A, permc_spec="COLAMD")
-        return "superlu", lambda b: lu.solve(np.asarray(b, np.float64))
+    lu = splu(A, permc_spec="COLAMD")
+    return "superlu", lambda b: lu.solve(np.asarray(b, np.float64))
 
 
+@functools.lru_cache(maxsize=1)
 def solver_backend() -> str:
     """'cholmod' when scikit-sparse is importable, else 'superlu'."""
     try:
@@ -438,7 +439,8 @@ def _clothing_weight(signed: np.ndarray, clothed: bool, params: FitParams) -> np
 
 
 def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.ndarray,
-            schedule: list[tuple[np.ndarray, int]], clothed: bool, params: FitParams) -> tuple[_State, float]:
+            schedule: list[tuple[np.ndarray, int]], clothed: bool, params: FitParams,
+            omega: float | None = None) -> tuple[_State, float]:
     """Parametric ICP on subsamples: per iteration, correspondences both ways (template
     subsample -> nearest scan point, scan subsample -> nearest template vertex) rejected by
     normals and distance, point-to-plane residuals weighted for clothing, then one damped
@@ -449,6 +451,7 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
     Ps = scan.points[scan.sub]
     Ns = scan.normals[scan.sub]
     m = len(sub.idx)
+    omega = params.coarse_bone_smoothness if omega is None else omega
     lam = params.shape_prior
     cost = np.inf
     for bones, n_shape in schedule:
@@ -477,7 +480,7 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         Jall = np.concatenate([Jp, _shape_jacobian(rig, p, comps)], axis=2) if n_shape else Jp
         H, g = _normal_equations(Jall, vi, nn, w, r)
         npz = Jp.shape[2]
-        Hs, gs = _smoothness(rig, s, p, bones, params.bone_smoothness)
+        Hs, gs = _smoothness(rig, s, p, bones, omega)
         H[:npz, :npz] += Hs
         g[:npz] += gs
         if n_shape:
@@ -569,12 +572,12 @@ def _initialise(rig: _Rig, points_m: np.ndarray, normals: np.ndarray, clothed: b
     schedule += [(ALL_BONES, params.coarse_shape_components)] * max(1, n_it - len(schedule))
     for cost0, up, R, t, scan, s in screened[:params.coarse_candidates]:
         s, cost = _coarse(rig, scan, s, sub, rest_normals, schedule, clothed, params)
-        if params.limb_search:
-            s = _limb_search(rig, scan, s, sub, rest_normals, clothed, params)
-            s, cost = _coarse(rig, scan, s, sub, rest_normals, schedule[-4:], clothed, params)
         if best is None or cost < best[0]:
             best = (cost, up, R, t, scan, s)
-    _, up, R, t, _, s = best
+    _, up, R, t, scan, s = best
+    if params.limb_search:
+        s = _limb_search(rig, scan, s, sub, rest_normals, clothed, params)
+        s, _ = _coarse(rig, scan, s, sub, rest_normals, schedule[-4:], clothed, params)
     return up, R, t, s, [c[0] for c in screened]
 
 
@@ -634,7 +637,7 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
         ridx = np.sort(rng.choice(n, size=min(params.refine_points, n), replace=False))
         rn = vertex_normals(rig.mean, rig.faces, rig.incidence)[ridx]
         s, _ = _coarse(rig, scan, s, _subset(rig, ridx), rn,
-                       [(ALL_BONES, len(rig.U))] * params.refine_iterations, clothed, params)
+                       [(ALL_BONES, len(rig.U))] * params.refine_iterations, clothed, params, omega=params.bone_smoothness)
         tree = scan.tree
     else:
         tree = cKDTree(P)
