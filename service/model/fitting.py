@@ -14,8 +14,11 @@ Stages:
 1. Initialisation (the paper adjusts the pose by hand; here no human is in the loop): units
    from the size of the scan (m/cm/mm), the up axis from its principal axis (Y or Z up, either
    sign), the facing from a search over yaw angles scored by a rigid fit, then a coarse
-   parametric ICP on subsamples (root, then all bones, then the main shape components) with
-   correspondences in both directions, so limbs are pulled into the scan's pose.
+   parametric ICP on subsamples with correspondences in both directions that frees the
+   skeleton from the pelvis outwards (``BONE_LEVELS``) and then the main shape components, so
+   limbs are pulled into the scan's pose; limbs caught in a local minimum are re-tried at
+   discrete turns (``_limb_search``). The same ICP then refines pose and all shape components
+   on more points.
 2. Alg. 1: repeat { correspondences template -> scan (nearest point, rejected when normals differ
    by more than 30 degrees); repeat { update T (Eq. 2), update theta (Eq. 3), update beta (Eq. 4) }
    until 20 iterations or T moves < 1 mm } until 10 iterations or T moves < 5 mm.
@@ -23,8 +26,10 @@ Stages:
    so it is factored once per outer iteration (``EdgeSystem``) and re-solved in the inner loop.
 3. Clothing: a template vertex outside the scan (the body would poke through the clothes) keeps
    the full correspondence weight; inside (the clothes stand off the body) it gets
-   ``inside_weight``, and the shape is held by a Gaussian prior, so the body is not inflated to
-   the clothes.
+   ``inside_weight`` in the ICP and is dropped in Alg. 1 beyond ``alg1_inside_tol`` (Alg. 1's
+   alternation is blind to weights: T, then the body, would follow loose clothes outwards); the
+   shape is held by a Gaussian prior. The body ends inside the clothes, touching them where
+   they are tight.
 """
 from __future__ import annotations
 
@@ -81,6 +86,10 @@ class FitParams:
     coarse_normal_reject_deg: float = 60.0
     coarse_max_dist: float = 0.25
     yaw_steps: int = 8
+    robust_scale: float = 0.05  # metres: residuals beyond it are down-weighted (Huber-like)
+    levenberg: float = 1e-3  # damping, relative to the mean diagonal of the normal equations
+    max_rotation_step: float = 0.3  # radians per Gauss-Newton step
+    min_accepted: float = 0.2  # fewer template vertices matching the scan: not a person
     coarse_candidates: int = 3
     limb_search: bool = True
     # neighbouring-bone smoothness while the pose is found (against per-point residuals
@@ -474,7 +483,7 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         r = np.einsum("ij,ij->i", nn, p.v[vi] - cc)
         w = _clothing_weight(r, clothed, params) * np.r_[np.full(len(a_i), m / len(a_i)),
                                                           np.full(len(b_i), m / len(b_i))]
-        w = w / np.maximum(1.0, np.abs(r) / 0.05)  # Huber-like: far pairs count less
+        w = w / np.maximum(1.0, np.abs(r) / params.robust_scale)  # Huber-like: far pairs count less
         Jp = _pose_jacobian(rig, p, bones)
         comps = np.arange(n_shape)
         Jall = np.concatenate([Jp, _shape_jacobian(rig, p, comps)], axis=2) if n_shape else Jp
@@ -486,11 +495,11 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         if n_shape:
             H[npz:, npz:] += lam * np.diag(rig.precision[comps])
             g[npz:] += lam * rig.precision[comps] * s.beta[comps]
-        H += (params.damping + 1e-3 * np.trace(H) / len(H)) * np.eye(len(H))
+        H += (params.damping + params.levenberg * np.trace(H) / len(H)) * np.eye(len(H))
         delta = -np.linalg.solve(H, g)
         step = np.abs(delta[3:npz]).max(initial=0.0)
-        if step > 0.3:  # keep each rotation step small (linearisation)
-            delta *= 0.3 / step
+        if step > params.max_rotation_step:  # keep each rotation step small (linearisation)
+            delta *= params.max_rotation_step / step
         _apply_pose(rig, s, p, bones, delta[:npz])
         if n_shape:
             s.beta[comps] += delta[npz:]
@@ -694,7 +703,7 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
     c, nc, w = _correspondences(final, rig, tree, P, N, False, params, cos_rej)
     d = np.linalg.norm(final - c, axis=1)
     accepted = w > 0
-    if accepted.mean() < 0.2:
+    if accepted.mean() < params.min_accepted:
         raise FitError("the scan does not look like a person: fewer than 20 % of the body found "
                        "a matching surface")
     residual_mm = 1000 * float(d[accepted].mean())
