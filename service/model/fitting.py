@@ -420,9 +420,13 @@ def _orient_outward(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
 class _Scan:
     points: np.ndarray  # (P, 3) model frame, metres
     normals: np.ndarray  # (P, 3)
-    tree: cKDTree
     sub: np.ndarray  # indices of a subsample for the coarse stage
     sub_tree: cKDTree
+
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        """All points (built only for the candidate that goes on to Alg. 1)."""
+        return cKDTree(self.points)
 
 
 def _make_scan(points: np.ndarray, normals: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -430,7 +434,7 @@ def _make_scan(points: np.ndarray, normals: np.ndarray, R: np.ndarray, t: np.nda
     P = points @ R.T + t
     N = normals @ R.T
     sub = rng.choice(len(P), size=min(n_sub, len(P)), replace=False)
-    return _Scan(P, N, cKDTree(P), sub, cKDTree(P[sub]))
+    return _Scan(P, N, sub, cKDTree(P[sub]))
 
 
 def _posed_normals(rest_normals: np.ndarray, p: _Posed) -> np.ndarray:
