@@ -13,8 +13,9 @@ class Settings(BaseSettings):
 
     Environment variables: ``TRYON_DATA_DIR``, ``REDIS_URL``, ``TRYON_REDIS_PREFIX``,
     ``TRYON_BODY_MODEL``, ``TRYON_MAX_UPLOAD_BYTES``, ``TRYON_RETAILER_KEYS``,
-    ``TRYON_EMBEDDED_WORKER``, ``TRYON_FIT_TIMEOUT``. Fields may also be passed by name
-    (``Settings(data_dir=...)``).
+    ``TRYON_EMBEDDED_WORKER``, ``TRYON_FIT_TIMEOUT``, ``TRYON_GARMENT_TIMEOUT``, ``TRYON_CORS_ORIGINS``,
+    ``TRYON_RATE_LIMIT_CLIENT``, ``TRYON_RATE_LIMIT_RETAILER``, ``TRYON_MAX_INFLIGHT``,
+    ``TRYON_MAX_UPLOADS``, ``TRYON_DEMO_ITEMS``. Fields may also be passed by name (``Settings(data_dir=...)``).
     """
 
     model_config = SettingsConfigDict(env_prefix="", populate_by_name=True, extra="ignore")
@@ -64,6 +65,56 @@ class Settings(BaseSettings):
         gt=0,
         description="Seconds a body-fitting job may run before the worker kills it (then retried).",
     )
+    garment_timeout: int = Field(
+        default=900,
+        validation_alias="TRYON_GARMENT_TIMEOUT",
+        gt=0,
+        description="Seconds a garment build job (one draped garment carried to every example avatar) "
+        "may run before the worker kills it (then retried).",
+    )
+    demo_items: str = Field(
+        default="all",
+        validation_alias="TRYON_DEMO_ITEMS",
+        description="Demo catalogue built at the first start: 'all' the compiled MakeHuman garments, or "
+        "comma-separated catalogue item ids (e.g. for test servers), or '' none.",
+    )
+
+    cors_origins: str = Field(
+        default="",
+        validation_alias="TRYON_CORS_ORIGINS",
+        description="Origins (scheme://host[:port]) whose pages may call the API from a browser, "
+        "comma-separated; CORS preflights are answered for these origins only. Empty: none.",
+    )
+    rate_limit_client: float = Field(
+        default=10.0,
+        validation_alias="TRYON_RATE_LIMIT_CLIENT",
+        ge=0,
+        description="Requests per second one client (IP address) may make to the expensive routes "
+        "(avatars, new customers, garment uploads), in bursts of up to twice that; 0: no limit.",
+    )
+    rate_limit_retailer: float = Field(
+        default=100.0,
+        validation_alias="TRYON_RATE_LIMIT_RETAILER",
+        ge=0,
+        description="The same per retailer API key (requests with X-API-Key count here instead); 0: no limit.",
+    )
+    max_inflight: int = Field(
+        default=32,
+        validation_alias="TRYON_MAX_INFLIGHT",
+        ge=1,
+        description="Requests one server process works on at once; more get 503 with Retry-After.",
+    )
+    max_uploads: int = Field(
+        default=1,
+        validation_alias="TRYON_MAX_UPLOADS",
+        ge=1,
+        description="File uploads (multipart requests) one server process reads and parses at once "
+        "(a 45 MB scan takes ~300 MB and seconds of CPU to parse); more get 503 with Retry-After.",
+    )
+
+    def cors_origin_list(self) -> list[str]:
+        """``TRYON_CORS_ORIGINS`` as a list (trailing slashes dropped)."""
+        return [o.strip().rstrip("/") for o in self.cors_origins.split(",") if o.strip()]
 
     def runs_embedded_worker(self) -> bool:
         """Whether the API process starts a worker: ``TRYON_EMBEDDED_WORKER`` (default true)

@@ -1,4 +1,10 @@
-"""Shared pytest helpers: the Khronos glTF validator (node, ``npm ci``) as a fixture."""
+"""Shared pytest helpers: the test tiers, the Khronos glTF validator (node, ``npm ci``) as a
+fixture, the body model.
+
+Tiers: a plain ``pytest`` runs the quick tier (maths and the API in process, real Redis, under a
+minute); tests marked ``slow`` (real server and worker processes, worker kills, whole body fits,
+Chromium, the body-model build) run with ``pytest --full``, which is what ``bash .ci/test`` (the
+whole suite) does. ``-m`` selects by marker as usual and overrides the default."""
 from __future__ import annotations
 
 import json
@@ -49,6 +55,25 @@ def valid_glb(validate: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[
     report = validate(data)
     assert report["issues"]["numErrors"] == 0, format_issues(report)
     return read_glb(data)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--full", action="store_true", default=False,
+                     help="run the whole suite, slow tests included (bash .ci/test does)")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "slow: real processes, browsers, builds or whole fits (run with --full)")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--full") or config.getoption("-m"):
+        return
+    quick = [it for it in items if "slow" not in it.keywords]
+    slow = [it for it in items if "slow" in it.keywords]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = quick
 
 
 @pytest.fixture

@@ -14,7 +14,9 @@ import pytest
 from service.model.body import BONES
 from service.model.gltf import read_glb
 from tests.conftest import format_issues
-from tests.tryon_server import run_server
+from tests.harness import run_server
+
+pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
 
 REPO = Path(__file__).resolve().parent.parent
 GLB = "model/gltf-binary"
@@ -23,7 +25,7 @@ GLB = "model/gltf-binary"
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
     """An httpx client against `python -m service.cli serve` (embedded default) on a free port."""
-    with run_server(tmp_path_factory.mktemp("tryon-data"), "embedded", 0, TRYON_MAX_UPLOAD_BYTES="1000000") as s:
+    with run_server(tmp_path_factory.mktemp("tryon-data"), "embedded", TRYON_MAX_UPLOAD_BYTES="1000000") as s:
         assert s.data_dir.is_dir()
         yield s.client
 

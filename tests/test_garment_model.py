@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.model import avatar_io, demo_garments as D, garment as G, mhclo, skinning, tryon as T
+from service.model import avatar_io, demo_garments as D, garment as G, mhclo, lbs, tryon as T
 
 from service.model.geometry import vertex_normals
 
@@ -43,7 +43,7 @@ def test_synthesis_matches_slow_loop():
 def test_push_out_leaves_no_vertex_inside(model):
     from scipy.spatial import cKDTree
 
-    from service.bench import penetration_depths
+    from tests.bench.tryon import penetration_depths
     from service.model.geometry import vertex_faces
     from service.model.body import BONES
 
@@ -142,7 +142,7 @@ def test_bad_mhclo_is_refused_with_a_reason(text, words):
 def test_projection_of_uploaded_avatars(model):
     w = model.population["weights"][21].astype(np.float64)
     X = model.vertices(w).astype(np.float64)
-    R = skinning.axis_angle_to_matrix(np.array([-np.pi / 2, 0.0, 0.0]))  # Y up -> Z up
+    R = lbs.axis_angle_to_matrix(np.array([-np.pi / 2, 0.0, 0.0]))  # Y up -> Z up
     for verts, unit in ((X, "m"), (X[: model.n_body_vertices] * 100 @ R.T + [3, 1, 2], "cm"),
                         (X[: model.n_body_vertices] * 1000, "mm")):
         p = avatar_io.project_mesh(model, verts)

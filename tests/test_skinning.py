@@ -1,75 +1,238 @@
-"""Linear blend skinning over the 17 bones, against a slow per-vertex reference."""
+"""Clothes that move like clothes: skin-weight transfer by inpainting (against a slow reference
+on a tiny mesh; a skirt in the walking step no longer tears), the page's pose presets as body
+poses (segments point where poses.json says; arms never inside the torso on five bodies), and
+garment layering (inner garments pushed inside outer ones)."""
 from __future__ import annotations
+
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
-from service.model import skinning as sk
+from service.model import demo_garments as D
+from service.model import layering as LY
+from service.model import lbs as L
+from service.model import poses as P
+from service.model import shape as S
+from service.model import skin_weights as SW
+from service.model import tryon as T
 from service.model.body import BONES
+from service.model.geometry import closest_point_on_triangles, barycentric, mesh_edges, vertex_normals
+
+FIVE_BODIES = {
+    "160/55 woman": {"gender": "female", "height_cm": 160, "weight_kg": 55},
+    "185/80 man": {"gender": "male", "height_cm": 185, "weight_kg": 80},
+    "165/105 woman": {"gender": "female", "height_cm": 165, "weight_kg": 105},
+    "200/130 man": {"gender": "male", "height_cm": 200, "weight_kg": 130},
+    "150/45 man": {"gender": "male", "height_cm": 150, "weight_kg": 45},
+}
 
 
-def slow_pose(vertices, joints, parents, rotvecs, idx, w):
-    """Per vertex, per influence: walk the chain root -> bone, rotating about each joint."""
-    def apply_chain(j, p):
-        chain = []
-        while j >= 0:
-            chain.append(j)
-            j = parents[j]
-        for b in chain:  # innermost bone first, then its ancestors
-            R = sk.axis_angle_to_matrix(rotvecs[b])
-            p = R @ (p - joints[b]) + joints[b]
-        return p
-
-    out = np.zeros_like(vertices)
-    for v in range(len(vertices)):
-        for k in range(idx.shape[1]):
-            out[v] += w[v, k] * apply_chain(idx[v, k], vertices[v])
-    return out
+# -- skin weights ------------------------------------------------------------------------------------
+def grid(nx: int, ny: int, z: float = 0.0, size: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    xs, ys = np.meshgrid(np.linspace(0, size, nx), np.linspace(0, size, ny), indexing="ij")
+    V = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, z)], axis=1)
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    F = np.concatenate([np.stack([idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()], 1),
+                        np.stack([idx[:-1, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()], 1)])
+    return V, F
 
 
-def test_fast_lbs_matches_slow_reference_on_tiny_rig():
-    rng = np.random.default_rng(0)
-    parents = np.array([-1, 0, 1, 0])
-    joints = rng.normal(size=(4, 3))
-    V = rng.normal(size=(30, 3))
-    idx = rng.integers(0, 4, size=(30, 2))
-    w = rng.random((30, 2))
-    w /= w.sum(1, keepdims=True)
-    rot = rng.normal(size=(4, 3)) * 0.5
-    np.testing.assert_allclose(sk.pose(V, joints, parents, rot, idx, w), slow_pose(V, joints, parents, rot, idx, w),
-                               atol=1e-12)
+def reference_transfer(G, GF, B, BF, idx, w, J, max_distance, max_angle_deg, k):
+    """Slow and obvious: closest point over every body triangle in a loop, a dense solve of the
+    constrained Dirichlet problem (KKT), top-k by sorting each row."""
+    Wb = np.zeros((len(B), J))
+    for i in range(len(B)):
+        for j, x in zip(idx[i], w[i]):
+            Wb[i, j] += x
+    nb = vertex_normals(B, BF).astype(np.float64)
+    ng = vertex_normals(G, GF).astype(np.float64)
+    W = np.zeros((len(G), J))
+    rel = np.zeros(len(G), bool)
+    for i, p in enumerate(G):
+        best = None
+        for f in BF:
+            q = closest_point_on_triangles(p, B[f[0]], B[f[1]], B[f[2]])
+            d = np.linalg.norm(p - q)
+            if best is None or d < best[0] - 1e-12:
+                best = (d, f, q)
+        d, f, q = best
+        bc = barycentric(q, B[f[0]], B[f[1]], B[f[2]])
+        W[i] = bc @ Wb[f]
+        n = bc @ nb[f]
+        n /= np.linalg.norm(n)
+        rel[i] = d < max_distance and abs(n @ ng[i]) >= np.cos(np.radians(max_angle_deg))
+    rel &= ~SW.weight_jumps(G, GF, W, rel)
+    M = len(G)
+    Lap = np.zeros((M, M))
+    for a, b in mesh_edges(GF):
+        Lap[a, a] += 1
+        Lap[b, b] += 1
+        Lap[a, b] -= 1
+        Lap[b, a] -= 1
+    kn = np.flatnonzero(rel)
+    C = np.zeros((len(kn), M))
+    C[np.arange(len(kn)), kn] = 1
+    K = np.block([[2 * Lap, C.T], [C, np.zeros((len(kn), len(kn)))]])
+    sol = np.linalg.solve(K, np.vstack([np.zeros((M, J)), W[kn]]))[:M]
+    out_i, out_w = [], []
+    for row in sol:
+        order = sorted(range(J), key=lambda j: -row[j])[:k]
+        ww = np.array([max(row[j], 0) for j in order])
+        out_i.append(order)
+        out_w.append(ww / ww.sum())
+    return np.array(out_i), np.array(out_w)
 
 
-def test_rodrigues_is_a_rotation():
-    R = sk.axis_angle_to_matrix(np.array([[0.3, -1.2, 0.7], [0, 0, 0]]))
-    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-12)
-    np.testing.assert_allclose(R[1], np.eye(3))
-    assert np.linalg.det(R[0]) == pytest.approx(1.0)
+def test_transfer_matches_slow_reference() -> None:
+    # body: a 6x6 sheet in z = 0 whose weights go from joint 0 (x = 0) to joint 2 (x = 1);
+    # garment: a finer sheet above it, near (reliable) on the left, lifted 10 cm on the right
+    B, BF = grid(6, 6)
+    x = B[:, 0]
+    w01 = np.clip(1 - 2 * x, 0, 1)
+    w2 = np.clip(2 * x - 1, 0, 1)
+    Wb = np.stack([w01, 1 - w01 - w2, w2], 1)
+    idx = np.tile(np.arange(3), (len(B), 1))
+    G, GF = grid(9, 7, z=0.005)
+    G[:, 2] += np.where(G[:, 0] > 0.55, 0.1 * (G[:, 0] - 0.55) / 0.45, 0.0)
+    G[:, 1] = 0.05 + 0.9 * G[:, 1]
+    kw = dict(max_distance=0.02, max_angle_deg=35.0, k=3)  # no truncation: top_k has its own test
+    got_i, got_w = SW.transfer_skin_weights(G, GF, B, BF, idx, Wb, 3, **kw)
+    ref_i, ref_w = reference_transfer(G, GF, B, BF, idx, Wb, 3, kw["max_distance"], kw["max_angle_deg"], kw["k"])
+    dense = lambda i, w: SW.dense_weights(i, w, 3)  # noqa: E731
+    assert np.allclose(dense(got_i, got_w), dense(ref_i, ref_w), atol=1e-5)
+    assert np.allclose(got_w.sum(1), 1, atol=1e-6)
+    # unreliable vertices (lifted) got inpainted values strictly between their neighbours'
+    lifted = G[:, 2] > 0.03
+    assert lifted.any() and (~lifted).any()
 
 
+def test_top_k_and_inpaint_constraints() -> None:
+    W = np.array([[0.1, 0.5, 0.2, 0.15, 0.05], [0, 0, 0, 0, 0.0]])
+    i, w = SW.top_k(W, 4)
+    assert i[0].tolist() == [1, 2, 3, 0] and np.isclose(w[0].sum(), 1)
+    assert w[1].tolist() == [1, 0, 0, 0] and i[1].tolist() == [0, 0, 0, 0]
+    # a path 0-1-2-3-4 with ends fixed: harmonic = linear interpolation
+    F = np.array([[0, 1, 1], [1, 2, 2], [2, 3, 3], [3, 4, 4]])
+    Lap = SW.uniform_laplacian(F, 5)
+    X = np.zeros((5, 1))
+    X[4] = 1
+    out = SW.inpaint(X, np.array([1, 0, 0, 0, 1], bool), Lap)
+    assert np.allclose(out[:, 0], [0, 0.25, 0.5, 0.75, 1], atol=1e-6)
 
 
-def test_avatar_pose(model):
-    X = model.mean.astype(np.float64)
-    J = model.joints(X)
-    zero = np.zeros((17, 3))
-    np.testing.assert_allclose(sk.pose(X, J, model.bone_parents, zero, model.lbs_indices, model.lbs_weights), X,
-                               atol=1e-6)
-    # a root rotation moves the whole body rigidly about the pelvis joint
-    rot = zero.copy()
-    rot[0] = [0, np.pi / 2, 0]
-    P = sk.pose(X, J, model.bone_parents, rot, model.lbs_indices, model.lbs_weights)
-    R = sk.axis_angle_to_matrix(rot[0])
-    np.testing.assert_allclose(P, (X - J[0]) @ R.T + J[0], atol=1e-5)
-    # bending the left elbow moves the left hand, not the head or the right hand
-    b = {n: i for i, n in enumerate(BONES)}
-    rot = zero.copy()
-    rot[b["forearm_l"]] = [0, 0, 1.0]
-    P = sk.pose(X, J, model.bone_parents, rot, model.lbs_indices, model.lbs_weights)
-    moved = np.linalg.norm(P - X, axis=1)
-    dominant = model.lbs_indices[np.arange(len(X)), np.argmax(model.lbs_weights, axis=1)]
-    assert moved[dominant == b["hand_l"]].min() > 0.05
-    assert moved[dominant == b["head"]].max() < 1e-6  # float32 weights sum to 1 +- 1e-7
-    assert moved[dominant == b["hand_r"]].max() < 1e-6
-    # the elbow stays where it was (rotation about the forearm joint)
-    assert np.linalg.norm(model.joints(X)[b["forearm_l"]] - J[b["forearm_l"]]) < 1e-9
+@pytest.fixture(scope="module")
+def skirt(model):
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    g = D.make_demo_garments(model)["skirt"]
+    basis = T.build_garment_basis(model, np.stack([g.fit(model, E) for E in EX]), g.faces, ex)
+    return basis
+
+
+def test_skirt_does_not_tear_in_walking_step(model, skirt) -> None:
+    X = model.mean
+    body = T.customer_body(model, np.zeros(model.n_components))
+    v, _ = T.try_on(skirt, body)
+    pose = P.preset_poses(model, X)["walking"]
+    G = model.forward(pose=pose, vertices=X).transforms
+    near = skirt.binding[:, 0]
+    before = P.edge_stretch(v, L.skin(v, G, model.lbs_indices[near], model.lbs_weights[near]), skirt.faces)
+    after = P.edge_stretch(v, L.skin(v, G, skirt.skin_idx, skirt.skin_w), skirt.faces)
+    assert np.percentile(before, 99.9) > 4.0  # nearest-vertex weights tear it
+    assert np.percentile(after, 99.9) < 1.5
+    assert skirt.skin_idx.shape == (skirt.n_vertices, 4) and np.allclose(skirt.skin_w.sum(1), 1, atol=1e-5)
+
+
+# -- poses -------------------------------------------------------------------------------------------
+def test_presets_point_segments_at_targets(model) -> None:
+    spec = P.presets()
+    assert set(spec["poses"]) == {"a-pose", "arms-down", "walking", "hands-on-hips"}
+    X = model.mean
+    for name, pose in P.preset_poses(model, X).items():
+        posed = model.forward(pose=pose, vertices=X)
+        for bone, d in P.targets(spec["poses"][name]).items():
+            seg = posed.joints[BONES.index(spec["child"][bone])] - posed.joints[BONES.index(bone)]
+            assert np.degrees(np.arccos(np.clip(seg @ d / np.linalg.norm(seg), -1, 1))) < 0.01, (name, bone)
+        if name == "a-pose":
+            assert np.allclose(pose, 0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("body", list(FIVE_BODIES))
+def test_adapted_poses_keep_arms_out_of_the_torso(model, body) -> None:
+    X = S.avatar_from_measurements(model, FIVE_BODIES[body]).vertices
+    poses = P.adapted_poses(model, X)
+    for name, pose in poses.items():
+        posed = model.forward(pose=pose, vertices=X).vertices
+        for side in "lr":
+            pts = P.arm_points(model, X, side)[::5]  # exhaustive winding numbers on every 5th arm vertex
+            inside = P.arm_vertices_inside(model, posed, pts, side, exhaustive=True)
+            assert len(inside) == 0, (body, name, side, len(inside))
+
+
+# -- layering ----------------------------------------------------------------------------------------
+def cylinder(radius, y0, y1, n_around=40, n_up=20):
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    y = np.linspace(y0, y1, n_up)
+    if callable(radius):
+        r = radius(y)[:, None]
+    else:
+        r = np.full((n_up, 1), radius)
+    V = np.stack([(r * np.cos(a)).ravel(), np.repeat(y, n_around), (r * np.sin(a)).ravel()], 1)
+    idx = np.arange(n_up * n_around).reshape(n_up, n_around)
+    nxt = np.roll(idx, -1, axis=1)
+    F = np.concatenate([np.stack([idx[:-1].ravel(), nxt[:-1].ravel(), nxt[1:].ravel()], 1),
+                        np.stack([idx[:-1].ravel(), nxt[1:].ravel(), idx[1:].ravel()], 1)])
+    return V, F
+
+
+def test_push_inside_only_where_covered() -> None:
+    body, _ = cylinder(0.10, -0.5, 0.5, 60, 40)
+    bn = body * np.array([1, 0, 1])
+    bn /= np.linalg.norm(bn, axis=1, keepdims=True)
+    outer, OF = cylinder(0.13, 0.0, 0.4)  # a "T-shirt" from y = 0 up
+    inner, IF = cylinder(lambda y: 0.12 + 0.03 * np.exp(-((y - 0.05) / 0.05) ** 2), -0.4, 0.2, 40, 61)  # a "waistband" bulge
+    out = LY.push_inside(inner, IF, outer, OF, body, bn)
+    r_in, r_out = np.linalg.norm(inner[:, [0, 2]], axis=1), np.linalg.norm(out[:, [0, 2]], axis=1)
+    covered = (inner[:, 1] > 0.02) & (inner[:, 1] < 0.38)
+    assert (r_out[covered] <= 0.13 - LY.GAP + 2e-4).all()
+    far = inner[:, 1] < -0.2  # nowhere near the outer garment: untouched
+    assert np.allclose(r_out[far], r_in[far], atol=5e-4)
+    # smooth: neighbours along a column move by similar amounts
+    moved = (r_in - r_out).reshape(-1, 40)[:, 0]
+    assert np.abs(np.diff(moved)).max() < 0.015
+    both, outside = LY.inner_outside_share(out, outer, OF, IF, body, bn, None)
+    assert both > 0 and outside == 0
+    _, outside0 = LY.inner_outside_share(inner, outer, OF, IF, body, bn, None)
+    assert outside0 > 0
+
+
+# -- the route -----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    from service.app import create_app
+    from service.settings import Settings
+    from tests.harness import redis_db, redis_url
+
+    with redis_db() as db:
+        settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("poses"), REDIS_URL=redis_url(db),
+                            TRYON_EMBEDDED_WORKER=False)
+        with TestClient(create_app(settings), raise_server_exceptions=True) as c:
+            yield c
+
+
+def test_poses_route(client: TestClient) -> None:
+    c = client.post("/v1/customers", json={"measurements": {"gender": "female", "height_cm": 165,
+                                                             "weight_kg": 105}}).json()
+    assert client.get(f"/v1/customers/{c['id']}/poses").status_code == 404  # no token
+    assert client.get("/v1/customers/nope/poses", headers={"Authorization": f"Bearer {c['token']}"}).status_code == 404
+    r = client.get(f"/v1/customers/{c['id']}/poses", headers={"Authorization": f"Bearer {c['token']}"})
+    assert r.status_code == 200
+    poses = r.json()
+    assert set(poses) == {"a-pose", "arms-down", "walking", "hands-on-hips"}
+    assert all(set(p) == set(BONES) and all(len(v) == 3 for v in p.values()) for p in poses.values())
+    # a heavy body: arms down needs more abduction than the preset's direction
+    arm = np.array(poses["arms-down"]["upper_arm_l"])
+    assert np.linalg.norm(arm) > 0

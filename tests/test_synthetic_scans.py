@@ -1,4 +1,4 @@
-"""Synthetic clothed scans (``service.model.synthetic_scans``), the ground truth of
+"""Synthetic clothed scans (``tests/bench/synthetic_scans.py``), the ground truth of
 ``tryon bench fitting``: hidden skin removed, frames and units as recorded, readable files,
 determinism. Needs the MakeHuman garments of ``../shared/data`` (or ``TRYON_SHARED_DATA``)."""
 from __future__ import annotations
@@ -10,21 +10,22 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from service.bench import penetration_depths, shared_data_dir
-from service.bench_fitting import BodySurface
+from tests.bench.common import HELDOUT_AVATARS, shared_data_dir
+from tests.bench.tryon import penetration_depths
+from tests.bench.fitting import BodySurface
 from service.model.body import BONES
 from service.model import measurements as M
-from service.model import synthetic_scans as SS
+from tests.bench import synthetic_scans as SS
 from service.model.geometry import vertex_faces
 
 CLOTHES = shared_data_dir() / "makehuman_clothes"
-pytestmark = pytest.mark.skipif(not CLOTHES.is_dir(), reason=f"no MakeHuman garments at {CLOTHES}")
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not CLOTHES.is_dir(), reason=f"no MakeHuman garments at {CLOTHES}")]
 
 
 @pytest.fixture(scope="module")
 def person(model):
     """A held-out avatar's shape (projected on the PCA basis) and gender."""
-    z = np.load(model.path.parent / "heldout_avatars.npz")
+    z = np.load(HELDOUT_AVATARS)
     i = int(np.flatnonzero(z["gender"] == "female")[0])
     X = model.mean.astype(np.float64) + z["offsets"][i].astype(np.float64) * float(z["scale"])
     return model.project(X), str(z["gender"][i])
@@ -202,6 +203,6 @@ def test_random_pose_angles():
         assert rv.shape == (17, 3)
         assert np.degrees(np.linalg.norm(rv[1:], axis=1)).max() <= 45.0 + 1e-9
         # the root: any yaw about +Y, tilted at most 10 degrees
-        R = SS.skinning.axis_angle_to_matrix(rv[0])
+        R = SS.lbs.axis_angle_to_matrix(rv[0])
         assert np.degrees(np.arccos(np.clip(R[1, 1], -1, 1))) <= SS.ROOT_MAX_TILT_DEG + 1e-6
     assert np.allclose(SS.random_pose(rng, 0.0)[1:], 0.0)

@@ -1,17 +1,17 @@
 // End-to-end drive of the customer page with playwright-core + Debian's chromium.
-// Usage: node tests/web_client.spec.mjs BASE_URL OUTDIR -> prints one JSON object (the facts
-// the pytest side asserts); screenshots go to OUTDIR.
+// Usage: node tests/web_client.spec.mjs BASE_URL OUTDIR [SCAN_CUSTOMER_ID SCAN_TOKEN]
+// -> prints one JSON object (the facts the pytest side asserts); screenshots go to OUTDIR.
 import { chromium } from 'playwright-core';
 import path from 'node:path';
 import fs from 'node:fs';
 
-const [base, outdir] = process.argv.slice(2);
+const [base, outdir, scanId, scanToken] = process.argv.slice(2);
 fs.mkdirSync(outdir, { recursive: true });
 const out = { screenshots: [], console: [] };
-const shot = async (page, name) => {
+const shot = async (page, name, locator = null) => {
   const p = path.join(outdir, `${name}.png`);
   await page.evaluate(() => window.scrollTo(0, 0));
-  await page.screenshot({ path: p });
+  if (locator) await page.locator(locator).screenshot({ path: p }); else await page.screenshot({ path: p });
   out.screenshots.push(p);
   return p;
 };
@@ -39,6 +39,28 @@ const canvasVariation = async (page) => {
 const loadsNow = (page) => page.evaluate(() => window.__tryon.loads);
 const waitLoad = (page, after) => page.waitForFunction(
   (n) => window.__tryon && window.__tryon.loads > n && !window.__tryon.busy, after, { timeout: 60000 });
+const box = async (page, sel) => page.locator(sel).boundingBox();
+const wornNow = (page) => page.evaluate(() => window.__tryon.garmentsWorn());
+// put on exactly these garments (clicking the catalogue), waiting for the last scene
+const wear = async (page, ids) => {
+  const worn = await wornNow(page);
+  const clicks = [...worn.filter((g) => !ids.includes(g)), ...ids.filter((g) => !worn.includes(g))];
+  if (!clicks.length) return;
+  const n = await loadsNow(page);
+  for (const g of clicks) await page.click(`#catalogue button[data-garment="${g}"]`);
+  await waitLoad(page, n);
+};
+const setBody = async (page, b) => {
+  const n = await loadsNow(page);
+  await page.selectOption('#in-gender', b.gender);
+  await page.fill('#in-height_cm', String(b.height));
+  await page.fill('#in-weight_kg', String(b.weight));
+  await waitLoad(page, n);
+};
+const pose = async (page, name) => {
+  await page.click(`#poses button[data-pose=${name}]`);
+  await page.waitForFunction((p) => window.__tryon.pose === p, name);
+};
 
 const browser = await chromium.launch({
   executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
@@ -46,11 +68,19 @@ const browser = await chromium.launch({
     '--disable-component-update', '--no-first-run', '--use-angle=swiftshader'],
 });
 try {
-  const page = await browser.newPage({ viewport: { width: 1200, height: 900 } });
+  const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
   page.on('console', (m) => { if (m.type() === 'error') out.console.push(m.text()); });
   page.on('pageerror', (e) => out.console.push(`pageerror: ${e.message}`));
   await page.goto(base + '/');
   await page.waitForFunction(() => window.__tryon && window.__tryon.ready, null, { timeout: 60000 });
+
+  // the layout at 1280x800: the viewer and the catalogue side by side, nothing to scroll
+  out.layout = {
+    viewer: await box(page, '#viewer'), catalogue: await box(page, '#catalogue'),
+    firstGarment: await box(page, '#catalogue li:first-child button'),
+    scrollHeight: await page.evaluate(() => document.documentElement.scrollHeight),
+    innerHeight: await page.evaluate(() => window.innerHeight),
+  };
 
   // fill the form
   let n = await loadsNow(page);
@@ -85,41 +115,106 @@ try {
   out.pose = await page.evaluate(() => window.__tryon.pose);
   await shot(page, '02-walking');
 
-  // garments: T-shirt and trousers (saves the customer automatically)
-  const garments = await (await fetch(base + '/v1/garments')).json();
-  const byName = Object.fromEntries(garments.map((g) => [g.name, g.id]));
-  n = await loadsNow(page);
-  await page.click(`#catalogue button[data-garment="${byName.tshirt}"]`);
-  await waitLoad(page, n);
-  n = await loadsNow(page);
-  await page.click(`#catalogue button[data-garment="${byName.trousers}"]`);
-  await waitLoad(page, n);
+  // garments: a top and a bottom of the catalogue (saves the customer automatically)
+  const garments = (await (await fetch(base + '/v1/garments')).json()).filter((g) => g.status === 'ready');
+  const tops = garments.filter((g) => /shirt|tee|top|blouse|sweater|hoodie|jacket|polo/i.test(g.name));
+  const bottoms = garments.filter((g) => /trouser|jean|pant|skirt|short|chino/i.test(g.name));
+  if (!tops.length || !bottoms.length) throw new Error(`no top and bottom among ${garments.map((g) => g.name)}`);
+  const outfits = [[tops[0], bottoms[0]], [tops[1] || tops[0], bottoms[1] || bottoms[0]]];
+  out.outfits = outfits.map((o) => o.map((g) => g.name));
+  await wear(page, [outfits[0][0].id]);
+  await wear(page, outfits[0].map((g) => g.id));
   out.dressed = await page.evaluate(() => ({
     meshes: window.__tryon.meshCount(), skinned: window.__tryon.skinnedMeshCount(),
     worn: window.__tryon.garmentsWorn(), customer: window.__tryon.customerId(), bones: window.__tryon.boneNames(),
-    pose: window.__tryon.pose, thigh: window.__tryon.boneQuaternion('thigh_l'),
+    pose: window.__tryon.pose, thigh: window.__tryon.boneQuaternion('thigh_l'), names: window.__tryon.meshNames(),
   }));
-  out.expectedWorn = [byName.tshirt, byName.trousers];
+  out.expectedWorn = outfits[0].map((g) => g.id);
   out.storedId = await page.evaluate(() => localStorage.getItem('tryon.customerId'));
+  const token = await page.evaluate(() => localStorage.getItem('tryon.customerToken'));
+  out.storedToken = Boolean(token);
   await page.click('#poses button[data-pose=hands-on-hips]');
   await page.waitForTimeout(300);
   out.dressedCanvas = await canvasVariation(page);
   await shot(page, '03-dressed');
 
+  // five bodies (and a 208 cm one), two outfits each, front / side / back. The camera keeps
+  // the direction the shopper turned it to across avatar changes, and frames every body.
+  const bodies = [
+    { name: 'w160-55', gender: 'female', height: 160, weight: 55, pose: 'walking' },
+    { name: 'm185-80', gender: 'male', height: 185, weight: 80, pose: 'hands-on-hips' },
+    { name: 'w165-105', gender: 'female', height: 165, weight: 105, pose: 'arms-down' },
+    { name: 'm200-130', gender: 'male', height: 200, weight: 130, pose: 'walking' },
+    { name: 'm150-45', gender: 'male', height: 150, weight: 45, pose: 'hands-on-hips' },
+    { name: 'm208-110', gender: 'male', height: 208, weight: 110, pose: 'arms-down' },
+  ];
+  out.bodies = [];
+  const views = [['front', 0], ['side', Math.PI / 2], ['back', Math.PI / 2]];
+  for (const b of bodies) {
+    const rec = { name: b.name, views: [] };
+    if (b.height === 208) { // turned a little before the avatar changes: the direction is kept
+      await page.evaluate(() => window.__tryon.orbit(0.6));
+      rec.directionBefore = await page.evaluate(() => window.__tryon.cameraDirection());
+    }
+    await pose(page, 'a-pose');
+    await setBody(page, b);
+    if (b.height === 208) {
+      rec.directionAfter = await page.evaluate(() => window.__tryon.cameraDirection());
+      rec.headTurned = await page.evaluate(() => window.__tryon.headTop());
+      await shot(page, `body-${b.name}-turned`, '#viewer');
+      await page.evaluate(() => window.__tryon.orbit(-0.6));
+    }
+    rec.height = await page.evaluate(() => window.__tryon.bboxHeight());
+    for (const [k, outfit] of outfits.entries()) {
+      await wear(page, outfit.map((g) => g.id));
+      await pose(page, k === 0 ? 'a-pose' : b.pose);
+      const names = await page.evaluate(() => window.__tryon.meshNames());
+      for (const [view, turn] of views) {
+        await page.evaluate((a) => window.__tryon.orbit(a), turn);
+        const v = { outfit: k, view, pose: k === 0 ? 'a-pose' : b.pose, names,
+          head: await page.evaluate(() => window.__tryon.headTop()),
+          scene: await page.evaluate(() => window.__tryon.sceneScreenBox()) };
+        if (view === 'front') {
+          v.pixels = {};
+          for (const g of outfit) {
+            // three.js names nodes as PropertyBinding.sanitizeNodeName does: whitespace -> _, no []./:
+            const node = g.name.replace(/\s/g, '_').replace(/[\[\]\.:\/]/g, '');
+            const name = names.find((x) => x === node) || names.find((x) => x.startsWith(node));
+            v.pixels[g.name] = name ? await page.evaluate((x) => window.__tryon.meshPixels(x), name) : null;
+          }
+        }
+        await shot(page, `body-${b.name}-outfit${k + 1}-${view}`, '#viewer');
+        rec.views.push(v);
+      }
+      await page.evaluate(() => window.__tryon.orbit(-Math.PI)); // back to the front
+    }
+    out.bodies.push(rec);
+  }
+  await pose(page, 'a-pose');
+  await shot(page, '06-wide-page');
+
   // a reload remembers the customer and brings back what they entered
+  out.customerBeforeReload = await page.evaluate(() => window.__tryon.customerId());
   await page.reload();
   await page.waitForFunction(() => window.__tryon.ready && !window.__tryon.busy, null, { timeout: 60000 });
   out.restored = { customer: await page.evaluate(() => window.__tryon.customerId()),
                    height: await page.inputValue('#in-height_cm'), weight: await page.inputValue('#in-weight_kg') };
+  const lastBody = bodies[bodies.length - 1];
+  out.restoredExpected = { height: lastBody.height, weight: lastBody.weight };
 
   // delete my data
-  const cid = out.dressed.customer;
-  out.customerStatusBefore = (await fetch(`${base}/v1/customers/${cid}`)).status;
+  const cid = out.restored.customer;
+  const lastToken = await page.evaluate(() => localStorage.getItem('tryon.customerToken'));
+  out.customerStatusBefore = (await fetch(`${base}/v1/customers/${cid}`,
+    { headers: { Authorization: `Bearer ${lastToken}` } })).status;
+  out.customerStatusNoToken = (await fetch(`${base}/v1/customers/${cid}`)).status;
+  out.deletedToken = lastToken;
   n = await loadsNow(page);
   await page.click('#delete');
   await waitLoad(page, n);
   out.deletedCustomer = cid;
   out.storedAfterDelete = await page.evaluate(() => localStorage.getItem('tryon.customerId'));
+  out.tokenAfterDelete = await page.evaluate(() => localStorage.getItem('tryon.customerToken'));
 
   // the error path: an impossible height
   await page.fill('#in-height_cm', '20');
@@ -130,10 +225,58 @@ try {
 
   // a phone width
   await page.setViewportSize({ width: 390, height: 844 });
+  n = await loadsNow(page);
   await page.fill('#in-height_cm', '170');
-  await page.waitForTimeout(1200);
+  await waitLoad(page, n);
   out.phoneScrollWidth = await page.evaluate(() => document.documentElement.scrollWidth);
+  out.phoneHead = await page.evaluate(() => window.__tryon.headTop());
+  out.phoneViewer = await box(page, '#viewer');
   await shot(page, '05-phone');
+  await page.close();
+
+  // a scan customer (uploaded by the pytest side): the scan edited live over the WebSocket
+  if (scanId) {
+    const auth = { headers: { Authorization: `Bearer ${scanToken}` } };
+    const deadline = Date.now() + 240000;
+    let rec;
+    for (;;) {
+      rec = await (await fetch(`${base}/v1/customers/${scanId}`, auth)).json();
+      if (rec.status !== 'fitting' || Date.now() > deadline) break;
+      await new Promise((r) => setTimeout(r, 1000));
+    }
+    out.scanRecord = { status: rec.status, source: rec.source, editable: rec.editable, error: rec.error };
+    const ctx = await browser.newContext({ viewport: { width: 1280, height: 800 } });
+    const sp = await ctx.newPage();
+    sp.on('console', (m) => { if (m.type() === 'error') out.console.push(`scan: ${m.text()}`); });
+    sp.on('pageerror', (e) => out.console.push(`pageerror: ${e.message}`));
+    await sp.goto(`${base}/?customer=${scanId}&token=${scanToken}`);
+    await sp.waitForFunction(() => window.__tryon && window.__tryon.scan.frames >= 1, null, { timeout: 60000 });
+    const scanState = () => sp.evaluate(() => ({ ...window.__tryon.scan, view: window.__tryon.scan.view(),
+      box: window.__tryon.sceneScreenBox(), size: window.__tryon.scanSize(), head: window.__tryon.headTop(), url: location.href,
+      catalogueHidden: document.querySelector('#catalogue-section').hidden }));
+    out.scan = { first: await scanState() };
+    await shot(sp, 'scan-01-as-scanned');
+    const w = Number(await sp.inputValue('#in-weight_kg'));
+    out.scan.weightBefore = w;
+    let frames = out.scan.first.frames;
+    await sp.locator('#sl-weight_kg').fill(String(Math.round(w + 20)));
+    await sp.waitForFunction((f) => window.__tryon.scan.frames > f, frames, { timeout: 60000 });
+    await sp.waitForTimeout(300);
+    await sp.waitForFunction(() => !document.querySelector('#scan-status').textContent.startsWith('Reshaping'), null, { timeout: 60000 });
+    out.scan.heavier = await scanState();
+    await shot(sp, 'scan-02-heavier');
+    frames = out.scan.heavier.frames;
+    await sp.click('#poses button[data-pose=arms-down]');
+    await sp.waitForFunction((f) => window.__tryon.scan.frames > f, frames, { timeout: 60000 });
+    out.scan.posed = await scanState();
+    await shot(sp, 'scan-03-arms-down');
+    await sp.click('#scan-view button[data-view=body]');
+    await sp.waitForFunction(() => window.__tryon.scan.view() === 'body');
+    await sp.waitForTimeout(200);
+    out.scan.body = await scanState();
+    await shot(sp, 'scan-04-fitted-body');
+    await ctx.close();
+  }
 } finally {
   await browser.close();
 }

@@ -1,5 +1,6 @@
 // The customer page: measurements -> live skinned avatar (three.js), shape sliders, pose
-// presets, the garment catalogue and the customer's own data (save / delete).
+// presets, the garment catalogue, hair, live editing of an uploaded scan (WebSocket) and the
+// customer's own data (save / delete).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -10,7 +11,13 @@ const CM_PER_IN = 2.54;
 const KG_PER_LB = 0.45359237;
 const DEBOUNCE_MS = 400;
 const CUSTOMER_KEY = 'tryon.customerId';
+const TOKEN_KEY = 'tryon.customerToken'; // the customer's secret (Authorization: Bearer), kept with the id
 const DEFAULTS = { gender: 'female', height_cm: 168 };
+const FRAME_MARGIN = 0.84;      // the framed scene fills at most this share of the view (each way)
+const START_DIRECTION = [0, 0.06, 1]; // camera -> target direction before the shopper orbits
+const BACKGROUND = 0xe7eaf0;
+const SCAN_COLOUR = 0xb8a99a;   // an uploaded scan carries no material: a neutral clay
+const EDIT_EPSILON = 0.05;      // cm/kg: a slider this close to the fitted value is not an edit
 
 const $ = (sel) => document.querySelector(sel);
 const state = {
@@ -19,86 +26,190 @@ const state = {
   units: 'metric',
   garments: [],            // the catalogue
   worn: [],                // chosen garment ids
+  hair: '',                // chosen hair ('' = none), when the server lists looks
   customerId: localStorage.getItem(CUSTOMER_KEY),
+  customerToken: localStorage.getItem(TOKEN_KEY),
   customerStale: false,    // measurements changed since the customer was saved
   pose: 'a-pose',
+  scan: null,              // the customer record of an uploaded scan (live editing), else null
+  view: 'scan',            // scan customers: 'scan' (edited live) | 'body' | 'scan-pose' (body as scanned)
 };
-
-// ---- test hook ----------------------------------------------------------------------------
-const hook = {
-  ready: false, busy: false, loads: 0, lastError: null, pose: 'a-pose',
-  meshCount: () => meshes().length,
-  skinnedMeshCount: () => meshes().filter((m) => m.isSkinnedMesh).length,
-  boneNames: () => [...new Set(bones().map((b) => b.name))],
-  garmentsWorn: () => [...state.worn],
-  customerId: () => state.customerId,
-  bboxHeight: () => (current ? new THREE.Box3().setFromObject(current).getSize(new THREE.Vector3()).y : 0),
-  boneQuaternion: (name) => { const b = bones().find((x) => x.name === name); return b ? b.quaternion.toArray() : null; },
-  values: () => ({ ...state.values }),
-};
-window.__tryon = hook;
 
 // ---- three.js scene -----------------------------------------------------------------------
 const canvas = $('#scene');
 const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
 renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+renderer.outputColorSpace = THREE.SRGBColorSpace;
+renderer.toneMapping = THREE.NeutralToneMapping; // keeps cloth colours close to their base colour
+renderer.toneMappingExposure = 1.0;
+renderer.shadowMap.enabled = true;
+renderer.shadowMap.type = THREE.PCFShadowMap;
 const scene = new THREE.Scene();
-scene.background = new THREE.Color(0xdfe3ea);
-const camera = new THREE.PerspectiveCamera(35, 1, 0.05, 50);
+scene.background = new THREE.Color(BACKGROUND);
+const camera = new THREE.PerspectiveCamera(35, 1, 0.05, 60);
 camera.position.set(0, 1.0, 4.2);
 const controls = new OrbitControls(camera, canvas);
 controls.target.set(0, 0.9, 0);
 controls.enableDamping = false;
 controls.listenToKeyEvents(canvas); // arrow keys when the canvas has focus
 controls.addEventListener('change', render);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x8a8f99, 1.6));
-const key = new THREE.DirectionalLight(0xffffff, 1.8);
-key.position.set(1.5, 3, 2.5);
-scene.add(key);
-const rim = new THREE.DirectionalLight(0xffffff, 0.6);
-rim.position.set(-2, 2, -2);
+
+// Lighting for cloth: a sky/ground hemisphere for soft fill, a warm key light that casts a soft
+// shadow on the floor, a cool rim light from behind to separate the silhouette.
+const hemi = new THREE.HemisphereLight(0xf2f5ff, 0x8d8478, 1.5);
+scene.add(hemi);
+const key = new THREE.DirectionalLight(0xfff3e6, 2.4);
+key.position.set(1.4, 3.2, 2.2);
+key.castShadow = true;
+key.shadow.mapSize.set(1024, 1024);
+key.shadow.radius = 4;
+key.shadow.bias = -0.0004;
+key.shadow.normalBias = 0.02;
+scene.add(key, key.target);
+const rim = new THREE.DirectionalLight(0xe6eeff, 0.9);
+rim.position.set(-2, 2.4, -2.2);
 scene.add(rim);
-const floor = new THREE.Mesh(new THREE.CircleGeometry(1.5, 48), new THREE.MeshStandardMaterial({ color: 0xb9bfcc }));
+const fill = new THREE.DirectionalLight(0xffffff, 0.5);
+fill.position.set(-2.2, 1.2, 1.8);
+scene.add(fill);
+
+// The floor: a disc that receives the key light's shadow, and a blurred contact shadow (a
+// radial gradient) right under the feet so the avatar stands on it rather than floats.
+const floor = new THREE.Mesh(new THREE.CircleGeometry(1.6, 64),
+  new THREE.MeshStandardMaterial({ color: 0xd3d7df, roughness: 0.95 }));
 floor.rotation.x = -Math.PI / 2;
+floor.receiveShadow = true;
 scene.add(floor);
+function contactShadowTexture() {
+  const c = document.createElement('canvas');
+  c.width = c.height = 128;
+  const g = c.getContext('2d');
+  const grad = g.createRadialGradient(64, 64, 0, 64, 64, 64);
+  grad.addColorStop(0, 'rgba(0,0,0,0.55)');
+  grad.addColorStop(0.45, 'rgba(0,0,0,0.28)');
+  grad.addColorStop(1, 'rgba(0,0,0,0)');
+  g.fillStyle = grad;
+  g.fillRect(0, 0, 128, 128);
+  const t = new THREE.CanvasTexture(c);
+  t.colorSpace = THREE.SRGBColorSpace;
+  return t;
+}
+const contact = new THREE.Mesh(new THREE.PlaneGeometry(1, 1),
+  new THREE.MeshBasicMaterial({ map: contactShadowTexture(), transparent: true, depthWrite: false, toneMapped: false }));
+contact.rotation.x = -Math.PI / 2;
+contact.position.y = 0.002;
+contact.renderOrder = 1;
+scene.add(contact);
+
 const loader = new GLTFLoader();
 loader.setMeshoptDecoder(MeshoptDecoder);
 let current = null; // the loaded glTF scene (avatar, or avatar + garments)
 let rest = new Map(); // bone -> rest quaternion
+let scanMesh = null; // scan customers: the scan, edited live over the WebSocket
 
 function meshes() { const out = []; current?.traverse((o) => { if (o.isMesh) out.push(o); }); return out; }
 function bones() { const out = []; current?.traverse((o) => { if (o.isBone) out.push(o); }); return out; }
+function shown() { return scanMesh && scanMesh.visible ? scanMesh : current; } // what the viewer frames
+function avatarMesh() { const m = meshes(); return m.find((x) => x.name === 'avatar') || m[0] || null; }
 
 function resize() {
   const w = canvas.clientWidth || 1, h = canvas.clientHeight || 1;
   renderer.setSize(w, h, false);
   camera.aspect = w / h;
   camera.updateProjectionMatrix();
-  render();
+  frame();
 }
 function render() { renderer.render(scene, camera); }
 new ResizeObserver(resize).observe(canvas);
 
-function frame(obj, first) {
-  const box = new THREE.Box3().setFromObject(obj);
-  const size = box.getSize(new THREE.Vector3()), centre = box.getCenter(new THREE.Vector3());
-  if (!first) return;
-  const dist = (size.y * 0.62) / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
+// Box of what is drawn now (skinned vertices as posed, not the bind pose).
+function visibleBox(obj) {
+  const box = new THREE.Box3();
+  if (!obj) return box;
+  obj.updateMatrixWorld(true);
+  obj.traverse((o) => { if (o.isMesh && o.visible) box.expandByObject(o, true); });
+  return box;
+}
+
+// Frame the shown scene: target its box centre, keep the direction the shopper orbited to, and
+// step back until all 8 box corners lie within FRAME_MARGIN of the view (both ways). Also
+// fits the floor, the contact shadow and the key light's shadow camera to the body.
+function frame() {
+  const obj = shown();
+  if (!obj) { render(); return; }
+  const box = visibleBox(obj);
+  if (box.isEmpty()) { render(); return; }
+  const centre = box.getCenter(new THREE.Vector3()), size = box.getSize(new THREE.Vector3());
+  const dir = camera.position.clone().sub(controls.target);
+  if (dir.lengthSq() < 1e-8) dir.set(...START_DIRECTION);
+  dir.normalize();
+  // camera basis for that direction
+  const back = dir, right = new THREE.Vector3().crossVectors(camera.up, back).normalize();
+  if (right.lengthSq() < 1e-8) right.set(1, 0, 0);
+  const up = new THREE.Vector3().crossVectors(back, right);
+  const tanV = Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) * FRAME_MARGIN;
+  const tanH = tanV * camera.aspect;
+  let dist = 0.5;
+  const p = new THREE.Vector3();
+  for (let i = 0; i < 8; i += 1) {
+    p.set(i & 1 ? box.max.x : box.min.x, i & 2 ? box.max.y : box.min.y, i & 4 ? box.max.z : box.min.z).sub(centre);
+    const depth = p.dot(back); // towards the camera
+    dist = Math.max(dist, depth + Math.abs(p.dot(up)) / tanV, depth + Math.abs(p.dot(right)) / tanH);
+  }
   controls.target.copy(centre);
-  camera.position.set(centre.x, centre.y + size.y * 0.05, centre.z + dist);
+  camera.position.copy(centre).addScaledVector(back, dist);
+  camera.near = Math.max(0.02, dist / 100); camera.far = dist * 20;
+  camera.updateProjectionMatrix();
   controls.update();
+  // the floor under the feet
+  const feet = box.min.y;
+  floor.position.set(centre.x, feet, centre.z);
+  contact.position.set(centre.x, feet + 0.002, centre.z);
+  contact.scale.set(Math.max(0.5, size.x * 0.75), Math.max(0.4, size.z * 1.6), 1);
+  const reach = Math.max(size.x, size.y, size.z);
+  key.target.position.copy(centre);
+  key.position.copy(centre).add(new THREE.Vector3(1.4, 3.2, 2.2).normalize().multiplyScalar(reach * 2));
+  const sc = key.shadow.camera;
+  sc.left = sc.bottom = -reach * 0.9; sc.right = sc.top = reach * 0.9;
+  sc.near = reach * 0.5; sc.far = reach * 4;
+  sc.updateProjectionMatrix();
+  hook.frames += 1;
+  render();
+}
+
+function dressUp(root) {
+  const body = avatarOf(root);
+  root.traverse((o) => {
+    if (!o.isMesh) return;
+    o.frustumCulled = false;
+    o.castShadow = true;
+    o.receiveShadow = true;
+    const isAvatar = o === body;
+    for (const m of [].concat(o.material)) {
+      // cloth is seen from both sides (sleeves, hems, open jackets); the body only from outside
+      if (!isAvatar) m.side = THREE.DoubleSide;
+      m.shadowSide = THREE.FrontSide;
+      if (m.map) m.map.anisotropy = renderer.capabilities.getMaxAnisotropy();
+      m.needsUpdate = true;
+    }
+  });
+}
+function avatarOf(root) {
+  let first = null, named = null;
+  root.traverse((o) => { if (o.isMesh) { first ??= o; if (o.name === 'avatar') named = o; } });
+  return named || first;
 }
 
 async function showGlb(buffer) {
   const gltf = await loader.parseAsync(buffer, '');
-  const first = current === null;
   if (current) { scene.remove(current); disposeTree(current); }
   current = gltf.scene;
-  current.traverse((o) => { if (o.isMesh) { o.frustumCulled = false; } });
+  dressUp(current);
   scene.add(current);
   rest = new Map(bones().map((b) => [b, b.quaternion.clone()]));
   applyPose(state.pose);
-  frame(current, first);
+  if (scanMesh) current.visible = state.view !== 'scan';
+  frame();
   hook.loads += 1;
   render();
 }
@@ -106,27 +217,129 @@ async function showGlb(buffer) {
 function disposeTree(obj) {
   obj.traverse((o) => {
     if (o.geometry) o.geometry.dispose();
-    if (o.material) [].concat(o.material).forEach((m) => m.dispose());
+    if (o.material) [].concat(o.material).forEach((m) => { if (m.map) m.map.dispose(); m.dispose(); });
   });
 }
 
-// ---- poses: rotate bones by name so that each segment points in a target direction --------
-// World directions (Y up, the body faces +Z, the character's left = +X). Segment = bone -> child.
-const CHILD = { upper_arm_l: 'forearm_l', forearm_l: 'hand_l', upper_arm_r: 'forearm_r', forearm_r: 'hand_r',
-  thigh_l: 'shin_l', shin_l: 'foot_l', thigh_r: 'shin_r', shin_r: 'foot_r' };
-const mirror = (d) => Object.fromEntries(Object.entries(d).map(([k, [x, y, z]]) => [k.replace(/_l$/, '_r'), [-x, y, z]]));
-const ARMS_DOWN = { upper_arm_l: [0.17, -1, 0], forearm_l: [0.1, -1, 0.08] };
-const HIPS = { upper_arm_l: [0.8, -1, -0.05], forearm_l: [-1, -0.5, 0.35] };
-const POSES = {
-  'a-pose': {},
-  'arms-down': { ...ARMS_DOWN, ...mirror(ARMS_DOWN) },
-  'walking': {
-    upper_arm_l: [0.15, -1, -0.35], forearm_l: [0.1, -1, 0.05], upper_arm_r: [-0.15, -1, 0.35], forearm_r: [-0.1, -1, 0.5],
-    thigh_l: [0.03, -1, 0.42], shin_l: [0.02, -1, 0.05], thigh_r: [-0.03, -1, -0.22], shin_r: [-0.02, -1, -0.55],
+// ---- test hook ----------------------------------------------------------------------------
+// Screen box (CSS px, relative to the canvas) of a world box's 8 corners.
+function screenBox(box) {
+  const w = canvas.clientWidth, h = canvas.clientHeight, v = new THREE.Vector3();
+  let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+  for (let i = 0; i < 8; i += 1) {
+    v.set(i & 1 ? box.max.x : box.min.x, i & 2 ? box.max.y : box.min.y, i & 4 ? box.max.z : box.min.z).project(camera);
+    const x = (v.x + 1) / 2 * w, y = (1 - v.y) / 2 * h;
+    x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y);
+  }
+  return { x0, y0, x1, y1, width: w, height: h };
+}
+// The highest vertex of the body (the top of the head), as drawn, projected to the canvas.
+function headTop() {
+  const m = scanMesh && scanMesh.visible ? scanMesh : avatarMesh();
+  if (!m) return null;
+  m.updateMatrixWorld(true);
+  const v = new THREE.Vector3(), top = new THREE.Vector3(0, -Infinity, 0);
+  const n = m.geometry.getAttribute('position').count;
+  for (let i = 0; i < n; i += 1) {
+    m.getVertexPosition(i, v); v.applyMatrix4(m.matrixWorld);
+    if (v.y > top.y) top.copy(v);
+  }
+  const world = top.toArray();
+  top.project(camera);
+  return { x: (top.x + 1) / 2 * canvas.clientWidth, y: (1 - top.y) / 2 * canvas.clientHeight, world,
+    width: canvas.clientWidth, height: canvas.clientHeight };
+}
+// Share of the pixels inside a mesh's screen box that change when that mesh is hidden (it is
+// drawn, and not hidden under another one), and the share that differ from the background.
+function meshPixels(name) {
+  const m = meshes().find((x) => x.name === name);
+  if (!m) return null;
+  const sb = screenBox(visibleBox(m));
+  const read = () => {
+    render();
+    const t = document.createElement('canvas');
+    t.width = canvas.clientWidth; t.height = canvas.clientHeight;
+    const ctx = t.getContext('2d');
+    ctx.drawImage(canvas, 0, 0, t.width, t.height);
+    const x0 = Math.max(0, Math.floor(sb.x0)), y0 = Math.max(0, Math.floor(sb.y0));
+    const x1 = Math.min(t.width, Math.ceil(sb.x1)), y1 = Math.min(t.height, Math.ceil(sb.y1));
+    return { d: ctx.getImageData(x0, y0, Math.max(1, x1 - x0), Math.max(1, y1 - y0)).data, bg: ctx.getImageData(2, 2, 1, 1).data };
+  };
+  const on = read();
+  m.visible = false;
+  const off = read();
+  m.visible = true;
+  render();
+  let changed = 0, notBg = 0;
+  const px = on.d.length / 4;
+  for (let i = 0; i < on.d.length; i += 4) {
+    const dOn = Math.abs(on.d[i] - off.d[i]) + Math.abs(on.d[i + 1] - off.d[i + 1]) + Math.abs(on.d[i + 2] - off.d[i + 2]);
+    if (dOn > 12) changed += 1;
+    const dBg = Math.abs(on.d[i] - on.bg[0]) + Math.abs(on.d[i + 1] - on.bg[1]) + Math.abs(on.d[i + 2] - on.bg[2]);
+    if (dBg > 12) notBg += 1;
+  }
+  return { changed: changed / px, notBackground: notBg / px, box: sb };
+}
+const hook = {
+  ready: false, busy: false, loads: 0, frames: 0, lastError: null, pose: 'a-pose',
+  meshCount: () => meshes().length,
+  meshNames: () => meshes().map((m) => m.name),
+  skinnedMeshCount: () => meshes().filter((m) => m.isSkinnedMesh).length,
+  boneNames: () => [...new Set(bones().map((b) => b.name))],
+  garmentsWorn: () => [...state.worn],
+  customerId: () => state.customerId,
+  bboxHeight: () => (current ? new THREE.Box3().setFromObject(current).getSize(new THREE.Vector3()).y : 0),
+  boneQuaternion: (name) => { const b = bones().find((x) => x.name === name); return b ? b.quaternion.toArray() : null; },
+  values: () => ({ ...state.values }),
+  headTop,
+  sceneScreenBox: () => screenBox(visibleBox(shown())),
+  meshPixels,
+  cameraDirection: () => camera.position.clone().sub(controls.target).normalize().toArray(),
+  orbit: (azimuth) => { // turn the camera about the vertical through the target (radians), as a drag would
+    const off = camera.position.clone().sub(controls.target).applyAxisAngle(new THREE.Vector3(0, 1, 0), azimuth);
+    camera.position.copy(controls.target).add(off); controls.update(); render();
   },
-  'hands-on-hips': { ...HIPS, ...mirror(HIPS) },
+  hair: () => state.hair,
+  scanSize: () => (scanMesh ? new THREE.Box3().setFromObject(scanMesh).getSize(new THREE.Vector3()).toArray() : null),
+  scan: { frames: 0, kind: null, vertices: 0, faces: 0, sent: 0, view: () => state.view, errors: [] },
 };
-const ORDER = ['upper_arm_l', 'forearm_l', 'upper_arm_r', 'forearm_r', 'thigh_l', 'shin_l', 'thigh_r', 'shin_r'];
+window.__tryon = hook;
+
+// ---- poses: rotate bones by name so that each segment points in a target direction --------
+// The presets live in poses.json (shared with the service: service/model/poses.py): world
+// directions (Y up, the body faces +Z, the character's left = +X) of segments bone -> child.
+// For a saved customer the service adapts them to the body (GET /v1/customers/{id}/poses: more
+// shoulder abduction so arms stay out of the torso); those local rotations (axis-angle, rest
+// frames = world axes) are used when they have arrived, the directions otherwise.
+let PRESETS = null; // poses.json
+const bodyPoses = new Map(); // customer id -> {pose: {bone: [x, y, z]}} | 'loading' | 'failed'
+const presetsLoaded = fetch('poses.json').then((r) => r.json()).then((p) => { PRESETS = p; applyPose(state.pose); })
+  .catch(() => { PRESETS = { order: [], child: {}, poses: {} }; });
+hook.presetsLoaded = presetsLoaded;
+hook.poseSource = 'directions';
+
+function presetTargets(name) {
+  const p = PRESETS?.poses?.[name];
+  if (!p) return {};
+  const out = { ...(p.targets || {}) };
+  if (p.mirror) for (const [k, [x, y, z]] of Object.entries(p.targets || {})) if (k.endsWith('_l')) out[k.replace(/_l$/, '_r')] = [-x, y, z];
+  return out;
+}
+
+function customerPoses() {
+  const id = state.customerId;
+  if (!id || state.customerStale) return null;
+  const hit = bodyPoses.get(id);
+  if (hit && typeof hit === 'object') return hit;
+  if (!hit) {
+    bodyPoses.set(id, 'loading');
+    api(`/v1/customers/${id}/poses`, asCustomer()).then((r) => r.json()).then((p) => {
+      bodyPoses.set(id, p);
+      if (state.customerId === id) applyPose(state.pose);
+    }).catch(() => bodyPoses.set(id, 'failed'));
+  }
+  return null;
+}
 
 function applyPose(name) {
   state.pose = name; hook.pose = name;
@@ -137,11 +350,27 @@ function applyPose(name) {
   current.updateMatrixWorld(true);
   const byName = new Map();
   for (const b of bones()) { if (!byName.has(b.name)) byName.set(b.name, []); byName.get(b.name).push(b); }
-  const targets = POSES[name] || {};
+  const adapted = customerPoses()?.[name];
+  if (adapted) {
+    const axis = new THREE.Vector3();
+    for (const [boneName, rv] of Object.entries(adapted)) {
+      const angle = Math.hypot(...rv);
+      if (!byName.has(boneName) || angle < 1e-9) continue;
+      const q = new THREE.Quaternion().setFromAxisAngle(axis.set(...rv).divideScalar(angle), angle);
+      for (const b of byName.get(boneName)) b.quaternion.copy(rest.get(b)).multiply(q);
+    }
+    hook.poseSource = 'body';
+    current.updateMatrixWorld(true);
+    render();
+    return;
+  }
+  hook.poseSource = 'directions';
+  const targets = presetTargets(name);
   const a = new THREE.Vector3(), c = new THREE.Vector3(), pq = new THREE.Quaternion(), wq = new THREE.Quaternion();
-  for (const boneName of ORDER) {
-    if (!targets[boneName] || !byName.has(boneName) || !byName.has(CHILD[boneName])) continue;
-    const bone = byName.get(boneName)[0], child = byName.get(CHILD[boneName])[0];
+  for (const boneName of PRESETS?.order || []) {
+    const childName = PRESETS.child[boneName];
+    if (!targets[boneName] || !byName.has(boneName) || !byName.has(childName)) continue;
+    const bone = byName.get(boneName)[0], child = byName.get(childName)[0];
     bone.getWorldPosition(a); child.getWorldPosition(c);
     const from = c.sub(a).normalize(), to = new THREE.Vector3(...targets[boneName]).normalize();
     const delta = new THREE.Quaternion().setFromUnitVectors(from, to);
@@ -158,6 +387,239 @@ document.querySelectorAll('#poses button').forEach((btn) => btn.addEventListener
   document.querySelectorAll('#poses button').forEach((x) => x.setAttribute('aria-pressed', String(x === btn)));
   applyPose(btn.dataset.pose);
 }));
+
+// A pose changes the body's extent (arms out, a step): frame again, and a scan follows the pose.
+document.querySelectorAll('#poses button').forEach((btn) => btn.addEventListener('click', () => {
+  if (state.scan) { scanPoseChosen = true; reframeScan = true; sendScanEdit(); }
+  frame();
+}));
+
+// ---- hair (the server's looks, when it lists them) ----------------------------------------
+// GET /v1/looks may answer a list, or an object with a list of hair styles; each an id string
+// or {id, name, kind|type|category}. Anything but 200 (or no hair in it) hides the selector.
+function hairOptions(body) {
+  const list = Array.isArray(body) ? body : (body?.hair || body?.looks || body?.items || []);
+  const out = [];
+  for (const item of Array.isArray(list) ? list : []) {
+    if (typeof item === 'string') { out.push({ id: item, name: item }); continue; }
+    if (!item || typeof item !== 'object' || !item.id) continue;
+    const kind = item.kind || item.type || item.category;
+    if (kind && !/hair/i.test(String(kind))) continue;
+    out.push({ id: String(item.id), name: String(item.name || item.label || item.id) });
+  }
+  return out;
+}
+
+async function buildHair() {
+  const section = $('#hair-section');
+  let options = [];
+  try {
+    const r = await fetch('/v1/looks');
+    if (r.ok) options = hairOptions(await r.json());
+  } catch { /* no looks: no selector */ }
+  section.hidden = options.length === 0;
+  hook.hairOptions = options.map((o) => o.id);
+  if (!options.length) return;
+  const sel = $('#hair');
+  sel.innerHTML = '';
+  sel.add(new Option('No hair', ''));
+  for (const o of options) sel.add(new Option(o.name.replace(/[_-]+/g, ' '), o.id));
+  sel.value = state.hair;
+  sel.addEventListener('change', () => { state.hair = sel.value; refresh(); });
+}
+
+function withHair(url) {
+  if (!state.hair) return url;
+  return `${url}${url.includes('?') ? '&' : '?'}hair=${encodeURIComponent(state.hair)}`;
+}
+
+// ---- scan customers: the uploaded scan, edited live over the WebSocket --------------------
+// Protocol (service/api/customers.py): a JSON head {vertices, faces, kind}, then the faces
+// (uint32 F x 3) and the current vertices (float32 n x 3); each JSON edit {measurements, pose}
+// sent is answered by a float32 vertex frame, or a JSON {error: 422, detail}.
+let ws = null, wsHead = null, wsFaces = null, inFlight = false, pending = false, scanPoseChosen = false, reframeScan = false;
+
+function scanEdits() {
+  const fitted = state.scan?.measurements || {};
+  const m = {};
+  for (const a of state.attributes) {
+    if (a.unit === null) continue; // gender cannot change
+    const v = state.values[a.name], f = fitted[a.name];
+    if (typeof v === 'number' && (typeof f !== 'number' || Math.abs(v - f) > EDIT_EPSILON)) m[a.name] = Math.round(v * 100) / 100;
+  }
+  return m;
+}
+
+// The page's pose presets as the edit API wants them: each bone's rotation, local to its
+// parent, as axis-angle (the avatar's bones are at identity in the rest pose). Until the
+// shopper picks a pose the scan keeps its own (pose {} = as fitted).
+function scanPose() {
+  if (!scanPoseChosen || !current) return {};
+  const out = {}, seen = new Set();
+  for (const b of bones()) {
+    if (seen.has(b.name)) continue;
+    seen.add(b.name);
+    const q = b.quaternion.clone().normalize();
+    if (q.w < 0) q.set(-q.x, -q.y, -q.z, -q.w);
+    const angle = 2 * Math.acos(Math.min(1, q.w)), s = Math.sqrt(Math.max(0, 1 - q.w * q.w));
+    out[b.name] = s < 1e-6 ? [0, 0, 0] : [q.x / s * angle, q.y / s * angle, q.z / s * angle].map((x) => Math.round(x * 1e5) / 1e5);
+  }
+  return out;
+}
+
+function sendScanEdit() {
+  if (!ws || ws.readyState !== WebSocket.OPEN || !wsFaces) { pending = true; return; }
+  if (inFlight) { pending = true; return; }
+  inFlight = true; pending = false;
+  ws.send(JSON.stringify({ measurements: scanEdits(), pose: scanPose() }));
+  hook.scan.sent += 1;
+  $('#scan-status').textContent = 'Reshaping your scan…';
+}
+
+function scanFrame(buf) {
+  const v = new Float32Array(buf);
+  const first = !scanMesh;
+  if (!scanMesh) {
+    const g = new THREE.BufferGeometry();
+    g.setAttribute('position', new THREE.BufferAttribute(v, 3));
+    g.setIndex(new THREE.BufferAttribute(wsFaces, 1));
+    g.computeVertexNormals();
+    scanMesh = new THREE.Mesh(g, new THREE.MeshStandardMaterial({ color: SCAN_COLOUR, roughness: 0.85, side: THREE.DoubleSide }));
+    scanMesh.name = 'scan';
+    scanMesh.castShadow = scanMesh.receiveShadow = true;
+    scanMesh.frustumCulled = false;
+    scene.add(scanMesh);
+  } else {
+    const attr = scanMesh.geometry.getAttribute('position');
+    if (attr.array.length === v.length) { attr.array.set(v); attr.needsUpdate = true; } else {
+      scanMesh.geometry.setAttribute('position', new THREE.BufferAttribute(v, 3));
+    }
+    scanMesh.geometry.computeVertexNormals();
+    scanMesh.geometry.computeBoundingBox();  // the cached boxes would keep the first frame's size
+    scanMesh.geometry.computeBoundingSphere();
+  }
+  // frame the first frame and after a pose; not while a slider is dragged (no camera jumps)
+  if (first || reframeScan) { reframeScan = false; setView(state.view); } else render();
+  hook.scan.frames += 1;
+}
+
+function openScanSocket() {
+  if (ws) ws.close();
+  wsHead = null; wsFaces = null; inFlight = false;
+  const proto = location.protocol === 'https:' ? 'wss' : 'ws';
+  const url = `${proto}://${location.host}/v1/customers/${encodeURIComponent(state.customerId)}/edit/ws?token=${encodeURIComponent(state.customerToken || '')}`;
+  const sock = new WebSocket(url);
+  ws = sock;
+  sock.binaryType = 'arraybuffer';
+  sock.onmessage = (ev) => {
+    if (ws !== sock) return;
+    if (typeof ev.data === 'string') {
+      const msg = JSON.parse(ev.data);
+      if (msg.error) {
+        inFlight = false;
+        hook.scan.errors.push(msg);
+        showError(new ApiError(msg.error, { detail: msg.detail }));
+        if (pending) sendScanEdit();
+        return;
+      }
+      wsHead = msg;
+      Object.assign(hook.scan, { kind: msg.kind, vertices: msg.vertices, faces: msg.faces });
+      return;
+    }
+    if (!wsFaces) { wsFaces = new Uint32Array(ev.data); return; }
+    inFlight = false;
+    clearErrors();
+    scanFrame(ev.data);
+    $('#scan-status').textContent = wsHead?.kind === 'scan'
+      ? 'Your scan, clothes and all: move the sliders or pick a pose to reshape it.'
+      : 'Your avatar: move the sliders or pick a pose to reshape it.';
+    if (pending) sendScanEdit();
+  };
+  sock.onclose = (ev) => {
+    if (ws !== sock) return;
+    ws = null;
+    if (ev.code === 4404 || ev.code === 4409) $('#scan-status').textContent = ev.reason || 'Your scan cannot be edited now.';
+  };
+}
+
+// The view toggle: the live-edited scan, the fitted body, or the fitted body in the scan's pose
+// (GET avatar.glb?pose=scan, offered only where the server answers it).
+async function setView(view) {
+  state.view = view;
+  document.querySelectorAll('#scan-view button').forEach((b) => b.setAttribute('aria-pressed', String(b.dataset.view === view)));
+  if (scanMesh) scanMesh.visible = view === 'scan';
+  if (current) current.visible = view !== 'scan';
+  frame();
+}
+
+async function loadScanBody(view) {
+  const q = view === 'scan-pose' ? '?pose=scan' : '';
+  const r = await api(withHair(`/v1/customers/${state.customerId}/avatar.glb${q}`), asCustomer());
+  await showGlb(await r.arrayBuffer());
+}
+
+document.querySelectorAll('#scan-view button').forEach((btn) => btn.addEventListener('click', async () => {
+  const view = btn.dataset.view;
+  try {
+    if (view !== 'scan') await loadScanBody(view);
+    await setView(view);
+  } catch (err) { showError(err); }
+}));
+
+// Does the server offer the body in the scan's pose? (404/422 or anything else: no button.)
+async function offerScanPose() {
+  const btn = $('#scan-view button[data-view="scan-pose"]');
+  btn.hidden = true;
+  try {
+    const r = await fetch(`/v1/customers/${state.customerId}/avatar.glb?pose=scan`, asCustomer({ method: 'GET' }));
+    if (r.ok) {
+      // a server without the option ignores the parameter: only a different body counts
+      const plain = await fetch(`/v1/customers/${state.customerId}/avatar.glb`, asCustomer());
+      const [a, b] = [new Uint8Array(await r.arrayBuffer()), new Uint8Array(await plain.arrayBuffer())];
+      btn.hidden = a.length === b.length && a.every((x, i) => x === b[i]);
+    }
+  } catch { /* keep it hidden */ }
+  hook.scan.scanPoseOffered = !btn.hidden;
+}
+
+function leaveScan() {
+  clearTimeout(scanPoll);
+  if (ws) { const s = ws; ws = null; s.close(); }
+  if (scanMesh) { scene.remove(scanMesh); scanMesh.geometry.dispose(); scanMesh.material.dispose(); scanMesh = null; }
+  state.scan = null; state.view = 'scan'; scanPoseChosen = false;
+  document.body.classList.remove('scan-customer');
+  $('#scan-section').hidden = true; $('#catalogue-section').hidden = false; $('#save').hidden = false;
+  state.values = { ...DEFAULTS };
+  buildForm();
+}
+
+let scanPoll = null;
+async function startScan(rec) {
+  state.scan = rec;
+  document.body.classList.add('scan-customer');
+  $('#save').hidden = true; // saving measurements would replace the scan by a measured body
+  $('#scan-section').hidden = false;
+  $('#catalogue-section').hidden = true; // clothes are tried on the measured body, not on a clothed scan
+  if (rec.status === 'fitting') {
+    $('#scan-status').textContent = 'Your scan is being fitted; this takes about a minute…';
+    clearTimeout(scanPoll);
+    scanPoll = setTimeout(async () => {
+      try { await startScan(await api(`/v1/customers/${state.customerId}`, asCustomer()).then((r) => r.json())); } catch (err) { showError(err); }
+    }, 3000);
+    return;
+  }
+  if (rec.status === 'failed') { $('#scan-status').textContent = `Your scan could not be fitted: ${rec.error || 'unknown error'}`; return; }
+  state.values = { ...(rec.measurements || {}) };
+  buildForm();
+  $('#loading').hidden = false;
+  try { await loadScanBody('body'); } catch (err) { showError(err); }
+  $('#loading').hidden = true;
+  state.view = 'scan';
+  if (current) current.visible = false;
+  openScanSocket();
+  offerScanPose();
+  hook.ready = true;
+}
 
 // ---- units --------------------------------------------------------------------------------
 function factor(unit) {
@@ -251,7 +713,7 @@ function syncSliders() {
 document.querySelectorAll('input[name=units]').forEach((r) => r.addEventListener('change', () => {
   state.units = r.value; syncForm(); syncSliders();
 }));
-$('#measurements').addEventListener('submit', (e) => { e.preventDefault(); refresh(); });
+$('#measurements').addEventListener('submit', (e) => { e.preventDefault(); if (state.scan) sendScanEdit(); else refresh(); });
 
 // ---- API ----------------------------------------------------------------------------------
 function measurements() {
@@ -261,6 +723,11 @@ function measurements() {
 }
 
 class ApiError extends Error { constructor(status, body) { super(`HTTP ${status}`); this.status = status; this.body = body; } }
+
+// Every customer route needs the customer's token.
+function asCustomer(opts = {}, token = state.customerToken) {
+  return { ...opts, headers: { ...(opts.headers || {}), ...(token ? { Authorization: `Bearer ${token}` } : {}) } };
+}
 
 async function api(path, opts = {}) {
   const r = await fetch(path, opts);
@@ -296,6 +763,7 @@ function showError(err) {
 
 let timer = null;
 function changed() {
+  if (state.scan) { sendScanEdit(); return; } // a scan is reshaped live, never re-created
   if (state.customerId) state.customerStale = true;
   clearTimeout(timer);
   timer = setTimeout(refresh, DEBOUNCE_MS);
@@ -305,21 +773,23 @@ async function saveCustomer() {
   const r = await api('/v1/customers', { method: 'POST', headers: { 'Content-Type': 'application/json' },
     body: JSON.stringify({ measurements: measurements() }) });
   const c = await r.json();
-  setCustomer(c.id);
+  setCustomer(c.id, c.token);
   state.customerStale = false;
 }
 
 // Customers are immutable in the API: updating the measurements of a saved customer is done
 // by deleting the old record and creating a new one (the id changes; localStorage follows).
 async function updateCustomer() {
-  const old = state.customerId;
+  const old = state.customerId, oldToken = state.customerToken;
   await saveCustomer();
-  if (old) await fetch(`/v1/customers/${old}`, { method: 'DELETE' });
+  if (old) await fetch(`/v1/customers/${old}`, asCustomer({ method: 'DELETE' }, oldToken));
 }
 
-function setCustomer(id) {
+function setCustomer(id, token) {
   state.customerId = id;
+  state.customerToken = id ? token : null;
   if (id) localStorage.setItem(CUSTOMER_KEY, id); else localStorage.removeItem(CUSTOMER_KEY);
+  if (id && token) localStorage.setItem(TOKEN_KEY, token); else localStorage.removeItem(TOKEN_KEY);
   $('#customer-status').textContent = id ? `Saved as customer ${id}.` : 'Not saved: nothing about you is stored.';
   $('#delete').disabled = !id;
   $('#save').textContent = id ? 'Update my saved data' : 'Save me';
@@ -328,6 +798,10 @@ function setCustomer(id) {
 let generation = 0;
 async function refresh() {
   clearTimeout(timer);
+  if (state.scan) { // hair on a scan customer: the fitted body views only
+    if (state.view !== 'scan') { try { await loadScanBody(state.view); } catch (err) { showError(err); } }
+    return;
+  }
   const gen = ++generation;
   hook.busy = true;
   $('#loading').hidden = false;
@@ -336,10 +810,10 @@ async function refresh() {
     if (state.worn.length) {
       if (!state.customerId) await saveCustomer();
       else if (state.customerStale) await updateCustomer();
-      r = await api(`/v1/customers/${state.customerId}/outfit.glb?garments=${state.worn.join(',')}`);
+      r = await api(withHair(`/v1/customers/${state.customerId}/outfit.glb?garments=${state.worn.join(',')}`), asCustomer());
     } else {
       if (state.customerId && state.customerStale) await updateCustomer();
-      r = await api('/v1/avatars', { method: 'POST', headers: { 'Content-Type': 'application/json', Accept: GLB },
+      r = await api(withHair('/v1/avatars'), { method: 'POST', headers: { 'Content-Type': 'application/json', Accept: GLB },
         body: JSON.stringify({ measurements: measurements() }) });
     }
     const buf = await r.arrayBuffer();
@@ -424,10 +898,11 @@ $('#delete').addEventListener('click', async () => {
   const id = state.customerId;
   if (!id) return;
   try {
-    await api(`/v1/customers/${id}`, { method: 'DELETE' });
+    await api(`/v1/customers/${id}`, asCustomer({ method: 'DELETE' }));
   } catch (err) { if (!(err instanceof ApiError && err.status === 404)) { showError(err); return; } }
   setCustomer(null);
   state.customerStale = false;
+  if (state.scan) leaveScan();
   if (state.worn.length) { // nothing to dress without a customer
     state.worn = [];
     document.querySelectorAll('#catalogue button').forEach((b) => b.setAttribute('aria-pressed', 'false'));
@@ -438,31 +913,45 @@ $('#delete').addEventListener('click', async () => {
 // A remembered customer (localStorage) brings back the measurements they entered (not the
 // estimated ones); a customer deleted elsewhere is forgotten.
 async function restoreCustomer() {
-  if (!state.customerId) return;
+  if (!state.customerId) return null;
   try {
-    const rec = await api(`/v1/customers/${state.customerId}`).then((r) => r.json());
+    const rec = await api(`/v1/customers/${state.customerId}`, asCustomer()).then((r) => r.json());
+    if (rec.source === 'scan') return rec;
     const estimated = new Set(rec.estimated || []);
     const given = Object.fromEntries(Object.entries(rec.measurements || {}).filter(([k]) => !estimated.has(k)));
     if (Object.keys(given).length) state.values = given;
   } catch (err) {
     if (err instanceof ApiError && err.status === 404) setCustomer(null); else showError(err);
   }
+  return null;
+}
+
+// A link from an upload (e.g. a retailer's app after a scan): /?customer=ID&token=TOKEN (query
+// or hash). The page keeps them like a saved customer and drops them from the address bar.
+function customerFromLink() {
+  const params = new URLSearchParams(location.hash.slice(1) || location.search.slice(1));
+  const id = params.get('customer'), token = params.get('token');
+  if (!id || !token) return;
+  setCustomer(id, token);
+  history.replaceState(null, '', location.pathname);
 }
 
 // ---- start --------------------------------------------------------------------------------
 async function start() {
-  setCustomer(state.customerId);
+  setCustomer(state.customerId, state.customerToken);
+  customerFromLink();
   try {
     const [model, garments] = await Promise.all([api('/v1/body-model').then((r) => r.json()),
       api('/v1/garments').then((r) => r.json())]);
     state.attributes = model.attributes;
     state.garments = garments;
   } catch (err) { showError(err); return; }
-  await restoreCustomer();
+  const scanRecord = await restoreCustomer();
   buildForm();
   buildCatalogue();
+  buildHair();
   resize();
-  await refresh();
+  if (scanRecord) await startScan(scanRecord); else await refresh();
   thumbnails();
 }
 start();

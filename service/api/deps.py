@@ -1,31 +1,171 @@
-"""FastAPI dependencies."""
+"""Every FastAPI dependency of the routes: settings, the body model, the application context and
+its use cases, the retailer's API key, the customer's credentials (``Authorization: Bearer
+<token>`` or the owning retailer's key), the rate limit of the expensive routes, the GLB
+compression parameter and ``If-None-Match``. All async and override-free on purpose: a sync or
+overridden dependency costs a thread-pool hop or a signature analysis on every request."""
 from __future__ import annotations
 
-from typing import Annotated
+import hmac
+from typing import Annotated, Literal
 
-from fastapi import Depends, Request
+from fastapi import Depends, HTTPException, Query, Request, WebSocket
+from fastapi.concurrency import run_in_threadpool
+from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+from starlette.requests import HTTPConnection
 
+from service.application.auth import Credentials
+from service.application.context import Context
+from service.application.customers import CustomerService
+from service.application.editing import EditingService
+from service.application.garments import GarmentService
+from service.application.jobs import JobService
+from service.application.tryon import TryOnService
 from service.model.body import BodyModel, load_body_model
 from service.settings import Settings, get_settings
 
 
-async def get_app_settings(request: Request) -> Settings:
-    """This app's settings (``create_app(settings)`` stores them in ``app.state``). Async and
-    override-free on purpose: a sync or overridden dependency costs a thread-pool hop or a
-    signature analysis on every request."""
+async def get_app_settings(request: HTTPConnection) -> Settings:
+    """This app's settings (``create_app(settings)`` stores them in ``app.state``)."""
     settings = getattr(request.app.state, "settings", None)
     return settings if settings is not None else get_settings()
 
 
-async def get_body_model(request: Request, settings: Annotated[Settings, Depends(get_app_settings)]) -> BodyModel:
-    """The body model loaded once at startup (``app.state.body_model``); without a lifespan
-    (e.g. an in-process test client) the process-wide cached model for ``settings``."""
-    model = getattr(request.app.state, "body_model", None)
-    if model is None:
-        path = str(settings.body_model_path) if settings.body_model_path else None
-        model = load_body_model(path)
-    return model
-
-
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
-"""Route parameter type for the settings of the app serving the request."""
+
+
+async def get_body_model(request: Request, settings: SettingsDep) -> BodyModel:
+    """The body model loaded once at startup; without a lifespan (an in-process test client)
+    the process-wide cached model for ``settings``."""
+    model = getattr(request.app.state, "body_model", None)
+    return model if model is not None else load_body_model(settings.body_model_path)
+
+
+async def get_context(request: HTTPConnection) -> Context:
+    ctx = getattr(request.app.state, "context", None)
+    if ctx is None:  # pragma: no cover - the lifespan always sets it
+        raise HTTPException(503, "storage is not available")
+    return ctx
+
+
+ContextDep = Annotated[Context, Depends(get_context)]
+BodyModelDep = Annotated[BodyModel, Depends(get_body_model)]
+
+
+async def get_customers(ctx: ContextDep) -> CustomerService:
+    return ctx.customers
+
+
+async def get_garments(ctx: ContextDep) -> GarmentService:
+    return ctx.garments
+
+
+async def get_tryon(ctx: ContextDep) -> TryOnService:
+    return ctx.tryon
+
+
+async def get_jobs(ctx: ContextDep) -> JobService:
+    return ctx.jobs
+
+
+async def get_editing(ctx: ContextDep) -> EditingService:
+    return ctx.editing
+
+
+CustomersDep = Annotated[CustomerService, Depends(get_customers)]
+GarmentsDep = Annotated[GarmentService, Depends(get_garments)]
+TryOnDep = Annotated[TryOnService, Depends(get_tryon)]
+JobsDep = Annotated[JobService, Depends(get_jobs)]
+EditingDep = Annotated[EditingService, Depends(get_editing)]
+
+api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="Retailer API key (TRYON_RETAILER_KEYS)")
+
+
+bearer_scheme = HTTPBearer(auto_error=False, description="A customer's token, from POST /v1/customers")
+KeyDep = Annotated[str | None, Depends(api_key_header)]
+
+
+def retailer_of(settings: Settings, key: str) -> str | None:
+    """The retailer whose API key ``key`` is, or None."""
+    found = None
+    for known, name in settings.retailers().items():
+        if hmac.compare_digest(known.encode(), key.encode()):
+            found = name
+    return found
+
+
+async def get_retailer(settings: SettingsDep, key: KeyDep = None) -> str:
+    """The retailer name of the request's ``X-API-Key`` (401 without one, 403 if unknown)."""
+    if not key:
+        raise HTTPException(401, "missing X-API-Key header (retailer API key)", headers={"WWW-Authenticate": "ApiKey"})
+    name = retailer_of(settings, key)
+    if name is None:
+        raise HTTPException(403, "invalid API key")
+    return name
+
+
+async def get_optional_retailer(settings: SettingsDep, key: KeyDep = None) -> str | None:
+    """The retailer of ``X-API-Key`` when one is sent (403 if unknown), else None."""
+    return await get_retailer(settings, key) if key else None
+
+
+async def get_credentials(
+        retailer: Annotated[str | None, Depends(get_optional_retailer)],
+        bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)] = None) -> Credentials:
+    """What the request presents to open a customer: its token and/or its retailer's key."""
+    return Credentials(token=bearer.credentials if bearer else None, retailer=retailer)
+
+
+def credentials_of(websocket: WebSocket, settings: Settings) -> Credentials | None:
+    """A WebSocket's credentials (browsers cannot set headers on one): ``Authorization: Bearer``
+    or the ``token`` query parameter, and/or ``X-API-Key``. None: an unknown API key."""
+    auth = websocket.headers.get("authorization", "")
+    token = auth[7:].strip() if auth.lower().startswith("bearer ") else websocket.query_params.get("token")
+    key = websocket.headers.get("x-api-key")
+    retailer = retailer_of(settings, key) if key else None
+    if key and retailer is None:
+        return None
+    return Credentials(token=token or None, retailer=retailer)
+
+
+RetailerDep = Annotated[str, Depends(get_retailer)]
+OptionalRetailerDep = Annotated[str | None, Depends(get_optional_retailer)]
+CredentialsDep = Annotated[Credentials, Depends(get_credentials)]
+
+
+async def rate_limited(request: Request, ctx: ContextDep, settings: SettingsDep, key: KeyDep = None) -> None:
+    """Counts an expensive request against its retailer's (valid ``X-API-Key``) or its client's
+    rate limit: 429 with ``Retry-After`` when spent (the Redis call runs off the event loop)."""
+    retailer = retailer_of(settings, key) if key else None
+    client = request.client.host if request.client else None
+    await run_in_threadpool(ctx.limits.check, client, retailer)
+
+
+RateLimited = Depends(rate_limited)
+
+
+async def get_if_none_match(request: Request) -> list[str] | None:
+    """The request's ``If-None-Match`` tags (``W/`` dropped), or None."""
+    inm = request.headers.get("if-none-match")
+    return [t.strip().removeprefix("W/") for t in inm.split(",")] if inm else None
+
+
+IfNoneMatchDep = Annotated[list[str] | None, Depends(get_if_none_match)]
+
+Compression = Annotated[
+    Literal["quantize", "meshopt"] | None,
+    Query(description="GLB compression: quantize (KHR_mesh_quantization) or meshopt "
+                      "(EXT_meshopt_compression); omitted: plain float32"),
+]
+
+# The avatar's look (issue 11) on avatar.glb, outfit.glb and POST /v1/avatars.
+Hair = Annotated[
+    str | None,
+    Query(max_length=64, description="The avatar's hair: a hair id of `GET /v1/looks`, or `none` for no hair; "
+                                     "omitted: the default style of the avatar's gender (its `gender` "
+                                     "measurement, given or estimated). An unknown id is a 422"),
+]
+Underwear = Annotated[
+    bool,
+    Query(description="Dress the avatar in its gender's base layer (underwear; the body under it is not "
+                      "drawn). Default true: nobody is shown nude; false shows the bare body"),
+]

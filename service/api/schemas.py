@@ -1,10 +1,16 @@
 """Pydantic request/response schemas of the public API."""
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+
+from service.model.body import model_path
+from service.model.measurements import ATTRIBUTES
 
 
 def _measurement_value(value: Any) -> float | str:
@@ -69,6 +75,20 @@ class AvatarRequest(BaseModel):
     )
 
 
+class EditRequest(BaseModel):
+    """An edit of a customer's avatar: absolute target values of any of the 12 attributes (the
+    others held), and rotations of any of the 17 bones (the others as fitted)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={
+        "examples": [{"measurements": {"weight_kg": 70.0}, "pose": {"forearm_l": [0.0, 0.0, 0.6]}}]})
+
+    measurements: dict[str, MeasurementValue] = Field(
+        default_factory=dict, description="Attribute name -> target value (cm/kg); gender cannot change")
+    pose: dict[str, list[float]] = Field(
+        default_factory=dict, description="Bone name -> axis-angle rotation [x, y, z] in radians (angle <= pi), "
+                                          "local to the parent bone; see /v1/body-model for the bones")
+
+
 class AvatarResponse(BaseModel):
     """The fitted avatar: shape weights and the measurements re-taken on the avatar."""
 
@@ -80,9 +100,9 @@ class AvatarResponse(BaseModel):
 
 
 class JobRef(BaseModel):
-    """A customer's fitting job."""
+    """A record's job (a customer's fit, a garment's build)."""
 
-    id: str = Field(description="Job id (fit-<customer id>)")
+    id: str = Field(description="Job id (fit-<customer id> or build-<garment id>)")
     url: str = Field(description="Where to poll it: /v1/jobs/{id}")
     status: Literal["queued", "running", "done", "failed"] | None = Field(
         default=None, description="The job's status now (null once the job record has expired)")
@@ -110,6 +130,12 @@ class CustomerResponse(BaseModel):
     ``weights`` and ``measurements`` are null until ready."""
 
     id: str = Field(description="Random URL-safe id")
+    token: str | None = Field(
+        default=None, description="Only in the answer to POST /v1/customers: the customer's secret, to send as "
+                                  "`Authorization: Bearer <token>` on every customer route. Only its hash is "
+                                  "stored: keep it (it cannot be shown again)")
+    owner: str | None = Field(default=None, description="The retailer whose X-API-Key created it (null: "
+                                                        "nobody's); that key opens it too")
     status: Literal["ready", "fitting", "failed"] = Field(
         default="ready", description="ready: the avatar exists; fitting: a job fits the uploaded scan; "
                                      "failed: the scan could not be fitted (see error)")
@@ -132,9 +158,22 @@ class CustomerResponse(BaseModel):
     translation: list[float] | None = Field(
         default=None, description="Scans: root translation of the posed body (metres, model frame)")
     clothed: bool | None = Field(default=None, description="Scans: the scan was declared clothed")
+    frame: list[float] | None = Field(
+        default=None, description="Scans: the 4 x 4 similarity (16 numbers, row-major) taking the uploaded file's "
+                                  "coordinates to the model frame (metres, Y up); GET .../avatar.glb?pose=scan "
+                                  "undoes it")
+    partial: bool | None = Field(
+        default=None, description="Scans: true when a side of the body (front, back, left or right) had almost no "
+                                  "scan surface (a single-view scan): that side of the avatar is the shape "
+                                  "prior's guess, not measured")
+    coverage: dict[str, float] | None = Field(
+        default=None, description="Scans: share of the fitted body's front, back, left and right with scan surface "
+                                  "within 5 cm")
     scan: ScanInfo | None = Field(default=None, description="Scans: the uploaded file as read")
     job: JobRef | None = Field(default=None, description="Scans: the fitting job")
     fit: FitStats | None = Field(default=None, description="Scans: fitting statistics")
+    editable: bool = Field(default=False, description="Scans uploaded as a mesh: the scan itself, clothes and "
+                                                      "all, is what POST /v1/customers/{id}/edit reshapes")
     error: str | None = Field(default=None, description="Failed scans: why the scan could not be fitted")
 
 
@@ -142,12 +181,15 @@ class JobResponse(BaseModel):
     """A background job (a scan fit), from the queue."""
 
     id: str
+    kind: str | None = Field(default=None, description="What the job does: fit (a customer's scan) or garment "
+                                                        "(a draped garment's build)")
     status: Literal["queued", "running", "done", "failed"] = Field(
         description="queued (waiting, or waiting for a retry), running, done, failed (see error)")
     progress: float = Field(ge=0.0, le=1.0, description="Fraction done, 0..1")
     message: str | None = Field(default=None, description="What the job is doing")
     error: str | None = Field(default=None, description="Failed jobs: why, in one line")
     customer_id: str | None = Field(default=None, description="The customer the job fits")
+    garment_id: str | None = Field(default=None, description="The garment the job builds")
     created: str | None = Field(default=None, description="ISO 8601 UTC time the job was created")
     started: str | None = Field(default=None, description="... it last started running")
     ended: str | None = Field(default=None, description="... it ended")
@@ -168,12 +210,82 @@ class GarmentResponse(BaseModel):
     id: str
     name: str
     owner: str = Field(description='Retailer that uploaded it ("demo" for the built-in catalogue)')
-    source: Literal["meshes", "mhclo", "demo"]
+    source: Literal["meshes", "mhclo", "demo", "draped"] = Field(
+        description="How it came: meshes fitted to every example avatar, a MakeHuman mhclo, the demo "
+                    "catalogue, or one mesh draped on one body and fitted to every example by a job")
+    status: Literal["ready", "building", "failed"] = Field(
+        default="ready", description="ready: it can be tried on; building: its job fits it to the example "
+                                     "avatars (see progress, job); failed: see error")
+    progress: float | None = Field(default=None, ge=0.0, le=1.0, description="Building garments: 0..1")
+    error: str | None = Field(default=None, description="Failed garments: why, in one line")
+    job: JobRef | None = Field(default=None, description="Draped garments: the build job")
     color: list[float] = Field(description="Linear RGBA base colour")
     layer: int = Field(description="Layer order in an outfit (inner garments first)")
     created: str
     n_vertices: int
     n_faces: int
-    n_components: int = Field(description="Number of basis rows (PCA components covered)")
-    etag: str = Field(description="Content hash of the basis")
-    unit: str | None = Field(default=None, description="Mesh-set uploads: detected unit of the files")
+    n_components: int = Field(description="Number of basis rows (PCA components covered; 0 while building)")
+    etag: str = Field(description="Content hash of the basis (empty while building)")
+    unit: str | None = Field(default=None, description="Mesh uploads: detected unit of the files")
+    up: str | None = Field(default=None, description="Garments draped on an example avatar: the file's up axis")
+    on: str | None = Field(default=None, description="Garments draped on an example avatar: its id")
+    textured: bool = Field(default=False, description="Whether its GLBs carry texture coordinates and a texture")
+    category: str | None = Field(default=None, description="Demo catalogue: top, bottom, suit, shoes, hat")
+    gender: str | None = Field(default=None, description="Demo catalogue: female, male or unisex")
+    catalogue_id: str | None = Field(default=None, description="Demo catalogue: the compiled item's id")
+    swatch: str | None = Field(default=None, description="Demo catalogue: thumbnail colour #rrggbb (sRGB)")
+
+
+def attribute_ranges(body_model_path: Path | None) -> dict[str, list[float]] | None:
+    """The accepted ranges of the body model's attributes (its ``meta_json`` alone is read, not
+    the model), or None when the file cannot be read."""
+    try:
+        with np.load(model_path(body_model_path), allow_pickle=False) as z:
+            return dict(json.loads(str(z["meta_json"]))["attribute_ranges"])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def measurements_schema(ranges: dict[str, list[float]]) -> dict[str, Any]:
+    """The JSON schema of ``measurements`` as the service checks it: the 12 attributes (no
+    other key), gender female/male, the others numbers in their accepted ranges."""
+    props: dict[str, Any] = {}
+    for name in ATTRIBUTES:
+        if name == "gender":
+            props[name] = {"type": "string", "enum": ["female", "male"]}
+        elif name in ranges:
+            lo, hi = ranges[name]
+            unit = "kg" if name == "weight_kg" else "cm"
+            props[name] = {"type": "number", "minimum": float(lo), "maximum": float(hi),
+                           "description": f"{unit}, {float(lo):g} to {float(hi):g}"}
+    return {"type": "object", "properties": props, "additionalProperties": False,
+            "title": "Measurements",
+            "description": "Any subset of the attributes of GET /v1/body-model (cm/kg numbers within their "
+                           "ranges; gender female or male); the rest is estimated."}
+
+
+def document_measurements(doc: dict[str, Any], ranges: dict[str, list[float]] | None) -> dict[str, Any]:
+    """Put the precise ``measurements`` schema into an OpenAPI document (in place)."""
+    if ranges:
+        req = doc.get("components", {}).get("schemas", {}).get("AvatarRequest")
+        if req is not None:
+            req["properties"]["measurements"] = measurements_schema(ranges)
+    return doc
+
+
+class HairOut(BaseModel):
+    id: str = Field(description="Pass as `hair=` to avatar.glb, outfit.glb or POST /v1/avatars")
+    name: str
+    gender: str = Field(description="The gender the style was made for (female, male or unisex); any avatar "
+                                    "may wear any style")
+    color: str = Field(description="Swatch colour '#rrggbb' (sRGB)")
+
+
+class LookDefaults(BaseModel):
+    hair: str = Field(description="The hair id used when `hair` is omitted")
+    underwear: bool = Field(description="Whether the base layer is worn when `underwear` is omitted")
+
+
+class LooksResponse(BaseModel):
+    hair: list[HairOut] = Field(description="The hair styles; `none` (no hair) is always accepted too")
+    defaults: dict[str, LookDefaults] = Field(description="Per gender (female, male): the default look")

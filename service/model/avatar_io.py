@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# height (in the file's units) -> metres per unit
-UNITS = (("m", 1.0, 1.2, 2.5), ("cm", 0.01, 120.0, 250.0), ("mm", 0.001, 1200.0, 2500.0))
+from service.model.frames import UnitError, detect_unit, kabsch, nearest_axis_rotation
+
 MAX_RESIDUAL_M = 0.05  # mean distance to the reconstruction above which an upload is refused
 
 
@@ -30,48 +30,6 @@ class Projection:
     weights: np.ndarray  # (K,)
     unit: str
     residual_mm: float  # mean per-vertex distance between the aligned upload and its projection
-
-
-def detect_unit(vertices: np.ndarray) -> tuple[str, float]:
-    """(unit name, metres per unit) from the largest bounding-box extent (a standing body)."""
-    ext = float(np.ptp(vertices, axis=0).max())
-    for name, scale, lo, hi in UNITS:
-        if lo <= ext <= hi:
-            return name, scale
-    raise AvatarMeshError(f"cannot tell the units: the mesh is {ext:g} units tall (expected a standing "
-                          "adult in metres, centimetres or millimetres)")
-
-
-def kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (3, 3) and translation t (3,) minimising |R src + t - dst| (no scaling)."""
-    cs, cd = src.mean(0), dst.mean(0)
-    H = (src - cs).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, cd - R @ cs
-
-
-def _axis_rotations() -> np.ndarray:
-    """The 24 rotations that map coordinate axes to coordinate axes (24, 3, 3)."""
-    import itertools
-
-    out = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            M = np.zeros((3, 3))
-            M[range(3), perm] = signs
-            if np.linalg.det(M) > 0:
-                out.append(M)
-    return np.array(out)
-
-
-AXIS_ROTATIONS = _axis_rotations()
-
-
-def nearest_axis_rotation(R: np.ndarray) -> np.ndarray:
-    """The axis-aligned rotation closest to R (largest trace of R^T Q)."""
-    return AXIS_ROTATIONS[np.argmax(np.einsum("ij,kij->k", R, AXIS_ROTATIONS))]
 
 
 @functools.lru_cache(maxsize=4)
@@ -98,7 +56,10 @@ def project_mesh(model, vertices: np.ndarray) -> Projection:
                               f"(body surface, /v1/body-model/template.obj) or {n_full} (with helpers)")
     if not np.all(np.isfinite(X)):
         raise AvatarMeshError("the mesh has non-finite vertex coordinates")
-    unit, scale = detect_unit(X[:n_body])
+    try:
+        unit, scale = detect_unit(X[:n_body], what="the mesh")
+    except UnitError as exc:
+        raise AvatarMeshError(str(exc)) from exc
     X = X * scale
     K = model.n_components
     mean = model.mean[: len(X)].astype(np.float64)

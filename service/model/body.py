@@ -15,12 +15,17 @@ vertices (``joint_regressor``), so they follow the shape.
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
+
+from service.model import lbs as _lbs
+from service.model import measurements as _meas
+from service.model.measurements import AttributeSpec  # noqa: F401  (re-exported)
 
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent.parent / "data" / "body_model.npz"
 
@@ -35,19 +40,6 @@ BONES: tuple[str, ...] = (
 BONE_PARENTS: tuple[int, ...] = (-1, 0, 1, 2, 3, 2, 5, 6, 2, 8, 9, 0, 11, 12, 0, 14, 15)
 
 
-@dataclass(frozen=True)
-class AttributeSpec:
-    """One biometric attribute. ``min``/``max`` is the accepted range (population range plus a
-    margin); ``unit`` is ``"cm"``, ``"kg"`` or ``None`` for the categorical ``gender``."""
-
-    name: str
-    unit: str | None
-    min: float | None
-    max: float | None
-    ansur_column: str
-    description: str
-
-
 class BodyModel:
     """The body model loaded from its compiled artifact (see module docstring).
 
@@ -59,11 +51,8 @@ class BodyModel:
     """
 
     def __init__(self, path: Path | str = DEFAULT_MODEL_PATH):
-        import scipy.sparse as sp
-
-        from service.model import measurements as _meas
-
         self.path = Path(path)
+        self.version = _file_version(self.path)
         with np.load(self.path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
         self.meta = json.loads(str(data["meta_json"]))
@@ -115,13 +104,35 @@ class BodyModel:
         """The customer-visible surface's vertices (n_body_vertices, 3)."""
         return vertices[..., : self.n_body_vertices, :]
 
+    # -- pose: the one forward pass -----------------------------------------------------
+    def forward(self, weights: np.ndarray | None = None, pose: np.ndarray | None = None,
+                translation: np.ndarray | None = None, *, vertices: np.ndarray | None = None) -> _lbs.Posed:
+        """M(beta, theta) + t: the rest body of shape ``weights`` (K,) (or given rest
+        ``vertices`` (V, 3) in the template topology), posed by ``pose`` (None: the rest pose;
+        (17, 3) axis-angle radians or (17, 3, 3) local rotations, ``BONES`` order) and moved by
+        ``translation`` (3,) metres. Returns :class:`~service.model.lbs.Posed` (all V
+        vertices, joints and bone transforms, float64)."""
+        if vertices is None:
+            vertices = self.vertices(np.zeros(self.n_components) if weights is None else weights)
+        X = np.asarray(vertices, np.float64)
+        return _lbs.lbs(X, self.joints(X), self.bone_parents, pose, self.lbs_indices, self.lbs_weights,
+                        translation)
+
     # -- measurements ------------------------------------------------------------------
     def measure(self, vertices: np.ndarray, gender: str) -> dict[str, float]:
         """The 12 attributes measured on an avatar (V, 3) as a tailor would (see
         ``service.model.measurements``), in API units (cm, kg)."""
-        from service.model import measurements as _meas
-
         return _meas.measure_attributes(self.measurement_spec, vertices, gender)
+
+
+def _file_version(path: Path) -> str:
+    """A short content hash of the compiled artifact: stored with every customer and garment,
+    so records made with another body model are recognised."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return "bm-" + h.hexdigest()[:12]
 
 
 def model_path(path: str | Path | None = None) -> Path:

@@ -15,6 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull
 
 from service.model import measurements as M
 from service.model.body import BONES
@@ -57,9 +60,6 @@ class DemoGarment:
 
 
 def _largest_component(faces: np.ndarray) -> np.ndarray:
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     n = faces.max() + 1
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
     _, lab = connected_components(sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
@@ -133,8 +133,6 @@ def skirt_rings(model, X: np.ndarray, rings: int | None = None, angles: int | No
     axis between the hip joints. Between waist and hip a ring's radius blends the
     waist and hip sections' convex hulls; below the hip it is the hip hull flared linearly (an
     A-line hangs from the hip; it does not follow the thighs in)."""
-    from scipy.spatial import ConvexHull
-
     spec = model.measurement_spec
     J = model.joints(X)
     waist_y = X[spec.navel, 1] - SKIRT["waist_below_navel"]

@@ -1,8 +1,9 @@
 """Binary glTF 2.0 (GLB) writer and a minimal reader: pure functions over numpy arrays.
 
 No web or 3D-library imports: numpy, json and struct only. The writer produces a single-mesh,
-single-primitive GLB (POSITION, NORMAL, optional JOINTS_0/WEIGHTS_0 + skin) that the Khronos
-glTF validator accepts without errors or warnings.
+single-primitive GLB (POSITION, NORMAL, optional TEXCOORD_0/TANGENT, JOINTS_0/WEIGHTS_0 + skin,
+PBR materials with embedded base-colour/normal textures) that the Khronos glTF validator accepts
+without errors or warnings.
 """
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ CHUNK_BIN = 0x004E4942
 BYTE, UNSIGNED_BYTE, SHORT, UNSIGNED_SHORT, UNSIGNED_INT, FLOAT = 5120, 5121, 5122, 5123, 5125, 5126
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 TRIANGLES = 4
+LINEAR, LINEAR_MIPMAP_LINEAR, REPEAT = 9729, 9987, 10497
+IMAGE_MIMES = ("image/png", "image/jpeg")
 
 _DTYPES: dict[int, np.dtype[Any]] = {
     BYTE: np.dtype("<i1"),
@@ -55,6 +58,52 @@ def _unit_float32(n: np.ndarray) -> np.ndarray:
     n32 = n.astype(np.float32)
     norm = np.linalg.norm(n32.astype(np.float64), axis=1, keepdims=True)
     return (n32 / norm).astype(np.float32)
+
+
+def vertex_tangents(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """glTF TANGENT (N, 4) float32 of a UV-mapped mesh: xyz unit and orthogonal to the normal,
+    w = +/-1 the handedness (bitangent = w * cross(normal, tangent)).
+
+    vertices (N, 3), faces (F, 3), uv (N, 2) in glTF convention (origin top-left), normals (N, 3)
+    unit. Per face, the tangent dP/du and bitangent dP/dv' (v' = 1 - v: the normal map's +Y is
+    image up, MikkTSpace's and Blender's convention) from the UV edge system (Lengyel, "Computing
+    Tangent Space Basis Vectors for an Arbitrary Mesh", 2001), summed per vertex, Gram-Schmidt
+    orthogonalised against the normal. Vertices whose faces have no usable UV area get an
+    arbitrary tangent perpendicular to the normal."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    t = np.asarray(uv, np.float64)
+    n = np.asarray(normals, np.float64)
+    e1 = v[f[:, 1]] - v[f[:, 0]]
+    e2 = v[f[:, 2]] - v[f[:, 0]]
+    d1 = t[f[:, 1]] - t[f[:, 0]]
+    d2 = t[f[:, 2]] - t[f[:, 0]]
+    d1[:, 1] *= -1.0  # v' = 1 - v
+    d2[:, 1] *= -1.0
+    r = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    ok = np.abs(r) > 1e-20
+    inv = np.where(ok, 1.0 / np.where(ok, r, 1.0), 0.0)[:, None]
+    ft = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * inv
+    fb = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * inv
+    N = v.shape[0]
+    idx = f.reshape(-1)
+    tan = np.stack([np.bincount(idx, np.repeat(ft[:, k], 3), N) for k in range(3)], axis=1)
+    bit = np.stack([np.bincount(idx, np.repeat(fb[:, k], 3), N) for k in range(3)], axis=1)
+    tan -= n * np.einsum("ij,ij->i", n, tan)[:, None]
+    norm = np.linalg.norm(tan, axis=1)
+    bad = norm < 1e-12
+    if np.any(bad):  # any unit vector perpendicular to the normal
+        nb = n[bad]
+        axis = np.where(np.abs(nb[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        alt = axis - nb * np.einsum("ij,ij->i", nb, axis)[:, None]
+        tan[bad] = alt
+        norm[bad] = np.linalg.norm(alt, axis=1)
+    tan /= norm[:, None]
+    w = np.where(np.einsum("ij,ij->i", np.cross(n, tan), bit) < 0.0, -1.0, 1.0)
+    out = np.empty((N, 4), np.float32)
+    out[:, :3] = _unit_float32(tan)
+    out[:, 3] = w
+    return out
 
 
 def _clean_skin_weights(
@@ -172,6 +221,12 @@ class _Builder:
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
+    def add_bytes(self, raw: bytes) -> int:
+        """Append opaque bytes (an encoded image) as a bufferView with no target, never
+        meshopt-encoded; returns the bufferView index."""
+        self.views.append((bytes(raw), len(raw), None, None, None))
+        return len(self.views) - 1
+
     def finish(self, meshopt: bool) -> tuple[bytes, list[dict[str, Any]]]:
         """(the BIN chunk's bytes, the ``buffers`` array); fills :attr:`buffer_views`."""
         blob = bytearray()
@@ -252,6 +307,17 @@ def _check_skeleton(skin: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, list[
     return jpos, parents, names
 
 
+def _check_material(mat: Any) -> None:
+    """A :class:`service.model.catalogue.Material` (or any object with its fields)."""
+    if len(tuple(mat.base_color_factor)) != 4:
+        raise ValueError(f"base_color_factor must be RGBA, got {mat.base_color_factor}")
+    if mat.alpha_mode not in ("OPAQUE", "MASK", "BLEND"):
+        raise ValueError(f"alpha_mode must be OPAQUE, MASK or BLEND, got {mat.alpha_mode!r}")
+    for tex in (mat.base_color_texture, mat.normal_texture):
+        if tex is not None and tex.mime not in IMAGE_MIMES:
+            raise ValueError(f"texture {tex.name!r}: mime type must be one of {IMAGE_MIMES}, got {tex.mime!r}")
+
+
 def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[str, Any]:
     """Validated float32/int arrays of one mesh dict (see :func:`scene_to_glb`)."""
     v = np.asarray(m["vertices"], dtype=np.float32)
@@ -285,7 +351,32 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
         "target_names": None,
         "joints": None,
         "weights": None,
+        "uv": None,
+        "tangents": None,
+        "material": None,
     }
+    if m.get("uv") is not None:
+        uv = np.asarray(m["uv"], dtype=np.float32)
+        if uv.shape != (n, 2) or not np.all(np.isfinite(uv)):
+            raise ValueError(f"uv must be finite ({n}, 2), got {uv.shape}")
+        out["uv"] = uv
+    mat = m.get("material")
+    if mat is not None:
+        _check_material(mat)
+        out["material"] = mat
+        out["color"] = tuple(float(c) for c in mat.base_color_factor)
+        out["double_sided"] = bool(mat.double_sided)
+        if (mat.base_color_texture is not None or mat.normal_texture is not None) and out["uv"] is None:
+            raise ValueError(f"mesh {out['name']!r}: a textured material needs uv")
+        if mat.normal_texture is not None:
+            if m.get("tangents") is not None:
+                tg = np.asarray(m["tangents"], np.float64)
+                if tg.shape != (n, 4) or not np.all(np.isfinite(tg)):
+                    raise ValueError(f"tangents must be finite ({n}, 4), got {tg.shape}")
+                out["tangents"] = np.concatenate(
+                    [_unit_float32(tg[:, :3]), np.where(tg[:, 3:] < 0, -1.0, 1.0).astype(np.float32)], axis=1)
+            else:
+                out["tangents"] = vertex_tangents(v, f, out["uv"], nrm)
     if m.get("targets") is not None:
         t = np.asarray(m["targets"], dtype=np.float32)
         if t.ndim != 3 or t.shape[1:] != v.shape:
@@ -345,6 +436,18 @@ def _build_glb(
     nodes: list[dict[str, Any]] = []
     gltf_meshes: list[dict[str, Any]] = []
     materials: list[dict[str, Any]] = []
+    images: list[dict[str, Any]] = []
+    image_of: dict[tuple[str, bytes], int] = {}
+
+    def texture_index(tex: Any) -> int:
+        """One image (and texture) per distinct encoded image in this GLB, however many
+        materials use it (bytes objects cache their hash, so repeats are cheap)."""
+        key = (tex.mime, tex.data)
+        if key not in image_of:
+            image_of[key] = len(images)
+            images.append({"name": str(tex.name), "mimeType": tex.mime, "bufferView": -1, "_data": tex.data})
+        return image_of[key]
+
     for mi, m in enumerate(ms):
         node: dict[str, Any] = {"name": m["name"], "mesh": mi}
         if quant:
@@ -359,6 +462,20 @@ def _build_glb(
             pos = b.add(m["v"], FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True)
             nrm = b.add(m["n"], FLOAT, "VEC3", target=ARRAY_BUFFER)
         attributes: dict[str, int] = {"POSITION": pos, "NORMAL": nrm}
+        if m["tangents"] is not None:
+            if quant:  # KHR_mesh_quantization: TANGENT as normalized BYTE VEC4 (w = +/-127)
+                tq = np.concatenate([_quantize_normals(m["tangents"][:, :3]),
+                                     np.where(m["tangents"][:, 3:] < 0, -127, 127).astype(np.int8)], axis=1)
+                attributes["TANGENT"] = b.add(tq, BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
+            else:
+                attributes["TANGENT"] = b.add(m["tangents"], FLOAT, "VEC4", target=ARRAY_BUFFER)
+        if m["uv"] is not None:
+            uv = m["uv"]
+            if quant and uv.min() >= 0.0 and uv.max() <= 1.0:  # normalized UNSIGNED_SHORT, step 1/65535
+                uq = np.round(uv.astype(np.float64) * 65535.0).astype(np.uint16)
+                attributes["TEXCOORD_0"] = b.add(uq, UNSIGNED_SHORT, "VEC2", target=ARRAY_BUFFER, normalized=True)
+            else:  # FLOAT is valid in every mode (tiling UVs outside [0, 1] stay exact)
+                attributes["TEXCOORD_0"] = b.add(uv, FLOAT, "VEC2", target=ARRAY_BUFFER)
         if m["joints"] is not None:
             jtype = UNSIGNED_BYTE if n_j is not None and n_j <= 256 else UNSIGNED_SHORT
             if quant:
@@ -395,8 +512,22 @@ def _build_glb(
                 "roughnessFactor": 0.8,
             },
         }
-        if m["color"][3] < 1.0:
-            mat["alphaMode"] = "BLEND"
+        src = m["material"]
+        if src is None:
+            if m["color"][3] < 1.0:
+                mat["alphaMode"] = "BLEND"
+        else:
+            pbr = mat["pbrMetallicRoughness"]
+            pbr["metallicFactor"] = float(np.clip(src.metallic, 0.0, 1.0))
+            pbr["roughnessFactor"] = float(np.clip(src.roughness, 0.0, 1.0))
+            if src.base_color_texture is not None:
+                pbr["baseColorTexture"] = {"index": texture_index(src.base_color_texture)}
+            if src.normal_texture is not None:
+                mat["normalTexture"] = {"index": texture_index(src.normal_texture)}
+            if src.alpha_mode != "OPAQUE":
+                mat["alphaMode"] = src.alpha_mode
+            if src.alpha_mode == "MASK" and src.alpha_cutoff is not None:
+                mat["alphaCutoff"] = float(src.alpha_cutoff)
         if m["double_sided"]:
             mat["doubleSided"] = True
         materials.append(mat)
@@ -436,6 +567,9 @@ def _build_glb(
                 }
             )
 
+    for img in images:  # after every accessor's view: images are never meshopt-encoded
+        img["bufferView"] = b.add_bytes(img.pop("_data"))
+
     blob, buffers = b.finish(meshopt=compression == "meshopt")
     doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": "tryon service.model.gltf"}}
     ext = {"quantize": ["KHR_mesh_quantization"], "meshopt": ["KHR_mesh_quantization", "EXT_meshopt_compression"]}
@@ -456,6 +590,10 @@ def _build_glb(
     )
     if gltf_skins:
         doc["skins"] = gltf_skins
+    if images:
+        doc["images"] = images
+        doc["samplers"] = [{"magFilter": LINEAR, "minFilter": LINEAR_MIPMAP_LINEAR, "wrapS": REPEAT, "wrapT": REPEAT}]
+        doc["textures"] = [{"sampler": 0, "source": i} for i in range(len(images))]
 
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * (-len(js) % 4)
@@ -475,6 +613,8 @@ def mesh_to_glb(
     name: str = "avatar",
     skin: Skin | dict[str, Any] | None = None,
     compression: str | None = None,
+    uv: np.ndarray | None = None,
+    material: Any = None,
 ) -> bytes:
     """A triangle mesh as GLB 2.0 bytes.
 
@@ -484,9 +624,11 @@ def mesh_to_glb(
     skin: optional :class:`Skin`; adds a joint node hierarchy (translations relative to the
     parent, identity rotations), inverse bind matrices (translation by -joint) and
     JOINTS_0/WEIGHTS_0 attributes,
-    compression: None (float32), "quantize" or "meshopt" (see :func:`scene_to_glb`).
+    compression: None (float32), "quantize" or "meshopt" (see :func:`scene_to_glb`),
+    uv (N, 2) and material: as in :func:`scene_to_glb`.
     """
-    mesh: dict[str, Any] = {"vertices": vertices, "faces": faces, "normals": normals, "color": color, "name": name}
+    mesh: dict[str, Any] = {"vertices": vertices, "faces": faces, "normals": normals, "color": color, "name": name,
+                            "uv": uv, "material": material}
     skeleton = None
     if skin is not None:
         mesh["vertex_joints"], mesh["vertex_weights"] = skin["vertex_joints"], skin["vertex_weights"]
@@ -504,7 +646,13 @@ def scene_to_glb(
 
     Each mesh dict: ``vertices`` (N, 3) float, ``faces`` (F, 3) int, optional ``normals``
     (N, 3), ``color`` RGBA (linear, PBR base colour; alpha < 1 gives alphaMode BLEND),
-    ``name``, ``double_sided`` (bool, e.g. for garments), ``vertex_joints`` (N, 4) int +
+    ``name``, ``double_sided`` (bool, e.g. for garments), ``uv`` (N, 2) float TEXCOORD_0 (glTF
+    convention, origin top-left), ``material`` (a :class:`service.model.catalogue.Material`:
+    base colour factor, base-colour / normal textures (PNG or JPEG bytes, each embedded once per
+    GLB however many meshes share it), alpha mode and cutoff, double sided, metallic, roughness;
+    it overrides ``color`` and ``double_sided``; textures need ``uv``), ``tangents`` (N, 4)
+    (only used with a normal texture; computed by :func:`vertex_tangents` when absent),
+    ``vertex_joints`` (N, 4) int +
     ``vertex_weights`` (N, 4) float (skinned meshes; need ``skin``), and ``targets`` (K, N, 3)
     morph POSITION deltas with ``target_names`` (K) (see :func:`basis_to_glb`).
     Mesh i is node i and mesh i, with material i.
@@ -520,7 +668,9 @@ def scene_to_glb(
         dequantization is the node's scale/translation, or for skinned meshes it is baked into
         the shared skin's inverse bind matrices (a skinned node's own transform is ignored by
         glTF), using one grid for all skinned meshes. Normals as normalized BYTE, weights as
-        normalized UNSIGNED_BYTE (rows sum to 255, joint 0 where the weight is 0).
+        normalized UNSIGNED_BYTE (rows sum to 255, joint 0 where the weight is 0), tangents as
+        normalized BYTE, texture coordinates as normalized UNSIGNED_SHORT when they lie in
+        [0, 1] (step 1/65535), FLOAT otherwise (both allowed by the extension).
       "meshopt": "quantize" plus EXT_meshopt_compression: every vertex attribute and index
         bufferView is encoded with meshoptimizer's vertex / index codecs (Python package
         ``meshopt``); the bufferViews point into a data-less fallback buffer (buffers[1],
@@ -541,6 +691,8 @@ def basis_to_glb(
     normals: np.ndarray | None = None,
     compression: str | None = None,
     skin: Skin | dict[str, Any] | None = None,
+    uv: np.ndarray | None = None,
+    material: Any = None,
 ) -> bytes:
     """A garment's clothing basis as one GLB mesh with morph targets.
 
@@ -552,6 +704,8 @@ def basis_to_glb(
     morph weights to w[:N] to render that customer's fit (with compression the targets are
     quantized to the position grid, see :func:`scene_to_glb`). Normals are those of g.
     The material is double sided. skin: optional :class:`Skin` (as for :func:`mesh_to_glb`).
+    uv (M, 2) and material: as in :func:`scene_to_glb` (the tangents of a normal texture are
+    those of g).
     """
     Bf = np.asarray(B)
     mesh: dict[str, Any] = {
@@ -563,6 +717,8 @@ def basis_to_glb(
         "double_sided": True,
         "targets": Bf,
         "target_names": target_names,
+        "uv": uv,
+        "material": material,
     }
     if Bf.ndim != 3:
         raise ValueError(f"B must be (N, M, 3), got {Bf.shape}")
@@ -717,6 +873,12 @@ def _read_mesh(doc: dict[str, Any], blob: bytes, mi: int, world: list[np.ndarray
         if doc["accessors"][attrs["NORMAL"]]["componentType"] != FLOAT:
             normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         normals = normals.astype(np.float32)
+    uv = None
+    if "TEXCOORD_0" in attrs:
+        uv = _read_float(doc, blob, attrs["TEXCOORD_0"]).astype(np.float32)
+    tangents = None
+    if "TANGENT" in attrs:
+        tangents = _read_float(doc, blob, attrs["TANGENT"]).astype(np.float32)
     weights = None
     if "WEIGHTS_0" in attrs:
         weights = _read_float(doc, blob, attrs["WEIGHTS_0"]).astype(np.float32)
@@ -735,6 +897,8 @@ def _read_mesh(doc: dict[str, Any], blob: bytes, mi: int, world: list[np.ndarray
         "positions": positions.astype(np.float32),
         "indices": indices,
         "normals": normals,
+        "uv": uv,
+        "tangents": tangents,
         "joints": opt("JOINTS_0"),
         "weights": weights,
         "targets": np.stack(targets) if targets else None,
@@ -748,10 +912,12 @@ def read_glb(data: bytes) -> dict[str, Any]:
     """Minimal GLB reader (first primitive of each mesh), for round-trip tests.
 
     Returns the first mesh's ``{"positions": (N, 3) float32, "indices": (F, 3) int64,
-    "normals": (N, 3) float32 | None, "joints": (N, 4) | None, "weights": (N, 4) float32 | None,
+    "normals": (N, 3) float32 | None, "uv": (N, 2) float32 TEXCOORD_0 | None, "tangents": (N, 4)
+    float32 | None, "joints": (N, 4) | None, "weights": (N, 4) float32 | None,
     "targets": (K, N, 3) float32 morph POSITION deltas | None, "target_names", "morph_weights",
     "name", "material"}`` plus ``"json"`` (the glTF document) and ``"meshes"`` (that dict for
-    every mesh). KHR_mesh_quantization data is dequantized (positions and deltas back in the
+    every mesh) and ``"images"`` (``{"name", "mime", "data"}`` of each embedded image, in
+    ``images`` order). KHR_mesh_quantization data is dequantized (positions and deltas back in the
     writer's units, normalized normals/weights as floats); EXT_meshopt_compression views are
     decoded with the ``meshopt`` package.
     """
@@ -760,4 +926,6 @@ def read_glb(data: bytes) -> dict[str, Any]:
     meshes = [_read_mesh(doc, blob, i, world) for i in range(len(doc.get("meshes", [])))]
     if not meshes:
         raise ValueError("GLB has no mesh")
-    return {"json": doc, **meshes[0], "meshes": meshes}
+    images = [{"name": im.get("name"), "mime": im.get("mimeType"), "data": _view_bytes(doc, blob, im["bufferView"])}
+              for im in doc.get("images", []) if "bufferView" in im]
+    return {"json": doc, **meshes[0], "meshes": meshes, "images": images}

@@ -144,6 +144,34 @@ class MeasurementSpec:
         self.hip_edges = near(self.hip_edges, float((1 - f) * y[self.crotch] + f * y[self.navel]))
         return self
 
+    def restrict(self) -> tuple["MeasurementSpec", np.ndarray]:
+        """The same measurements on only the vertices they read: landmarks, soles, the
+        sections' candidate edges and the hip/knee/ankle regressor columns; all but weight,
+        which needs the whole surface (the restricted spec has no faces and measures 0).
+
+        Returns (spec over those vertices, their ids (R,) in this spec's vertex order), so that
+        ``measure(restricted, vertices[ids])`` equals ``measure(self, vertices)`` but weight."""
+        joints = [self.joint_ids[k] for k in ("hip", "knee", "ankle")]
+        jreg = sp.csr_matrix(self.joint_regressor)[joints]
+        ids = np.unique(np.concatenate([
+            self.chest_edges.ravel(), self.waist_edges.ravel(), self.hip_edges.ravel(),
+            self.thigh_edges.ravel(), self.calf_edges.ravel(), self.soles, self.nipples, self.acromion,
+            [self.top, self.navel, self.crotch, self.elbow, self.wrist], jreg.indices,
+        ]).astype(np.int64))
+        new = np.full(self.joint_regressor.shape[1], -1, np.int64)
+        new[ids] = np.arange(len(ids))
+        restricted = MeasurementSpec(
+            faces=np.zeros((0, 3), np.int64), top=int(new[self.top]), soles=new[self.soles],
+            nipples=new[self.nipples], navel=int(new[self.navel]), crotch=int(new[self.crotch]),
+            acromion=new[self.acromion], elbow=int(new[self.elbow]), wrist=int(new[self.wrist]),
+            torso_edges=new[np.vstack([self.chest_edges, self.waist_edges])],
+            hip_edges=new[self.hip_edges], thigh_edges=new[self.thigh_edges],
+            calf_edges=new[self.calf_edges], joint_regressor=sp.csr_matrix(jreg[:, ids]),
+            joint_ids={"hip": 0, "knee": 1, "ankle": 2},
+            chest_edges=new[self.chest_edges], waist_edges=new[self.waist_edges],
+        )
+        return restricted, ids
+
     @classmethod
     def from_arrays(cls, data: dict, meta: dict) -> "MeasurementSpec":
         lm = meta["landmarks"]
@@ -184,32 +212,42 @@ class MeasurementSpec:
 
 
 # -- geometric primitives ------------------------------------------------------------------
-class _Grad:
-    """Accumulates d(measurement)/d(vertices) as sparse (row, vertex, axis, value) triplets."""
+Y = np.array([0.0, 1.0, 0.0])  # the up axis: horizontal sections have this normal
+_Y_BASIS = (np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0]))  # what _plane_basis(Y) computes
 
-    def __init__(self, n_rows: int, n_vertices: int):
+
+class _Grad:
+    """Accumulates d(measurement)/d(vertices) as sparse (row, vertex, axis, value) triplets.
+    Given a ``basis`` (3 V, K) (d vertices / d parameters, e.g. PCA components), ``matrix``
+    returns d(measurement)/d(parameters) as a dense (n_rows, K) array instead."""
+
+    def __init__(self, n_rows: int, n_vertices: int, basis: np.ndarray | None = None):
         self.n_rows, self.n_vertices = n_rows, n_vertices
+        self.basis = basis
         self.rows: list[np.ndarray] = []
-        self.cols: list[np.ndarray] = []
+        self.vids: list[np.ndarray] = []
         self.vals: list[np.ndarray] = []
 
     def add(self, row: int, vids: np.ndarray, grads: np.ndarray) -> None:
         """vids: (n,) vertex ids; grads: (n, 3) d(row)/d(vertex)."""
-        vids = np.asarray(vids, np.int64).reshape(-1)
-        grads = np.asarray(grads, np.float64).reshape(-1, 3)
-        cols = (vids[:, None] * 3 + np.arange(3)).reshape(-1)
-        self.rows.append(np.full(cols.shape, row, np.int64))
-        self.cols.append(cols)
-        self.vals.append(grads.reshape(-1))
+        vids = np.asarray(vids).reshape(-1)
+        self.rows.append(np.full(len(vids), row))
+        self.vids.append(vids)
+        self.vals.append(np.asarray(grads, np.float64).reshape(-1, 3))
 
-    def matrix(self) -> sp.csr_matrix:
-        """(n_rows, 3 V) CSR, duplicates summed."""
+    def matrix(self) -> sp.csr_matrix | np.ndarray:
+        """(n_rows, 3 V) CSR, duplicates summed; with a basis the dense (n_rows, K) product."""
+        shape = (self.n_rows, 3 * self.n_vertices)
         if not self.rows:
-            return sp.csr_matrix((self.n_rows, 3 * self.n_vertices))
-        return sp.csr_matrix(
-            (np.concatenate(self.vals), (np.concatenate(self.rows), np.concatenate(self.cols))),
-            shape=(self.n_rows, 3 * self.n_vertices),
-        )
+            J = sp.csr_matrix(shape)
+        else:
+            rows = np.repeat(np.concatenate(self.rows), 3)
+            cols = (np.concatenate(self.vids).astype(np.int64)[:, None] * 3 + _XYZ).reshape(-1)
+            J = sp.csr_matrix((np.concatenate(self.vals).reshape(-1), (rows, cols)), shape=shape)
+        return J if self.basis is None else np.asarray(J @ self.basis)
+
+
+_XYZ = np.arange(3)
 
 
 def plane_section(
@@ -220,20 +258,26 @@ def plane_section(
     vertices: (V, 3); edges: (E, 2); normal: (3,) unit. Returns (points (n, 3), edge ids
     (n, 2), t (n,), sa (n,), sb (n,)) for the n crossing edges, point = a + t (b - a),
     sa/sb the signed distances of the endpoints."""
-    a = vertices[edges[:, 0]]
-    b = vertices[edges[:, 1]]
-    sa = a @ normal - offset
-    sb = b @ normal - offset
+    e0, e1 = edges[:, 0], edges[:, 1]
+    if normal is Y:  # horizontal: the signed distance is the height (same numbers, less work)
+        y = vertices[:, 1]
+        sa, sb = y.take(e0) - offset, y.take(e1) - offset
+    else:
+        sa = vertices[e0] @ normal - offset
+        sb = vertices[e1] @ normal - offset
     # a vertex on the plane counts (t = 0 or 1): landmarks often define the plane
     cross = ((sa * sb) <= 0) & ((sa != 0) | (sb != 0))
-    a, b, sa, sb = a[cross], b[cross], sa[cross], sb[cross]
+    ec = edges[cross]
+    a, b, sa, sb = vertices[ec[:, 0]], vertices[ec[:, 1]], sa[cross], sb[cross]
     t = sa / (sa - sb)
     pts = a + t[:, None] * (b - a)
-    return pts, edges[cross], t, sa, sb
+    return pts, ec, t, sa, sb
 
 
 def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors spanning the plane orthogonal to ``normal`` (e1 close to +X)."""
+    if normal is Y:
+        return _Y_BASIS
     ref = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
     e1 = ref - normal * (ref @ normal)
     e1 /= np.linalg.norm(e1)
@@ -241,11 +285,11 @@ def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, e2
 
 
-def hull_perimeter(points2d: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def hull_perimeter(points2d: np.ndarray, grad: bool = True) -> tuple[float, np.ndarray, np.ndarray | None]:
     """Perimeter of the convex hull of 2-D points (how a tape lies).
 
     points2d: (n, 2). Returns (perimeter, hull vertex ids (h,), d perimeter / d hull vertex
-    (h, 2))."""
+    (h, 2), None unless ``grad``)."""
     if len(points2d) < 3:
         return 0.0, np.zeros(0, np.int64), np.zeros((0, 2))
     try:
@@ -253,11 +297,14 @@ def hull_perimeter(points2d: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]
     except QhullError:
         return 0.0, np.zeros(0, np.int64), np.zeros((0, 2))
     q = points2d[hv]
-    nxt = np.roll(q, -1, axis=0) - q
-    ln = np.linalg.norm(nxt, axis=1)
+    nxt = np.empty_like(q)  # q_{j+1} - q_j, cyclically
+    nxt[:-1] = q[1:] - q[:-1]
+    nxt[-1] = q[0] - q[-1]
+    ln = np.sqrt(nxt[:, 0] * nxt[:, 0] + nxt[:, 1] * nxt[:, 1])
+    if not grad:
+        return float(ln.sum()), hv, None
     u = nxt / np.maximum(ln, 1e-12)[:, None]
-    grad = np.roll(u, 1, axis=0) - u  # d|q_{j}-q_{j-1}| + d|q_{j+1}-q_j|
-    return float(ln.sum()), hv, grad
+    return float(ln.sum()), hv, np.roll(u, 1, axis=0) - u  # d|q_{j}-q_{j-1}| + d|q_{j+1}-q_j|
 
 
 def _section_grad(
@@ -269,32 +316,66 @@ def _section_grad(
     through the plane offset, to the landmark vertices that define it.
 
     Returns (d measure / d offset, d measure / d normal (3,)) for callers whose plane itself
-    depends on the vertices (the thigh)."""
+    depends on the vertices (the thigh; None when ``offset_grad`` is given)."""
     denom = sa - sb
     gab = np.einsum("ij,ij->i", g3, b - a)
-    g.add(row, e[:, 0], (1 - t)[:, None] * g3 + (gab * (-sb) / denom**2)[:, None] * normal)
-    g.add(row, e[:, 1], t[:, None] * g3 + (gab * sa / denom**2)[:, None] * normal)
-    d_off = float(np.sum(-gab / denom))
-    d_n = (((gab / denom**2)[:, None]) * (-sb[:, None] * a + sa[:, None] * b)).sum(axis=0)
+    c = gab / denom**2
+    g.add(row, e.T.reshape(-1), np.concatenate([(1 - t)[:, None] * g3 - (c * sb)[:, None] * normal,
+                                                 t[:, None] * g3 + (c * sa)[:, None] * normal]))
+    d_off = -float(np.sum(gab / denom))
     if offset_grad is not None:
         vids, coeffs = offset_grad
         g.add(row, vids, d_off * coeffs)
-    return d_off, d_n
+        return d_off, None
+    return d_off, (c[:, None] * (sa[:, None] * b - sb[:, None] * a)).sum(axis=0)
+
+
+@dataclass
+class _Section:
+    """A plane section and its hull: points (n, 3), crossing edges (n, 2), t / sa / sb (n,)
+    (see ``plane_section``), points in plane coordinates (n, 2), hull perimeter, hull vertex
+    ids (h,) and d perimeter / d hull vertex (h, 2) (None without gradient)."""
+
+    pts: np.ndarray
+    e: np.ndarray
+    t: np.ndarray
+    sa: np.ndarray
+    sb: np.ndarray
+    p2: np.ndarray
+    perimeter: float
+    hv: np.ndarray
+    hgrad: np.ndarray | None
+
+
+def _hull_section(vertices: np.ndarray, edges: np.ndarray, normal: np.ndarray, offset: float,
+                  grad: bool) -> _Section:
+    pts, e, t, sa, sb = plane_section(vertices, edges, normal, offset)
+    if normal is Y:  # (pts . e1, pts . e2) for _Y_BASIS: the same numbers
+        p2 = pts[:, ::2] * _FLIP_Z
+    else:
+        e1, e2 = _plane_basis(normal)
+        p2 = np.stack([pts @ e1, pts @ e2], axis=1)
+    return _Section(pts, e, t, sa, sb, p2, *hull_perimeter(p2, grad=grad))
+
+
+_FLIP_Z = np.array([1.0, -1.0])
 
 
 def _girth(
     g: _Grad | None, rows: dict[str, int], vertices: np.ndarray, edges: np.ndarray,
     normal: np.ndarray, offset: float, offset_grad, extent_rows: dict[str, tuple[int, int]] | None = None,
+    section: _Section | None = None,
 ) -> dict[str, float]:
-    """Girth (and optional extents along the plane axes) of one plane section."""
-    pts, e, t, sa, sb = plane_section(vertices, edges, normal, offset)
+    """Girth (and optional extents along the plane axes) of one plane section (``section``
+    when already cut)."""
+    sec = section or _hull_section(vertices, edges, normal, offset, grad=g is not None)
     e1, e2 = _plane_basis(normal)
-    p2 = np.stack([pts @ e1, pts @ e2], axis=1)
-    per, hv, hgrad = hull_perimeter(p2)
-    out = {"girth": per}
-    a, b = vertices[e[:, 0]], vertices[e[:, 1]]
-    if g is not None and len(hv):
-        g3 = hgrad[:, :1] * e1 + hgrad[:, 1:] * e2
+    e, t, sa, sb, p2, hv = sec.e, sec.t, sec.sa, sec.sb, sec.p2, sec.hv
+    out = {"girth": sec.perimeter}
+    if g is not None:
+        a, b = vertices[e[:, 0]], vertices[e[:, 1]]
+    if g is not None and len(hv) and "girth" in rows:
+        g3 = sec.hgrad[:, :1] * e1 + sec.hgrad[:, 1:] * e2
         out["d_offset"], out["d_normal"] = _section_grad(
             g, rows["girth"], g3, e[hv], t[hv], sa[hv], sb[hv], a[hv], b[hv], normal, offset_grad)
     if extent_rows and len(p2):
@@ -318,28 +399,36 @@ def _rank_levels(vertices: np.ndarray, edges: np.ndarray, levels: np.ndarray) ->
 
     The estimate integrates the support function of the section points over
     ``SUPPORT_DIRECTIONS`` directions (Cauchy's formula: perimeter = integral of h)."""
-    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
-    sa = a[:, 1:2] - levels[None, :]  # (E, L)
-    sb = b[:, 1:2] - levels[None, :]
-    cross = ((sa * sb) <= 0) & ((sa != 0) | (sb != 0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(cross, sa / (sa - sb), 0.0)
-    px = a[:, None, 0] + t * (b[:, None, 0] - a[:, None, 0])
-    pz = a[:, None, 2] + t * (b[:, None, 2] - a[:, None, 2])
-    proj = px[..., None] * _DIRS[:, 0] + pz[..., None] * _DIRS[:, 1]  # (E, L, D)
-    proj = np.where(cross[..., None], proj, -np.inf)
-    est = proj.max(axis=0).sum(axis=1)  # (L,) proportional to perimeter
-    return np.argsort(-est)
+    y = vertices[:, 1]
+    sa = y.take(edges[:, 0])[None, :] - levels[:, None]  # (L, E)
+    sb = y.take(edges[:, 1])[None, :] - levels[:, None]
+    lv, ei = np.nonzero(((sa * sb) <= 0) & ((sa != 0) | (sb != 0)))  # crossings, by level
+    sa, sb = sa[lv, ei], sb[lv, ei]
+    t = sa / (sa - sb)
+    a, b = vertices[edges[ei, 0]], vertices[edges[ei, 1]]
+    px = a[:, 0] + t * (b[:, 0] - a[:, 0])
+    pz = a[:, 2] + t * (b[:, 2] - a[:, 2])
+    proj = px[:, None] * _DIRS[:, 0] + pz[:, None] * _DIRS[:, 1]  # (n, D)
+    est = np.full((len(levels), SUPPORT_DIRECTIONS), -np.inf)
+    counts = np.bincount(lv, minlength=len(levels))
+    some = counts > 0
+    if some.any():  # the largest projection per level (lv is sorted)
+        est[some] = np.maximum.reduceat(proj, (np.cumsum(counts) - counts)[some], axis=0)
+    return np.argsort(-est.sum(axis=1))  # (L,) estimates proportional to perimeter
 
 
 def volume(vertices: np.ndarray, faces: np.ndarray, grad: bool = False):
     """Enclosed volume (m^3) of a closed triangle surface; with ``grad`` also d vol / d
     vertices (V, 3) (only rows of vertices used by ``faces`` are non-zero)."""
+    if not grad:  # sum of a . (b x c) / 6 over the faces, one coordinate array at a time
+        x, y, z = (np.ascontiguousarray(vertices[:, k], np.float64) for k in range(3))
+        i, j, k = faces[:, 0], faces[:, 1], faces[:, 2]
+        bx, by, bz, cx, cy, cz = x.take(j), y.take(j), z.take(j), x.take(k), y.take(k), z.take(k)
+        det = x.take(i) * (by * cz - bz * cy) + y.take(i) * (bz * cx - bx * cz) + z.take(i) * (bx * cy - by * cx)
+        return float(det.sum()) / 6.0
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
     bc = np.cross(b, c)
     vol = float(np.einsum("ij,ij->", a, bc)) / 6.0
-    if not grad:
-        return vol
     gv = np.zeros_like(vertices, dtype=np.float64)
     for k, cr in ((0, bc), (1, np.cross(c, a)), (2, np.cross(a, b))):
         for ax in range(3):
@@ -348,58 +437,61 @@ def volume(vertices: np.ndarray, faces: np.ndarray, grad: bool = False):
 
 
 # -- the measurements ----------------------------------------------------------------------
-Y = np.array([0.0, 1.0, 0.0])
-
-
 def measure(
-    spec: MeasurementSpec, vertices: np.ndarray, gender: str, jacobian: bool = False
+    spec: MeasurementSpec, vertices: np.ndarray, gender: str, jacobian: bool = False, *,
+    basis: np.ndarray | None = None, extras: bool = True, names=None,
 ):
     """Raw measurements of one avatar.
 
     vertices: (V, 3) metres. Returns values (len(RAW_NAMES),) float64 in metres (weight in
-    kg); with ``jacobian`` also d values / d vertices as CSR (len(RAW_NAMES), 3 V)."""
+    kg); with ``jacobian`` also d values / d vertices as CSR (len(RAW_NAMES), 3 V), or, given
+    ``basis`` (3 V, K) = d vertices / d parameters, d values / d parameters as a dense
+    (len(RAW_NAMES), K) array. Only the ``names`` (of ``RAW_NAMES``; default all) are
+    measured, and the breadths and depths only with ``extras``; the others are left 0. A spec
+    without faces (``MeasurementSpec.restrict``) measures no weight (0)."""
     X = np.asarray(vertices, np.float64)
     n = len(RAW_NAMES)
-    row = {name: i for i, name in enumerate(RAW_NAMES)}
-    g = _Grad(n, len(X)) if jacobian else None
+    row = _ROW
+    want = set(RAW_NAMES if names is None else names) - (set() if extras else set(EXTRA_ANSUR))
+    g = _Grad(n, len(X), basis) if jacobian else None
     out = np.zeros(n)
 
     soles_y = X[spec.soles, 1]
     floor_id = int(spec.soles[np.argmin(soles_y)])
     floor = float(X[floor_id, 1])
-
-    def height_of(name: str, vid: int) -> None:
-        out[row[name]] = X[vid, 1] - floor
-        if g is not None:
-            g.add(row[name], np.array([vid, floor_id]), np.array([[0, 1.0, 0], [0, -1.0, 0]]))
-
-    height_of("height_cm", spec.top)
-    height_of("waist_height_cm", spec.navel)
-    height_of("inseam_cm", spec.crotch)
     al, ar = int(spec.acromion[0]), int(spec.acromion[1])
-    height_of("acromion_height", al)
+    for name, vid in (("height_cm", spec.top), ("waist_height_cm", spec.navel), ("inseam_cm", spec.crotch),
+                      ("acromion_height", al)):
+        if name in want:
+            out[row[name]] = X[vid, 1] - floor
+            if g is not None:
+                g.add(row[name], np.array([vid, floor_id]), _UP_DOWN)
 
     # biacromial breadth: straight distance between the acromia
-    d = X[al] - X[ar]
-    ln = float(np.linalg.norm(d))
-    out[row["shoulder_width_cm"]] = ln
-    if g is not None:
-        g.add(row["shoulder_width_cm"], np.array([al, ar]), np.stack([d / ln, -d / ln]))
+    if "shoulder_width_cm" in want:
+        d = X[al] - X[ar]
+        ln = float(np.linalg.norm(d))
+        out[row["shoulder_width_cm"]] = ln
+        if g is not None:
+            g.add(row["shoulder_width_cm"], np.array([al, ar]), np.stack([d / ln, -d / ln]))
 
     # sleeve outseam: acromion -> radiale -> stylion
-    chain = [al, spec.elbow, spec.wrist]
-    total = 0.0
-    for p, q in zip(chain[:-1], chain[1:]):
-        d = X[q] - X[p]
-        ln = float(np.linalg.norm(d))
-        total += ln
-        if g is not None:
-            g.add(row["arm_length_cm"], np.array([q, p]), np.stack([d / ln, -d / ln]))
-    out[row["arm_length_cm"]] = total
+    if "arm_length_cm" in want:
+        chain = [al, spec.elbow, spec.wrist]
+        total = 0.0
+        for p, q in zip(chain[:-1], chain[1:]):
+            d = X[q] - X[p]
+            ln = float(np.linalg.norm(d))
+            total += ln
+            if g is not None:
+                g.add(row["arm_length_cm"], np.array([q, p]), np.stack([d / ln, -d / ln]))
+        out[row["arm_length_cm"]] = total
 
     # weight = volume x density
     rho = DENSITY[gender]
-    if g is not None:
+    if "weight_kg" not in want or not len(spec.faces):
+        vol = 0.0  # not asked, or a restricted spec: no surface, no weight
+    elif g is not None:
         vol, gv = volume(X, spec.faces, grad=True)
         used = spec.volume_vertices
         g.add(row["weight_kg"], used, rho * gv[used])
@@ -407,35 +499,33 @@ def measure(
         vol = volume(X, spec.faces)
     out[row["weight_kg"]] = rho * vol
 
+    def section(girth: str, edges, normal, offset, offset_grad, extents: dict[str, int]) -> dict:
+        """One girth and its extents (name -> plane axis), those of them wanted, into ``out``."""
+        extents = {k: (axis, 0) for k, axis in extents.items() if k in want}
+        if girth not in want and not extents:
+            return {}
+        rows = {k: row[k] for k in extents}
+        if girth in want:
+            rows["girth"] = row[girth]
+        r = _girth(g, rows, X, edges, normal, offset, offset_grad, extents)
+        for k in rows:
+            out[rows[k]] = r.get(k, 0.0)
+        return r
+
     # chest: horizontal section at nipple level (mean of both nipples)
     nip = spec.nipples
-    r = _girth(g, {"girth": row["chest_cm"], "chest_breadth": row["chest_breadth"],
-                   "chest_depth": row["chest_depth"]}, X, spec.chest_edges, Y,
-               float(X[nip, 1].mean()),
-               (nip, np.tile([0, 0.5, 0], (len(nip), 1))),
-               {"chest_breadth": (0, 0), "chest_depth": (1, 0)})
-    out[row["chest_cm"]] = r["girth"]
-    out[row["chest_breadth"]] = r.get("chest_breadth", 0.0)
-    out[row["chest_depth"]] = r.get("chest_depth", 0.0)
-
+    section("chest_cm", spec.chest_edges, Y, float(X[nip, 1].mean()), (nip, np.tile([0, 0.5, 0], (len(nip), 1))),
+            {"chest_breadth": 0, "chest_depth": 1})
     # waist: horizontal at the omphalion
-    r = _girth(g, {"girth": row["waist_cm"], "waist_breadth": row["waist_breadth"],
-                   "waist_depth": row["waist_depth"]}, X, spec.waist_edges, Y,
-               float(X[spec.navel, 1]), (np.array([spec.navel]), np.array([[0, 1.0, 0]])),
-               {"waist_breadth": (0, 0), "waist_depth": (1, 0)})
-    out[row["waist_cm"]] = r["girth"]
-    out[row["waist_breadth"]] = r.get("waist_breadth", 0.0)
-    out[row["waist_depth"]] = r.get("waist_depth", 0.0)
-
+    section("waist_cm", spec.waist_edges, Y, float(X[spec.navel, 1]),
+            (np.array([spec.navel]), np.array([[0, 1.0, 0]])), {"waist_breadth": 0, "waist_depth": 1})
     # hip (buttock circumference): crotch + f (navel - crotch)
     f = HIP_LEVEL_FRACTION
     lvl = (1 - f) * X[spec.crotch, 1] + f * X[spec.navel, 1]
-    r = _girth(g, {"girth": row["hip_cm"], "hip_breadth": row["hip_breadth"]}, X,
-               spec.hip_edges, Y, float(lvl),
-               (np.array([spec.crotch, spec.navel]), np.array([[0, 1 - f, 0], [0, f, 0]])),
-               {"hip_breadth": (0, 0)})
-    out[row["hip_cm"]] = r["girth"]
-    out[row["hip_breadth"]] = r.get("hip_breadth", 0.0)
+    section("hip_cm", spec.hip_edges, Y, float(lvl),
+            (np.array([spec.crotch, spec.navel]), np.array([[0, 1 - f, 0], [0, f, 0]])), {"hip_breadth": 0})
+    if not {"thigh_cm", "calf_cm"} & want:
+        return (out, g.matrix()) if jacobian else out
 
     # thigh: plane perpendicular to the left hip-knee axis through the axis at crotch height.
     # The plane moves with the joints (regressed from vertices) and the crotch: full chain rule.
@@ -448,8 +538,7 @@ def measure(
     cy = X[spec.crotch, 1]
     s = (cy - knee[1]) / (hip[1] - knee[1])
     origin = knee + s * u
-    r = _girth(g, {"girth": row["thigh_cm"]}, X, spec.thigh_edges, nrm, float(nrm @ origin), None)
-    out[row["thigh_cm"]] = r["girth"]
+    r = section("thigh_cm", spec.thigh_edges, nrm, float(nrm @ origin), None, {})
     if g is not None and "d_offset" in r:
         d_off, d_n = r["d_offset"], r["d_normal"]
         g_o = d_off * nrm  # offset = n . origin
@@ -469,20 +558,20 @@ def measure(
     # calf: the largest of horizontal sections 15-55 % down the shin. Levels are ranked by
     # a support-function estimate of their hull perimeters, the best few measured exactly (no
     # gradient through the choice of level: the max is locally one section).
-    levels = knee[1] + CALF_FRACTIONS * (ankle[1] - knee[1])
-    ranked = _rank_levels(X, spec.calf_edges, levels)
-    best, best_level = -1.0, None
-    for lv in levels[ranked[:CALF_EXACT_CANDIDATES]]:
-        per = _girth(None, {}, X, spec.calf_edges, Y, float(lv), None)["girth"]
-        if per > best:
-            best, best_level = per, lv
-    if g is not None and best_level is not None:
-        _girth(g, {"girth": row["calf_cm"]}, X, spec.calf_edges, Y, float(best_level), None)
-    out[row["calf_cm"]] = best
+    if "calf_cm" in want:
+        levels = knee[1] + CALF_FRACTIONS * (ankle[1] - knee[1])
+        ranked = _rank_levels(X, spec.calf_edges, levels)
+        best = max((_hull_section(X, spec.calf_edges, Y, float(lv), grad=g is not None)
+                    for lv in levels[ranked[:CALF_EXACT_CANDIDATES]]), key=lambda sec: sec.perimeter)
+        if g is not None:
+            _girth(g, {"girth": row["calf_cm"]}, X, spec.calf_edges, Y, 0.0, None, section=best)
+        out[row["calf_cm"]] = best.perimeter
 
-    if jacobian:
-        return out, g.matrix()
-    return out
+    return (out, g.matrix()) if jacobian else out
+
+
+_ROW = {name: i for i, name in enumerate(RAW_NAMES)}
+_UP_DOWN = np.array([[0, 1.0, 0], [0, -1.0, 0]])  # d height / d (vertex, floor vertex)
 
 
 def to_api_units(raw: np.ndarray, gender: str) -> dict[str, float | str]:
@@ -500,13 +589,24 @@ def api_scale(name: str) -> float:
 
 def measure_attributes(spec: MeasurementSpec, vertices: np.ndarray, gender: str) -> dict:
     """The 12 API attributes of an avatar (cm, kg)."""
-    return to_api_units(measure(spec, vertices, gender), gender)
+    return to_api_units(measure(spec, vertices, gender, extras=False), gender)
 
 
-def attribute_specs(ranges: dict[str, list[float]]):
+@dataclass(frozen=True)
+class AttributeSpec:
+    """One biometric attribute. ``min``/``max`` is the accepted range (population range plus a
+    margin); ``unit`` is ``"cm"``, ``"kg"`` or ``None`` for the categorical ``gender``."""
+
+    name: str
+    unit: str | None
+    min: float | None
+    max: float | None
+    ansur_column: str
+    description: str
+
+
+def attribute_specs(ranges: dict[str, list[float]]) -> list[AttributeSpec]:
     """AttributeSpec list from the artifact's accepted ranges (API units)."""
-    from service.model.body import AttributeSpec
-
     specs = []
     for name in ATTRIBUTES:
         if name == "gender":
@@ -521,6 +621,63 @@ def attribute_specs(ranges: dict[str, list[float]]):
 
 def dumps_meta(meta: dict) -> str:
     return json.dumps(meta, sort_keys=True)
+
+
+# -- volume as a polynomial of the shape weights ---------------------------------------------
+@dataclass(frozen=True)
+class VolumePolynomial:
+    """The enclosed volume of ``mean + sum_k w_k components_k`` as a polynomial of w (K,):
+
+        vol(w) = constant + linear . w + w^T quadratic w + cubic[w_n, w_n, w_n]
+
+    with w_n the first n weights. ``volume`` is sum a . (b x c) / 6 over the faces, a cubic
+    form of the vertices, so with n = K this is exact; the cubic terms dropped with n < K
+    (components of small variance) are worth grams (n = 20 of 76: at most ~0.05 kg over the
+    population). Arrays float64: linear (K,), quadratic (K, K) and cubic (n, n, n) symmetric."""
+
+    constant: float
+    linear: np.ndarray
+    quadratic: np.ndarray
+    cubic: np.ndarray
+
+    @classmethod
+    def fit(cls, mean: np.ndarray, components: np.ndarray, faces: np.ndarray, n_cubic: int,
+            chunk: int = 2048) -> "VolumePolynomial":
+        """mean: (V, 3); components: (K, V, 3); faces: (F, 3) of the closed surface. Each term
+        of a . (b x c) with a, b, c = mean + components . w, summed face block by face block;
+        cubic terms of the first ``n_cubic`` components only."""
+        K, n = len(components), n_cubic
+        const, lin = 0.0, np.zeros(K)
+        quad, cubic = np.zeros((K, K)), np.zeros((n, n * n))
+        for s in range(0, len(faces), chunk):
+            f = faces[s:s + chunk]
+            ma, mb, mc = (np.asarray(mean[f[:, k]], np.float64) for k in range(3))  # (B, 3)
+            Ua, Ub, Uc = (np.asarray(components[:, f[:, k]], np.float64) for k in range(3))  # (K, B, 3)
+            const += float(np.einsum("ij,ij->", ma, np.cross(mb, mc)))
+            lin += (Ua.reshape(K, -1) @ np.cross(mb, mc).reshape(-1) + Ub.reshape(K, -1) @ np.cross(mc, ma).reshape(-1)
+                    + Uc.reshape(K, -1) @ np.cross(ma, mb).reshape(-1))
+            # w_i w_j terms: ma . (Ub_i x Uc_j) + Ua_i . (mb x Uc_j) + Ua_i . (Ub_j x mc)
+            quad += Ub.reshape(K, -1) @ np.cross(Uc, ma).reshape(K, -1).T
+            quad += Ua.reshape(K, -1) @ (np.cross(mb, Uc) + np.cross(Ub, mc)).reshape(K, -1).T
+            # w_i w_j w_l terms: Ua_i . (Ub_j x Uc_l)
+            B = len(f)
+            for x, (y, z) in enumerate(((1, 2), (2, 0), (0, 1))):
+                by, bz = Ub[:n, :, y].T[:, :, None], Ub[:n, :, z].T[:, :, None]  # (B, n, 1)
+                cy, cz = Uc[:n, :, y].T[:, None, :], Uc[:n, :, z].T[:, None, :]  # (B, 1, n)
+                cubic += Ua[:n, :, x] @ (by * cz - bz * cy).reshape(B, n * n)
+        cubic = cubic.reshape(n, n, n)
+        cubic = sum(cubic.transpose(p) for p in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)))
+        return cls(const / 6, lin / 6, (quad + quad.T) / 12, cubic / 36)
+
+    def __call__(self, w: np.ndarray) -> tuple[float, np.ndarray]:
+        """(volume m^3, d volume / d w (K,)) at weights w (K,)."""
+        w = np.asarray(w, np.float64)
+        n = len(self.cubic)
+        Tww = (self.cubic @ w[:n]) @ w[:n]
+        Qw = self.quadratic @ w
+        grad = self.linear + 2 * Qw
+        grad[:n] += 3 * Tww
+        return float(self.constant + self.linear @ w + Qw @ w + Tww @ w[:n]), grad
 
 
 # -- slow, obvious reference (tests and benchmarks) ----------------------------------------

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 DM = 0.1  # metres per decimetre
+# The hm08 ``helper-tights`` vertices [start, stop): MakeHuman's surface of skin-tight clothing,
+# which suits and shoes bind to (kept in the body model; the garment auto-fit follows it too).
+HELPER_TIGHTS = (15328, 17976)
 MAX_BYTES = 8 * 1024 * 1024
 
 
@@ -33,11 +36,15 @@ class Binding:
     scales: list[tuple[int, int, float]]
     name: str
 
+    def axis_scales(self, vertices: np.ndarray) -> np.ndarray:
+        """(3,) per-axis offset scales on an avatar (V, 3) metres: current / reference distance."""
+        X = np.asarray(vertices, np.float64)
+        return np.array([abs(X[a, ax] - X[b, ax]) / (ref * DM) for ax, (a, b, ref) in enumerate(self.scales)])
+
     def fit(self, vertices: np.ndarray) -> np.ndarray:
         """The garment on an avatar: (M, 3) float64 metres."""
         X = np.asarray(vertices, np.float64)
-        s = np.array([abs(X[a, ax] - X[b, ax]) / (ref * DM) for ax, (a, b, ref) in enumerate(self.scales)])
-        return np.einsum("mk,mkd->md", self.weights, X[self.indices]) + self.offsets * DM * s
+        return np.einsum("mk,mkd->md", self.weights, X[self.indices]) + self.offsets * DM * self.axis_scales(X)
 
 
 def parse_mhclo(text: str, n_base_vertices: int) -> Binding:
@@ -95,24 +102,62 @@ def parse_mhclo(text: str, n_base_vertices: int) -> Binding:
     return Binding(idx, A[:, 3:6], A[:, 6:9], [scales["x_scale"], scales["y_scale"], scales["z_scale"]], name)
 
 
-def parse_obj_faces(text: str) -> tuple[int, np.ndarray]:
-    """Vertex count and triangulated faces (F, 3) of an OBJ (quads and polygons fanned)."""
+@dataclass
+class ObjMesh:
+    """An OBJ's topology: n_vertices, faces (F, 3) int64 (polygons fanned from their first
+    corner), and, when every face corner names a texture vertex, face_uv (F, 3) int64 (the
+    corners' ``vt`` indices, same fan) into uv (T, 2) float64 (OBJ convention: origin bottom-left;
+    glTF's is top-left, v' = 1 - v); else both None."""
+
+    n_vertices: int
+    faces: np.ndarray
+    face_uv: np.ndarray | None = None
+    uv: np.ndarray | None = None
+
+
+def parse_obj(text: str) -> ObjMesh:
+    """Vertex count, triangulated faces and per-corner texture coordinates of an OBJ."""
     n_v = 0
+    uv: list[list[float]] = []
     faces: list[list[int]] = []
+    corners_uv: list[list[int]] = []
+    all_uv = True
     for line in text.splitlines():
         if line.startswith("v "):
             n_v += 1
+        elif line.startswith("vt "):
+            try:
+                uv.append([float(t) for t in line.split()[1:3]])
+            except ValueError as e:
+                raise MhcloError(f"bad texture vertex line: {line!r}") from e
         elif line.startswith("f "):
             try:
-                poly = [int(t.split("/")[0]) for t in line.split()[1:]]
+                refs = [t.split("/") for t in line.split()[1:]]
+                poly = [int(r[0]) for r in refs]
+                tpoly = [int(r[1]) if len(r) > 1 and r[1] else 0 for r in refs]
             except ValueError as e:
                 raise MhcloError(f"bad face line: {line!r}") from e
             poly = [p - 1 if p > 0 else n_v + p for p in poly]
+            all_uv = all_uv and all(t != 0 for t in tpoly)
+            tpoly = [t - 1 if t > 0 else len(uv) + t for t in tpoly]
             for k in range(1, len(poly) - 1):
                 faces.append([poly[0], poly[k], poly[k + 1]])
+                corners_uv.append([tpoly[0], tpoly[k], tpoly[k + 1]])
     if n_v == 0 or not faces:
         raise MhcloError("the OBJ has no vertices or no faces")
     F = np.array(faces, np.int64)
     if F.min() < 0 or F.max() >= n_v:
         raise MhcloError("the OBJ has a face index out of range")
-    return n_v, F
+    if not (all_uv and uv):
+        return ObjMesh(n_v, F)
+    FT = np.array(corners_uv, np.int64)
+    UV = np.array(uv, np.float64).reshape(-1, 2)
+    if FT.min() < 0 or FT.max() >= len(UV) or not np.all(np.isfinite(UV)):
+        raise MhcloError("the OBJ has a texture index out of range or a non-finite texture coordinate")
+    return ObjMesh(n_v, F, FT, UV)
+
+
+def parse_obj_faces(text: str) -> tuple[int, np.ndarray]:
+    """Vertex count and triangulated faces (F, 3) of an OBJ (quads and polygons fanned)."""
+    mesh = parse_obj(text)
+    return mesh.n_vertices, mesh.faces

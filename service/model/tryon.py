@@ -2,8 +2,12 @@
 
 ``GarmentBasis`` holds everything a try-on needs for one garment: the mean garment g (M, 3),
 the clothing basis B (N, M, 3), faces (F, 3), the push-out binding (M, k) to body vertices,
-skinning transferred from the body (M, 4) + (M, 4), a colour and a layer. It is stored as
-plain ``.npy`` files in one directory and memory-mapped by every API process.
+skinning transferred from the body (M, 4) + (M, 4), a colour and a layer; optionally its look:
+a render layout (the mesh split at its UV seams: render_vertex (R,) index into the M welded
+vertices, render_uv (R, 2) glTF convention, render_faces (F, 3) into the R render vertices) and
+a material (:class:`service.model.catalogue.Material`, textures stored as files beside the
+arrays). It is stored as plain ``.npy`` files in one directory and memory-mapped by every API
+process; bases saved before the look existed load without it.
 """
 from __future__ import annotations
 
@@ -19,13 +23,20 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.model import garment as G
+from service.model.catalogue import Material, RenderLayout, Texture
 from service.model.geometry import face_incidence, vertex_normals
+from service.model.gltf import vertex_tangents
+from service.model.skin_weights import transfer_skin_weights
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
 EXAMPLES = {"n": 32, "c": 0.5}
-ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn")
-OPTIONAL = ("gn", "Bn")  # normal basis: bases saved before it existed load without it
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "render_vertex", "render_uv",
+          "render_faces")
+# normal basis and render layout: bases saved before they existed load without them
+OPTIONAL = ("gn", "Bn", "render_vertex", "render_uv", "render_faces")
+MATERIAL_FILE = "material.json"
+TEXTURE_EXT = {"image/png": ".png", "image/jpeg": ".jpg"}
 
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
@@ -50,9 +61,15 @@ class GarmentBasis:
     skin_w: np.ndarray
     gn: np.ndarray | None = None  # (M, 3) normals of the mean garment
     Bn: np.ndarray | None = None  # (N, M, 3) their basis (central differences, like B)
+    render_vertex: np.ndarray | None = None  # (R,) int32 welded vertex of each render vertex
+    render_uv: np.ndarray | None = None  # (R, 2) float32, glTF convention (origin top-left)
+    render_faces: np.ndarray | None = None  # (F, 3) int32 into the render vertices
+    material: Material | None = None
     meta: dict = field(default_factory=dict)
     _smoother: object = None
     _incidence: object = None
+    _render_skin: object = None
+    _render_tangents: object = None
 
     @property
     def n_vertices(self) -> int:
@@ -74,6 +91,37 @@ class GarmentBasis:
             self._incidence = face_incidence(np.asarray(self.faces), self.n_vertices)
         return vertex_normals(vertices, self.faces, self._incidence)
 
+    # -- the look: render layout and material ----------------------------------------------------
+    @property
+    def has_layout(self) -> bool:
+        return self.render_vertex is not None
+
+    def render_skin(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, 4) joints and (R, 4) weights of the render vertices (gathered once per basis)."""
+        if self._render_skin is None:
+            idx = np.asarray(self.render_vertex)
+            self._render_skin = (np.asarray(self.skin_idx)[idx], np.asarray(self.skin_w)[idx])
+        return self._render_skin  # type: ignore[return-value]
+
+    def render_tangents(self, normals: np.ndarray) -> np.ndarray | None:
+        """TANGENT (R, 4) for a normal-mapped material: the mean garment's UV tangents (computed
+        once per basis) made orthogonal to this try-on's render normals (R, 3) (one
+        Gram-Schmidt step, w kept); None without a normal texture."""
+        if self.material is None or self.material.normal_texture is None or not self.has_layout:
+            return None
+        if self._render_tangents is None:
+            idx = np.asarray(self.render_vertex)
+            g = np.asarray(self.g)[idx]
+            self._render_tangents = vertex_tangents(g, np.asarray(self.render_faces), np.asarray(self.render_uv),
+                                                    vertex_normals(g, np.asarray(self.render_faces)))
+        t0: np.ndarray = self._render_tangents  # type: ignore[assignment]
+        n = np.asarray(normals, np.float32)
+        t = t0[:, :3] - n * np.einsum("ij,ij->i", n, t0[:, :3])[:, None]
+        out = np.empty_like(t0)
+        out[:, :3] = t / np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)[:, None]
+        out[:, 3] = t0[:, 3]
+        return out
+
     def save(self, directory: Path) -> None:
         """Write atomically: a temporary sibling directory renamed into place."""
         directory = Path(directory)
@@ -83,6 +131,8 @@ class GarmentBasis:
             for k in ARRAYS:
                 if getattr(self, k) is not None:
                     np.save(tmp / f"{k}.npy", np.ascontiguousarray(getattr(self, k)))
+            if self.material is not None:
+                save_material(self.material, tmp)
             (tmp / "meta.json").write_text(json.dumps(self.meta, sort_keys=True))
             if directory.exists():
                 shutil.rmtree(directory)
@@ -97,32 +147,83 @@ class GarmentBasis:
         arrs = {k: np.load(directory / f"{k}.npy", mmap_mode="r" if mmap else None) for k in ARRAYS
                 if k not in OPTIONAL or (directory / f"{k}.npy").exists()}
         meta = json.loads((directory / "meta.json").read_text())
-        return cls(**arrs, meta=meta)
+        material = load_material(directory) if (directory / MATERIAL_FILE).exists() else None
+        return cls(**arrs, material=material, meta=meta)
 
     def etag(self) -> str:
         return self.meta.get("etag", "")
 
 
+def save_material(material: Material, directory: Path) -> None:
+    """``material.json`` plus its textures as ``base_color.jpg|png`` / ``normal.jpg|png``."""
+    doc: dict = {"base_color_factor": [float(c) for c in material.base_color_factor],
+                 "alpha_mode": material.alpha_mode, "alpha_cutoff": material.alpha_cutoff,
+                 "double_sided": bool(material.double_sided), "metallic": float(material.metallic),
+                 "roughness": float(material.roughness)}
+    for key, tex in (("base_color", material.base_color_texture), ("normal", material.normal_texture)):
+        if tex is not None:
+            fname = key + TEXTURE_EXT[tex.mime]
+            (Path(directory) / fname).write_bytes(tex.data)
+            doc[f"{key}_texture"] = {"file": fname, "name": tex.name, "mime": tex.mime}
+    (Path(directory) / MATERIAL_FILE).write_text(json.dumps(doc, sort_keys=True))
+
+
+def load_material(directory: Path) -> Material:
+    doc = json.loads((Path(directory) / MATERIAL_FILE).read_text())
+
+    def tex(key: str) -> Texture | None:
+        t = doc.get(f"{key}_texture")
+        return None if t is None else Texture(t["name"], t["mime"], (Path(directory) / t["file"]).read_bytes())
+
+    return Material(tuple(float(c) for c in doc["base_color_factor"]), tex("base_color"), tex("normal"),  # type: ignore[arg-type]
+                    doc["alpha_mode"], doc.get("alpha_cutoff"), bool(doc["double_sided"]), float(doc["metallic"]),
+                    float(doc["roughness"]))
+
+
+def material_digest(material: Material | None) -> bytes:
+    """Bytes that change with anything a viewer sees of ``material`` (for the basis etag)."""
+    if material is None:
+        return b""
+    h = hashlib.sha256(json.dumps([list(material.base_color_factor), material.alpha_mode, material.alpha_cutoff,
+                                   material.double_sided, material.metallic, material.roughness]).encode())
+    for tex in (material.base_color_texture, material.normal_texture):
+        h.update(b"-" if tex is None else tex.mime.encode() + hashlib.sha256(tex.data).digest())
+    return h.digest()
+
+
 def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.ExampleSet,
-                        meta: dict | None = None) -> GarmentBasis:
-    """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order)."""
+                        meta: dict | None = None, layout: RenderLayout | None = None,
+                        material: Material | None = None) -> GarmentBasis:
+    """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order);
+    layout: optional render layout over the M vertices (UVs), material: optional look."""
     g, B = G.build_basis(fits, examples)
     inc = face_incidence(np.asarray(faces), fits.shape[1])
     gn, Bn = G.build_basis(np.stack([vertex_normals(f, faces, inc) for f in fits]), examples)
     nb = model.n_body_vertices
     body0 = model.mean[:nb]
     binding = G.bind_to_body(g, body0)
-    near = binding[:, 0]
+    skin_idx, skin_w = transfer_skin_weights(g, faces, body0, model.body_faces, model.lbs_indices[:nb],
+                                             model.lbs_weights[:nb], len(model.bone_parents))
     meta = dict(meta or {})
     meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
                  "examples_c": examples.c})
+    look: dict = {}
+    if layout is not None:
+        look = {"render_vertex": np.asarray(layout.vertex, np.int32), "render_uv": np.asarray(layout.uv, np.float32),
+                "render_faces": np.asarray(layout.faces, np.int32)}
+        if look["render_vertex"].min() < 0 or look["render_vertex"].max() >= g.shape[0]:
+            raise ValueError("the render layout refers to a vertex out of range")
     h = hashlib.sha256()
-    for a in (g, B, np.asarray(faces, np.int32)):
+    for a in (g, B, np.asarray(faces, np.int32), *look.values()):
         h.update(np.ascontiguousarray(a).tobytes())
+    h.update(material_digest(material))
     meta["etag"] = h.hexdigest()[:32]
-    return GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
-                        skin_idx=model.lbs_indices[near].copy(), skin_w=model.lbs_weights[near].copy(),
-                        gn=gn, Bn=Bn, meta=meta)
+    basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
+                         skin_idx=skin_idx, skin_w=skin_w,
+                         gn=gn, Bn=Bn, meta=meta)
+    basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
+    basis.material = material
+    return basis
 
 
 @dataclass

@@ -36,7 +36,7 @@ SHARED = REPO.parent / "shared" / "data"
 ANSUR_DIR = SHARED / "anthropometry" / "ansur2"
 NHANES_DIR = SHARED / "anthropometry" / "nhanes_2017_2020"
 OUT_MODEL = REPO / "service" / "data" / "body_model.npz"
-OUT_HELDOUT = REPO / "service" / "data" / "heldout_avatars.npz"
+OUT_HELDOUT = REPO / "tests" / "data" / "heldout_avatars.npz"
 
 # anny -> ours: x' = x, y' = z, z' = -y (Z up facing -Y  ->  Y up facing +Z)
 ANNY_TO_OURS = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])

@@ -1,0 +1,120 @@
+"""The garment catalogue: list, upload (retailers), read, delete, and the clothing basis."""
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi.concurrency import run_in_threadpool
+
+from service.api import responses as R
+from service.api.deps import Compression, GarmentsDep, IfNoneMatchDep, RateLimited, RetailerDep
+from service.api.errors import invalid
+from service.api.schemas import GarmentResponse
+from service.application.garments import DEFAULT_LAYER
+from service.records import Garment
+
+router = APIRouter(tags=["garments"])
+BASIS_MAX_AGE = 86400
+
+
+@router.get("/v1/garments", response_model=list[GarmentResponse])
+def list_garments(garments: GarmentsDep) -> list[Garment]:
+    """Every stored garment (the demo catalogue included), oldest first."""
+    return garments.list()
+
+
+@router.post("/v1/garments", status_code=201, response_model=GarmentResponse, dependencies=[RateLimited],
+             responses={202: {"description": "A draped garment was accepted: it is listed with status 'building' "
+                                             "until its job (job.url, also the Location header) has fitted it to "
+                                             "every example avatar", "model": GarmentResponse},
+                        401: {"description": "Missing X-API-Key"}, 403: {"description": "Unknown API key"},
+                        **R.UPLOAD, **R.RATE_LIMITED, 422: {"description": "Invalid upload"}})
+async def create_garment(
+    response: Response,
+    retailer: RetailerDep,
+    garments: GarmentsDep,
+    name: Annotated[str, Form(min_length=1, max_length=200,
+                              description="Garment name (printable characters; surrounding whitespace is "
+                                          "dropped; control characters or only whitespace: 422)")],
+    garment: Annotated[UploadFile | None, File(
+        description="One garment mesh draped on one body (OBJ, GLB/glTF with embedded buffers, PLY, STL), as "
+                    "exported from a design tool: on an example avatar (`on`) or on your own `avatar`")] = None,
+    on: Annotated[str | None, Form(description="With `garment`: the example avatar it was draped on (an id of "
+                                               "/v1/example-avatars; default mean)")] = None,
+    avatar: Annotated[UploadFile | None, File(
+        description="With `garment`: the body it was draped on, of any topology, unit and up axis, in the "
+                    "garment's frame (fitted unclothed by the build job)")] = None,
+    meshes: Annotated[list[UploadFile] | None, File(
+        description="One fitted garment mesh per example avatar, in the order of /v1/example-avatars "
+                    "(OBJ/PLY/GLB; same vertices and faces in every file; metres, or cm/mm detected)")] = None,
+    mhclo: Annotated[UploadFile | None, File(description="MakeHuman .mhclo binding (with obj)")] = None,
+    obj: Annotated[UploadFile | None, File(description="The MakeHuman garment's .obj (with mhclo)")] = None,
+    texture: Annotated[UploadFile | None, File(
+        description="Optional base-colour texture (PNG or JPEG, at most 8 MiB and 8192 px a side) for an OBJ with "
+                    "texture coordinates (vt): the 'garment', the first of 'meshes', or the mhclo's 'obj'")] = None,
+    color: Annotated[str | None, Form(pattern=r"^#?[0-9a-fA-F]{6}$", description="sRGB colour #rrggbb")] = None,
+    layer: Annotated[int, Form(ge=0, le=9, description="Outfit layer (0 innermost)")] = DEFAULT_LAYER,
+) -> Garment:
+    """Upload a garment: ``meshes`` (fitted to each example avatar), a MakeHuman ``mhclo`` +
+    ``obj`` pair (201: its clothing basis is built and stored now), or one ``garment`` draped on
+    an example avatar (``on``) or on your own ``avatar`` (202: a job fits it to every example
+    avatar; poll ``job.url`` or the garment's ``status`` and ``progress``)."""
+    has_meshes = bool(meshes)
+    ways = [has_meshes, mhclo is not None or obj is not None, garment is not None]
+    if sum(ways) != 1:
+        raise invalid(("body",), "send one of: files 'meshes' (one per example avatar), files 'mhclo' and 'obj' "
+                                 "(a MakeHuman garment), or a file 'garment' (draped on one body, with 'on' or a "
+                                 "file 'avatar')")
+    if garment is None and (on is not None or avatar is not None):
+        raise invalid(("body", "on" if on is not None else "avatar"), "'on' and 'avatar' go with a file 'garment'")
+    common = {"name": name, "owner": retailer, "color": color, "layer": layer,
+              "texture": (await texture.read(), texture.filename) if texture is not None else None}
+    if garment is not None:
+        g_data, g_name = await garment.read(), garment.filename
+        a_data = await avatar.read() if avatar is not None else None
+        a_name = avatar.filename if avatar is not None else None
+        record = await run_in_threadpool(lambda: garments.create_draped(g_data, g_name, on=on, avatar=a_data,
+                                                                        avatar_name=a_name, **common))
+        response.status_code = 202
+        if record.job is not None:
+            response.headers["Location"] = record.job.url
+        return record
+    if has_meshes:
+        files = [(f.filename or f"mesh{i}", await f.read()) for i, f in enumerate(meshes or [])]
+        return await run_in_threadpool(lambda: garments.create_from_meshes(files, **common))
+    if mhclo is None or obj is None:
+        missing = "mhclo" if mhclo is None else "obj"
+        raise invalid(("body", missing), f"a MakeHuman garment needs both files 'mhclo' and 'obj'; '{missing}' is "
+                                         "missing")
+    mh_data, obj_data = await mhclo.read(), await obj.read()
+    return await run_in_threadpool(lambda: garments.create_from_mhclo(mh_data, obj_data, **common))
+
+
+@router.get("/v1/garments/{gid}", response_model=GarmentResponse, responses={404: {"description": "Unknown garment"}})
+def get_garment(gid: str, garments: GarmentsDep) -> Garment:
+    """A stored garment."""
+    return garments.get(gid)
+
+
+@router.delete("/v1/garments/{gid}", status_code=204, response_class=Response,
+               responses={401: {"description": "Missing X-API-Key"},
+                          403: {"description": "Unknown API key, or another retailer's garment"},
+                          404: {"description": "Unknown garment"}})
+def delete_garment(gid: str, retailer: RetailerDep, garments: GarmentsDep) -> Response:
+    """Delete one of the retailer's garments (its basis files too)."""
+    garments.delete(gid, retailer)
+    return Response(status_code=204)
+
+
+@router.get("/v1/garments/{gid}/basis.glb", response_class=Response,
+            responses={**R.CUSTOMER_GLB_RESPONSE, 200: {**R.GLB_RESPONSE[200], "headers": R.ETAG}, **R.NOT_MODIFIED})
+def garment_basis_glb(gid: str, garments: GarmentsDep, if_none_match: IfNoneMatchDep,
+                      compression: Compression = None) -> Response:
+    """The clothing basis: the mean garment with one morph target per basis row (a viewer
+    applies the customer's weights as morph weights). Strong ``ETag``; honours
+    ``If-None-Match``."""
+    data, etag = garments.basis_glb(gid, compression, if_none_match)
+    headers = {"ETag": etag, "Cache-Control": f"public, max-age={BASIS_MAX_AGE}"}
+    if data is None:
+        return Response(status_code=304, headers=headers)
+    return R.glb(data, **headers)

@@ -1,0 +1,32 @@
+"""Try-on: a garment or an outfit fitted to a customer."""
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Response
+
+from service.api import responses as R
+from service.api.deps import Compression, CredentialsDep, Hair, IfNoneMatchDep, TryOnDep, Underwear
+
+router = APIRouter(tags=["try-on"])
+
+
+@router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
+def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
+               compression: Compression = None) -> Response:
+    """The garment fitted to the customer, skinned with the customer's skeleton. ``ETag`` from
+    (customer weights, garment etag, options); ``If-None-Match`` -> 304 without computing."""
+    return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match))
+
+
+@router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
+def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
+               garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
+               compression: Compression = None, hair: Hair = None, underwear: Underwear = True) -> Response:
+    """The customer's avatar wearing the garments (one scene, one skeleton), layered: inner
+    garments (lower layer) first, each outer one pushed over the ones below. The avatar as in
+    ``avatar.glb`` (nodes ``avatar``, ``eyes``, ``eyebrows``, ``hair``, ``underwear``; the same
+    ``hair`` and ``underwear`` choices), then one node per garment. ``ETag`` and
+    ``If-None-Match`` as for one garment."""
+    return R.private_glb(*tryon.outfit_glb(cid, garments.split(","), creds, compression, if_none_match,
+                                           hair, underwear))

@@ -1,0 +1,478 @@
+"""Garments: the catalogue, retailers' uploads (one mesh fitted to each example avatar, or a
+MakeHuman ``.mhclo``), their clothing bases, and the demo catalogue built at the first start."""
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from collections.abc import Callable
+from typing import Any
+
+from service.model.autofit import fit_to_examples
+from service.model.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
+from service.model.fitting import FitError, fit_body
+from service.model.mesh_io import scan_type
+from service.model.frames import unit_against
+from service.model.tryon import GarmentBasis, build_garment_basis
+from service.records import Garment, JobRef
+from service.storage.records import new_id
+
+from . import scenes
+from .errors import Conflict, Forbidden, Invalid, NotFound
+from .examples import Examples
+from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
+                      read_garment_mesh, read_mhclo_layout, read_texture)
+
+if TYPE_CHECKING:
+    from .context import Context
+
+log = logging.getLogger("tryon.garments")
+
+NEAR_MEDIAN_M = 0.08  # median distance of a fitted garment to its example body
+NEAR_MAX_M = 0.40  # largest distance of any garment vertex to its example body
+ORDER_MIN_BODY_RMS_M = 0.005  # components that barely move the body under the garment are skipped
+ORDER_SWAP_COS = -0.3  # a +/- pair whose garment moves against its body: swapped files
+ORDER_MIN_COS = 0.3  # body-motion-weighted mean cosine below this: files in the wrong order
+DEFAULT_LAYER = 1
+DEMO_OWNER = "demo"
+DEMO_LOCK_S = 120
+UPLOAD_METALLIC, UPLOAD_ROUGHNESS = 0.0, 0.85  # cloth: dielectric, rough
+BUILD_JOB = "worker.jobs.build_garment"  # the rq job, by dotted path
+# shares of a build job's progress
+BUILD_SHARES = {"avatar_fit": 0.3, "autofit": 0.6, "basis": 0.1}
+
+Progress = Callable[[float, str], None]
+
+
+def build_job_id(gid: str) -> str:
+    """The deterministic id of a draped garment's build job."""
+    return f"build-{gid}"
+
+
+class GarmentService:
+    def __init__(self, ctx: "Context"):
+        self.ctx = ctx
+        self.model = ctx.model
+        self.repo = ctx.garments_repo
+        self.bases = ctx.bases
+
+    @property
+    def examples(self) -> Examples:
+        return self.ctx.examples
+
+    # -- reading -----------------------------------------------------------------------------
+    def list(self) -> list[Garment]:
+        """The catalogue, oldest first; garments being built with their build's progress."""
+        return [self._view(g) for g in self.repo.list()]
+
+    def get(self, gid: str) -> Garment:
+        record = self.repo.get(gid)
+        if record is None:
+            raise NotFound(f"garment '{gid}' not found")
+        return self._view(record)
+
+    def _view(self, record: Garment) -> Garment:
+        """A garment being built shows its job's status and progress; one whose job failed
+        (retries exhausted) shows as failed."""
+        if record.status != "building" or record.job is None:
+            return record
+        job = self.ctx.queue.get(record.job.id)
+        update: dict[str, Any] = {"job": record.job.model_copy(update={"status": job and job.status}),
+                                  "progress": job.progress if job else 0.0}
+        if job is not None and job.status == "failed":
+            update.update(status="failed", error=job.error or "the build job failed")
+        return record.model_copy(update=update)
+
+    def require_ready(self, record: Garment | None, gid: str) -> tuple[Garment, GarmentBasis]:
+        """A garment that can be tried on, with its basis: 404 unknown; 409 while it is being
+        built, when its build failed, or when it was built for another body model."""
+        if record is None:
+            raise NotFound(f"garment '{gid}' not found")
+        if record.status == "building":
+            raise Conflict(f"garment '{gid}' is not ready: it is being built"
+                           + (f" (job '{record.job.id}', GET {record.job.url})" if record.job else ""))
+        if record.status == "failed":
+            raise Conflict(f"garment '{gid}' could not be built: {record.error or 'unknown error'}")
+        if not record.is_current(self.model.version):
+            raise Conflict(f"garment '{gid}' was built for another body model ({record.body_model or 'unversioned'}; "
+                           f"this service runs {self.model.version}): upload it again")
+        basis = self.bases.load(gid, record.etag)
+        if basis is None:
+            raise NotFound(f"garment '{gid}' not found (its basis files are missing)")
+        return record, basis
+
+    def basis_glb(self, gid: str, compression: str | None,
+                  if_none_match: list[str] | None = None) -> tuple[bytes | None, str]:
+        """The clothing basis as GLB and its strong ETag (quoted); ``None`` bytes when one of
+        ``if_none_match`` (quoted tags, or ``*``) matches: not modified."""
+        record, basis = self.require_ready(self.repo.get(gid), gid)
+        tag = basis.etag() or record.etag
+        etag = f'"{tag}-{compression}"' if compression else f'"{tag}"'
+        if scenes.etag_matches(etag, if_none_match):
+            return None, etag
+        return scenes.basis_glb(basis, record, compression), etag
+
+    def example(self, example_id: str) -> np.ndarray:
+        """An example avatar's vertices (V, 3) (404 unknown)."""
+        i = self.examples.index(example_id)
+        if i is None:
+            raise NotFound(f"example avatar '{example_id}' not found (see /v1/example-avatars)")
+        return self.examples.vertices[i]
+
+    # -- creating ----------------------------------------------------------------------------
+    def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
+                           layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """A garment fitted by the retailer to every example avatar: one mesh per example, in
+        the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
+        OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
+        its look."""
+        name = clean_name(name)
+        rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
+        tex = read_texture(*texture) if texture is not None else None
+        fits, faces, unit = self._fits_from_meshes(files)
+        faces, layout = _file_layout(*files[0], faces)
+        return self._build_and_store(fits, faces, name=name, owner=owner, source="meshes", color=rgba, layer=layer,
+                                     unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout))
+
+    def create_from_mhclo(self, mhclo: bytes, obj: bytes, *, name: str, owner: str, color: str | None,
+                          layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """A MakeHuman garment, fitted to every example avatar through its binding; the OBJ's
+        texture coordinates and the optional ``texture`` (bytes, filename) give its look."""
+        name = clean_name(name)
+        rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
+        tex = read_texture(*texture) if texture is not None else None
+        binding, faces, layout = read_mhclo_layout(self.model, mhclo, obj)
+        return self._create_from_binding(binding, faces, layout, _upload_material(tex, rgba, color, layout),
+                                         name=name, owner=owner, source="mhclo", color=rgba, layer=layer)
+
+    def _create_from_binding(self, binding: Any, faces: np.ndarray, layout: RenderLayout | None,
+                             material: Material | None, **record: Any) -> Garment:
+        """A garment bound to the body mesh (MakeHuman ``.mhclo``): fitted to every example
+        avatar through its binding, checked, its basis built and stored."""
+        fits = np.stack([binding.fit(E) for E in self.examples.vertices])
+        if not np.all(np.isfinite(fits)):
+            raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
+        self._check_near_bodies(fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
+        return self._build_and_store(fits, faces, layout=layout, material=material, **record)
+
+    def _fits_from_meshes(self, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:
+        ex = self.examples
+        n = len(ex.ids)
+        if len(files) != n:
+            raise Invalid(("body", "meshes"), f"expected {n} meshes, one per example avatar in the order of "
+                                              f"/v1/example-avatars; got {len(files)}")
+        fits: list[np.ndarray] = []
+        faces0: np.ndarray | None = None
+        labels = [f"file {i + 1} '{fname}'" for i, (fname, _) in enumerate(files)]
+        locs = [("body", "meshes", i) for i in range(n)]
+        unit, scale = "m", 1.0
+        for i, (fname, data) in enumerate(files):
+            v, f = read_garment_mesh(data, fname, locs[i], labels[i])
+            if faces0 is None:
+                faces0 = f
+                unit, scale, _ = unit_against(v, ex.tree(0))
+            else:
+                if len(v) != len(fits[0]):
+                    raise Invalid(locs[i], f"{labels[i]}: {len(v)} vertices, but file 1 has {len(fits[0])}: every "
+                                           "mesh must be the same garment (same vertices and faces)")
+                if f.shape != faces0.shape or not np.array_equal(f, faces0):
+                    raise Invalid(locs[i], f"{labels[i]}: its faces differ from file 1's: every mesh must be the "
+                                           "same garment (same vertices and faces, in the same order)")
+            fits.append(v * scale)
+        assert faces0 is not None
+        F = np.stack(fits)
+        self._check_near_bodies(F, labels, locs)
+        self._check_order(F, labels)
+        return F, faces0, unit
+
+    def _check_near_bodies(self, fits: np.ndarray, labels: list[str], locs: list[tuple]) -> None:
+        """Every fitted garment must lie near its example avatar's body surface."""
+        ex = self.examples
+        for i, F in enumerate(fits):
+            d, _ = ex.tree(i).query(np.asarray(F, np.float64))
+            med, mx = float(np.median(d)), float(d.max())
+            where = f"{labels[i]} (example avatar {ex.ids[i]})"
+            if med > NEAR_MEDIAN_M:
+                raise Invalid(locs[i], f"{where}: the garment is not fitted to this example avatar: its vertices "
+                                       f"are {100 * med:.1f} cm from the body surface (median; limit "
+                                       f"{100 * NEAR_MEDIAN_M:.0f} cm). Fit it to /v1/example-avatars/"
+                                       f"{ex.ids[i]}.obj, in metres, Y up")
+            if mx > NEAR_MAX_M:
+                raise Invalid(locs[i], f"{where}: a vertex is {100 * mx:.1f} cm from the body surface (limit "
+                                       f"{100 * NEAR_MAX_M:.0f} cm)")
+
+    def _check_order(self, fits: np.ndarray, labels: list[str]) -> None:
+        """The garment must follow the example avatars: for each component i, the change of the
+        garment between E(i,+) and E(i,-) must point the way the body under it changes (cosine),
+        weighted by how much the body changes there. Catches files in the wrong order."""
+        ex = self.examples
+        near = ex.tree(0).query(np.asarray(fits[0], np.float64))[1]
+        cos, wts = [], []
+        for i in range(ex.set.n):
+            p, m = 1 + 2 * i, 2 + 2 * i
+            dg = np.asarray(fits[p] - fits[m], np.float64)
+            db = np.asarray(ex.vertices[p][near] - ex.vertices[m][near], np.float64)
+            rms = float(np.sqrt((db ** 2).sum(axis=1).mean()))
+            ng, nbd = np.linalg.norm(dg), np.linalg.norm(db)
+            if rms < ORDER_MIN_BODY_RMS_M or ng == 0 or nbd == 0:
+                continue
+            c = float((dg * db).sum() / (ng * nbd))
+            if c < ORDER_SWAP_COS:
+                raise Invalid(("body", "meshes", p), f"{labels[p]} and {labels[m]} look swapped: the garment changes "
+                                                     f"against the body between {ex.ids[p]} and {ex.ids[m]}")
+            cos.append(c)
+            wts.append(rms)
+        if wts and float(np.average(cos, weights=wts)) < ORDER_MIN_COS:
+            raise Invalid(("body", "meshes"), "the meshes do not follow the example avatars' shapes: send them in the "
+                                              "order of /v1/example-avatars, each fitted to its avatar")
+
+    def _build_and_store(self, fits: np.ndarray, faces: np.ndarray, *, name: str, owner: str, source: str,
+                         color: tuple[float, ...], layer: int, unit: str | None = None,
+                         layout: RenderLayout | None = None, material: Material | None = None,
+                         **extra: Any) -> Garment:
+        """Build the clothing basis, store its files, then publish the record (nothing is
+        visible until the basis is complete; on failure nothing is left behind). ``extra``:
+        further record fields (catalogue metadata)."""
+        gid = new_id()
+        record = Garment(id=gid, body_model=self.model.version, owner=owner, name=name, source=source,  # type: ignore[arg-type]
+                         color=[float(c) for c in color], layer=int(layer), unit=unit,
+                         textured=_textured(material, layout), **extra)
+        meta = {"name": name, "owner": owner, "source": source, "color": record.color, "layer": record.layer,
+                "created": record.created, "id": gid, "body_model": self.model.version}
+        basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta, layout=layout,
+                                    material=material)
+        record = record.model_copy(update={"n_vertices": int(basis.meta["n_vertices"]),
+                                           "n_faces": int(basis.meta["n_faces"]),
+                                           "n_components": int(basis.meta["n_components"]), "etag": basis.etag()})
+        self.bases.save(gid, basis)
+        try:
+            self.repo.publish(record)
+        except BaseException:
+            self.bases.delete(gid)
+            raise
+        return record
+
+    def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
+                      avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
+                      texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
+        retailer's own ``avatar`` of any topology): checked now (422 before any job), then
+        carried to every example avatar by a queued build job (:meth:`run_build`). The garment
+        is listed at once with ``status: building``; its basis appears when complete."""
+        name = clean_name(name)
+        rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
+        if on is not None and avatar is not None:
+            raise Invalid(("body", "on"), "send either 'on' (an example avatar id) or a file 'avatar', not both")
+        tex = read_texture(*texture) if texture is not None else None
+        v, faces = read_garment_mesh(garment, garment_name, ("body", "garment"), "garment")
+        faces, layout = _file_layout(garment_name or "garment", garment, faces)
+        if layout is None and len(garment) >= 4 and garment[:4] == b"glTF":  # GLB: uv + embedded texture
+            look = glb_look(garment, faces)
+            if look is not None and len(look[0].vertex) == len(v):
+                layout, embedded = look
+                tex = tex or embedded
+        if avatar is None:
+            on = on or "mean"
+            i = self.examples.index(on)
+            if i is None:
+                raise Invalid(("body", "on"), f"unknown example avatar '{on}' (see /v1/example-avatars)")
+            placed, unit, up = place_on_body(v, self.examples.tree(i), ("body", "garment"))
+            upload = DrapedGarment(placed, faces, on=on, unit=unit, up=up)
+        else:
+            scan, unit = read_draped_avatar(avatar, avatar_name, v)
+            upload = DrapedGarment(v, faces, on=None, unit=unit, up=None, avatar=scan)
+        upload.layout, upload.texture = layout, tex
+        gid = new_id()
+        job_id = build_job_id(gid)
+        record = Garment(id=gid, body_model=self.model.version, owner=owner, name=name, source="draped",
+                         color=[float(c) for c in rgba], layer=int(layer), status="building", unit=unit,
+                         textured=_textured(_upload_material(tex, rgba, color, layout), layout),
+                         up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)),
+                         job=JobRef(id=job_id, url=f"/v1/jobs/{job_id}"))
+        self.repo.publish(record, upload.to_bytes())
+        try:
+            self.ctx.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
+                                   timeout=self.ctx.settings.garment_timeout, body_model=self.model.version,
+                                   description=f"fit garment {gid} to the example avatars",
+                                   meta={"garment_id": gid, "owner": owner})
+        except BaseException:
+            self.repo.delete(gid)
+            raise
+        return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
+                                         "progress": 0.0})
+
+    def run_build(self, gid: str, progress: Progress) -> dict[str, Any]:
+        """The build job of a draped garment: (fit the retailer's avatar, unclothed, when one was
+        given), carry the garment to every example avatar (``autofit.fit_to_examples``: the
+        warping graph, collisions, edge lengths), build and store the basis, then mark the
+        garment ready -- only if it still exists (a delete during the build wins; its files are
+        removed). Idempotent: a ready or failed garment returns its outcome; a deterministic
+        failure (the avatar cannot be fitted, a degenerate garment) fails the garment with the
+        reason and is not retried; anything else raises (the queue retries)."""
+        record = self.repo.get(gid)
+        if record is None:
+            self.bases.delete(gid)
+            return {"status": "deleted", "garment_id": gid}
+        if record.status in ("ready", "failed"):
+            return _build_outcome(record)
+        raw = self.repo.get_upload(gid)
+        if raw is None:
+            return self._fail_build(record, "the uploaded garment expired before it was built; upload it again", progress)
+        upload = DrapedGarment.from_bytes(raw)
+        share = BUILD_SHARES
+        garment, faces = upload.vertices, upload.faces
+        if upload.avatar is not None:
+            progress(0.01, "fitting the avatar the garment was draped on")
+            scan = upload.avatar
+            try:
+                fit = fit_body(self.model, scan.points, scan.normals, scan.faces, clothed=False,
+                               progress=lambda f, m: progress(share["avatar_fit"] * f, f"avatar: {m}"))
+            except FitError as exc:
+                return self._fail_build(record, f"the avatar could not be fitted: {exc}", progress)
+            T = np.asarray(fit.to_model, np.float64)
+            garment = garment @ T[:3, :3].T + T[:3, 3]
+            source = np.asarray(fit.posed_vertices, np.float64)
+            start = share["avatar_fit"]
+        else:
+            i = self.examples.index(upload.on or "mean")
+            if i is None:  # the example set changed since the upload
+                return self._fail_build(record, f"the example avatar '{upload.on}' no longer exists; upload it again",
+                                        progress)
+            source = self.examples.vertices[i]
+            start = 0.0
+        span = share["autofit"] + (share["avatar_fit"] - start)
+        progress(start, "carrying the garment to the example avatars")
+        try:
+            result = fit_to_examples(self.model, garment, faces, source_body=source,
+                                     progress=lambda f, m: progress(start + span * f, m))
+        except ValueError as exc:
+            return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
+        progress(1.0 - share["basis"], "building the clothing basis")
+        meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
+                "layer": record.layer, "created": record.created, "id": gid, "body_model": self.model.version}
+        rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
+        material = _upload_material(upload.texture, rgba, None, upload.layout)
+        basis = build_garment_basis(self.model, result.fits, faces, self.examples.set, meta=meta,
+                                    layout=upload.layout, material=material)
+        self.bases.save(gid, basis)
+        ready = record.model_copy(update={"status": "ready", "error": None, "progress": None,
+                                          "n_vertices": int(basis.meta["n_vertices"]),
+                                          "n_faces": int(basis.meta["n_faces"]),
+                                          "n_components": int(basis.meta["n_components"]), "etag": basis.etag()})
+        if not self.repo.complete(ready):
+            self.bases.delete(gid)
+            log.info("garment %s was deleted during its build: result dropped", gid)
+            return {"status": "deleted", "garment_id": gid}
+        progress(1.0, "done")
+        log.info("garment %s built from one draped mesh", gid)
+        return _build_outcome(ready)
+
+    def _fail_build(self, record: Garment, message: str, progress: Progress) -> dict[str, Any]:
+        failed = record.model_copy(update={"status": "failed", "error": message, "progress": None})
+        if not self.repo.complete(failed):
+            return {"status": "deleted", "garment_id": record.id}
+        progress(1.0, "failed")
+        log.info("garment %s cannot be built: %s", record.id, message)
+        return _build_outcome(failed)
+
+    # -- deleting ----------------------------------------------------------------------------
+    def delete(self, gid: str, retailer: str) -> None:
+        """Delete one of the retailer's garments: its record, basis files, waiting upload and
+        build job (a running build is stopped)."""
+        record = self.repo.get(gid)
+        if record is None:
+            raise NotFound(f"garment '{gid}' not found")
+        if record.owner != retailer:
+            raise Forbidden(f"garment '{gid}' belongs to another retailer")
+        self.repo.delete(gid)
+        if record.job is not None:
+            self.ctx.queue.cancel(record.job.id)
+        self.bases.delete(gid)
+
+    # -- the demo catalogue ------------------------------------------------------------------
+    def demo_items(self) -> list[CatalogueItem]:
+        """The catalogue garments served as the demo catalogue (``TRYON_DEMO_ITEMS``: 'all',
+        or comma-separated catalogue ids; '' none), in catalogue order."""
+        items = load_catalogue().garments()
+        want = self.ctx.settings.demo_items.strip()
+        if want == "all":
+            return items
+        ids = [w.strip() for w in want.split(",") if w.strip()]
+        unknown = sorted(set(ids) - {it.id for it in items})
+        if unknown:
+            raise ValueError(f"TRYON_DEMO_ITEMS: unknown catalogue items {unknown}")
+        return [it for it in items if it.id in ids]
+
+    def ensure_demo(self) -> list[str]:
+        """Build and store the demo catalogue (the compiled MakeHuman garments, see
+        ``service.model.catalogue``) where missing or built for another body model, through the
+        path a retailer's ``.mhclo`` upload takes (fitted to every example avatar by its
+        binding, checked, basis built), keyed by catalogue item id, with its UVs, material,
+        category, gender and layer (idempotent; one process builds, the others wait on the
+        Redis lock). Returns their ids."""
+        ids: list[str] = []
+        with self.repo.lock("demo-garments", ttl=DEMO_LOCK_S, wait=DEMO_LOCK_S) as held:
+            if not held:
+                log.warning("demo garments: lock not obtained; not building them")
+            t_all = time.perf_counter()
+            for item in self.demo_items():
+                gid = self.repo.demo_id(item.id)
+                old = self.repo.get(gid) if gid else None
+                if old is not None and old.is_current(self.model.version) and self.bases.load(old.id, old.etag):
+                    ids.append(old.id)
+                    continue
+                if not held:
+                    continue
+                t0 = time.perf_counter()
+                rgba = parse_color(item.color, scenes.DEFAULT_GARMENT_COLOR)
+                rec = self._create_from_binding(
+                    item.binding, item.faces.astype(np.int32), item.render_layout(), item.material, name=item.name,
+                    owner=DEMO_OWNER, source="demo", color=rgba, layer=int(item.layer or 0),
+                    category=item.category, gender=item.gender, catalogue_id=item.id, swatch=item.color)
+                self.repo.set_demo_id(item.id, rec.id)
+                if old is not None:  # built for another body model: replaced
+                    self.repo.delete(old.id)
+                    self.bases.delete(old.id)
+                ids.append(rec.id)
+                log.info("demo garment %s built (%s) in %.2fs", item.id, rec.id, time.perf_counter() - t0)
+            log.info("demo catalogue: %d garments ready in %.2fs", len(ids), time.perf_counter() - t_all)
+        return ids
+
+
+def _file_layout(filename: str, data: bytes, faces: np.ndarray) -> tuple[np.ndarray, RenderLayout | None]:
+    """(faces, render layout) of an uploaded OBJ garment with texture coordinates (the same
+    triangles, in the OBJ's order); (faces, None) otherwise."""
+    try:
+        kind = scan_type(data, filename)
+    except ValueError:
+        return faces, None
+    found = obj_layout(data, faces) if kind == "obj" else None
+    return (faces, None) if found is None else found
+
+
+def _upload_material(texture: Texture | None, rgba: tuple[float, ...], color: str | None,
+                     layout: RenderLayout | None) -> Material | None:
+    """A retailer's garment look: its texture (when the mesh has texture coordinates) times the
+    colour (white when a texture came without a colour); None without a texture (the record's
+    colour is used)."""
+    if texture is None:
+        return None
+    if layout is None:
+        raise Invalid(("body", "texture"), "a texture needs texture coordinates: the OBJ has no 'vt' on every face "
+                                           "corner (export the garment with UVs)")
+    factor = tuple(float(c) for c in rgba) if color else (1.0, 1.0, 1.0, 1.0)
+    return Material(factor, texture, None, "OPAQUE", None, True, UPLOAD_METALLIC, UPLOAD_ROUGHNESS)  # type: ignore[arg-type]
+
+
+def _textured(material: Material | None, layout: RenderLayout | None) -> bool:
+    return bool(material is not None and layout is not None
+                and (material.base_color_texture is not None or material.normal_texture is not None))
+
+
+def _build_outcome(record: Garment) -> dict[str, Any]:
+    if record.status == "failed":
+        return {"status": "failed", "garment_id": record.id, "error": record.error}
+    return {"status": "done", "garment_id": record.id}

@@ -1,0 +1,159 @@
+"""GLB and OBJ assembly from model arrays: the avatar, a garment tried on, an outfit, a
+clothing basis. Shapes follow ``service.model``: avatar vertices (V, 3) metres, garment
+vertices (M, 3), faces (F, 3)."""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from typing import Any
+
+import numpy as np
+
+from service.model import gltf
+from service.model.body import BONES, BodyModel
+from service.model.geometry import vertex_normals
+from service.model.layering import layer_outfit
+from service.model.tryon import CustomerBody, GarmentBasis, try_on
+from service.records import Garment
+
+from . import look as looks
+from .look import Look
+
+AVATAR_COLOR = (0.8, 0.7, 0.62, 1.0)
+SCENE_VERSION = 3  # bump when the GLB assembly changes: every scene ETag changes with it
+
+
+def etag(kind: str, body_model: str, weights: list[float] | None, compression: str | None,
+         garments: list[tuple[str, str]] = ()) -> str:
+    """A strong ETag (quoted) of a scene from everything it is made of: its kind, the body
+    model, the customer's weights, the garments' (id, basis etag) in order, the options."""
+    h = hashlib.sha256(np.asarray(weights or [], np.float64).tobytes())
+    h.update(json.dumps([SCENE_VERSION, kind, body_model, compression, list(garments)]).encode())
+    return f'"{h.hexdigest()[:32]}"'
+
+
+def etag_matches(tag: str, if_none_match: list[str] | None) -> bool:
+    """``If-None-Match`` (its tags, quoted, ``W/`` dropped, or ``*``) matches ``tag``."""
+    return bool(if_none_match) and ("*" in if_none_match or tag in if_none_match)  # type: ignore[operator]
+DEFAULT_GARMENT_COLOR = (0.55, 0.55, 0.58, 1.0)
+
+
+def skeleton(model: BodyModel, vertices: np.ndarray) -> dict[str, Any]:
+    """The skeleton of a rest-pose avatar (V, 3) for GLB skins: rest joints, parents, names."""
+    return {"joints": model.joints(vertices), "parents": np.asarray(model.bone_parents),
+            "joint_names": list(BONES)}
+
+
+def avatar_mesh(model: BodyModel, vertices: np.ndarray, normals: np.ndarray | None = None,
+                look: Look | None = None) -> dict[str, Any]:
+    """The customer-visible skinned body surface of an avatar (V, 3) as a scene mesh, named
+    ``avatar``; under a ``look``, with its skin's material and without the faces hidden under
+    its base layer."""
+    nb = model.n_body_vertices
+    mesh = {"vertices": model.body_vertices(vertices), "faces": model.body_faces, "normals": normals,
+            "color": AVATAR_COLOR, "name": "avatar",
+            "vertex_joints": model.lbs_indices[:nb], "vertex_weights": model.lbs_weights[:nb]}
+    if look is not None:
+        mesh.update(looks.body_fields(model, look))
+    return mesh
+
+
+def avatar_meshes(model: BodyModel, vertices: np.ndarray, normals: np.ndarray | None = None,
+                  look: Look | None = None) -> list[dict[str, Any]]:
+    """The avatar (V, 3) as scene meshes: the body (``avatar``), then, under a ``look``, its
+    ``eyes``, ``eyebrows``, ``hair`` and ``underwear`` (each skinned with the body's skeleton)."""
+    body = avatar_mesh(model, vertices, normals, look)
+    if look is None:
+        return [body]
+    if normals is None:
+        normals = vertex_normals(model.body_vertices(np.asarray(vertices, np.float64)), model.body_faces)
+    return [body, *looks.item_meshes(model, vertices, normals, look)]
+
+
+def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None = None,
+               normals: np.ndarray | None = None, look: Look | None = None) -> bytes:
+    """The skinned avatar (V, 3) as GLB bytes (``compression``: None, "quantize" or
+    "meshopt"): the body surface alone, or wearing ``look`` (see :func:`avatar_meshes`)."""
+    return gltf.scene_to_glb(avatar_meshes(model, vertices, normals, look), skin=skeleton(model, vertices),
+                             compression=compression)
+
+
+def garment_mesh(basis: GarmentBasis, record: Garment, body: CustomerBody, layer: int) -> dict[str, Any]:
+    """The garment tried on ``body`` as a scene mesh (skinned with the basis' skinning); with
+    the basis' render layout and material: UVs, textures (static bytes) and, for a normal
+    map, tangents."""
+    v, _moved = try_on(basis, body, layer=layer)
+    return look_mesh(basis, record, np.asarray(v, np.float32), basis.normals(v, body.weights))
+
+
+def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray) -> dict[str, Any]:
+    """Garment vertices (M, 3) and normals (M, 3) as a skinned scene mesh: gathered into the
+    render layout (R render vertices: one fancy-index each) when the basis has one."""
+    mesh: dict[str, Any] = {"color": tuple(record.color or DEFAULT_GARMENT_COLOR), "name": record.name or "garment",
+                            "double_sided": True}
+    if basis.has_layout:
+        idx = np.asarray(basis.render_vertex)
+        rn = n[idx]
+        mesh.update(vertices=v[idx], faces=np.asarray(basis.render_faces), normals=rn, uv=np.asarray(basis.render_uv),
+                    tangents=basis.render_tangents(rn))
+        mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin()
+    else:
+        mesh.update(vertices=v, faces=np.asarray(basis.faces), normals=n,
+                    vertex_joints=np.asarray(basis.skin_idx), vertex_weights=np.asarray(basis.skin_w))
+    if basis.material is not None and (basis.has_layout or _untextured(basis.material)):
+        mesh["material"] = basis.material
+    return mesh
+
+
+def _untextured(material: Any) -> bool:
+    return material.base_color_texture is None and material.normal_texture is None
+
+
+def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
+               compression: str | None, with_avatar: bool = True, look: Look | None = None) -> bytes:
+    """Garments (already in layer order, inner first) on a customer's body, sharing one
+    skeleton; with the avatar as the first mesh when ``with_avatar``."""
+    meshes = avatar_meshes(model, body.vertices, body.normals, look) if with_avatar else []
+    worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
+    normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
+    # the look's base layer is the innermost layer: a bra never shows through a blouse
+    under = next((m for m in meshes if m.get("name") == "underwear"), None) if worn else None
+    layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \
+        + [(v, basis.faces) for v, (_, basis) in zip(worn, garments)]
+    if len(layers) > 1:  # inner layers pushed back inside the outer ones (service.model.layering),
+        nb = model.n_body_vertices  # garments on their welded vertices, before any split at UV seams
+        layered = layer_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64))
+        if under is not None:
+            v = layered.pop(0).astype(np.float32)
+            if not np.array_equal(v, under["vertices"]):
+                under["vertices"], under["normals"] = v, vertex_normals(v, under["faces"]).astype(np.float32)
+        for i, (v, (_, basis)) in enumerate(zip(layered, garments)):
+            if not np.array_equal(v, worn[i]):
+                worn[i] = v.astype(np.float32)
+                normals[i] = basis.normals(worn[i])
+    meshes += [look_mesh(basis, rec, v, n) for v, n, (rec, basis) in zip(worn, normals, garments)]
+    return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
+
+
+def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None) -> bytes:
+    """The mean garment with the clothing basis rows as morph targets."""
+    B, g, faces, uv = np.asarray(basis.B), np.asarray(basis.g), np.asarray(basis.faces), None
+    if basis.has_layout:  # split at the UV seams
+        idx = np.asarray(basis.render_vertex)
+        B, g, faces, uv = B[:, idx], g[idx], np.asarray(basis.render_faces), np.asarray(basis.render_uv)
+    material = basis.material if basis.material is not None and (uv is not None or _untextured(basis.material)) \
+        else None
+    return gltf.basis_to_glb(g, B, faces, color=tuple(record.color or DEFAULT_GARMENT_COLOR),
+                             name=record.name or "garment", target_names=[f"pc{i:02d}" for i in range(B.shape[0])],
+                             compression=compression, uv=uv, material=material)
+
+
+def obj_text(vertices: np.ndarray, faces: np.ndarray, comment: str = "") -> str:
+    """A minimal OBJ (``v`` and 1-based ``f`` lines)."""
+    out = io.StringIO()
+    for line in comment.splitlines():
+        out.write(f"# {line}\n")
+    np.savetxt(out, np.asarray(vertices, np.float64), fmt="v %.6f %.6f %.6f")
+    np.savetxt(out, np.asarray(faces, np.int64) + 1, fmt="f %d %d %d")
+    return out.getvalue()

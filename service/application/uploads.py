@@ -1,0 +1,366 @@
+"""The upload gateway: every uploaded file (avatar meshes, scans, point clouds, garment meshes,
+MakeHuman garments) is read here, with the one hardened reader (``service.model.mesh_io``) and
+the one unit/axis detector (``service.model.frames``), and refused with :class:`Invalid`
+(a 422 naming the field and why) before anything is stored or queued."""
+from __future__ import annotations
+
+import io
+import unicodedata
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.model import mesh_io
+from service.model.avatar_io import AvatarMeshError, Projection, project_mesh
+from service.model.body import BodyModel
+from service.model.frames import UNITS, UnitError, detect_unit, rotation_to_y
+from service.model.mesh_io import Scan, ScanError
+from service.model import gltf
+from service.model.catalogue import RenderLayout, Texture, render_layout
+from service.model.mhclo import Binding, MhcloError, parse_mhclo, parse_obj
+
+from .errors import Invalid
+
+SCAN_FORMATS = "OBJ, PLY, STL, GLB/glTF (embedded buffers only) or XYZ"
+MAX_GARMENT_VERTICES = 100_000
+MAX_GARMENT_FACES = 400_000
+MIN_GARMENT_VERTICES = 3
+MAX_NAME_LENGTH = 200
+# bidirectional overrides and isolates: they reorder how a name is shown (spoofing)
+_BIDI_CONTROLS = {chr(c) for c in (*range(0x202A, 0x202F), *range(0x2066, 0x206A))}
+TRUE_WORDS, FALSE_WORDS = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+@dataclass
+class TemplateAvatar:
+    """An uploaded avatar mesh in the template topology, projected onto the shape space."""
+
+    projection: Projection
+
+
+BodyUpload = TemplateAvatar | Scan
+
+
+def read_body_upload(model: BodyModel, data: bytes, filename: str | None, loc: tuple = ("body", "mesh")) -> BodyUpload:
+    """An uploaded body: a :class:`TemplateAvatar` when the mesh has the template's body or
+    full vertex count (``/v1/body-model/template.obj``), else the :class:`Scan` to fit (any
+    topology, or a point cloud), checked to be person-sized in m, cm or mm."""
+    counts = (model.n_body_vertices, int(model.mean.shape[0]))
+    try:
+        mesh = mesh_io.read_mesh_file(data, filename, keep_unused=True, min_points=MIN_GARMENT_VERTICES)
+    except ScanError as exc:
+        raise Invalid(loc, str(exc)) from exc
+    if mesh.faces is not None and len(mesh.points) in counts:
+        try:
+            return TemplateAvatar(project_mesh(model, mesh.points))
+        except AvatarMeshError as exc:
+            raise Invalid(loc, str(exc)) from exc
+    try:
+        scan = mesh_io.compact(mesh)
+        detect_unit(scan.points)  # a file that is no person in m, cm or mm would only become a failed job
+    except (ScanError, UnitError) as exc:
+        hint = (f" (an avatar in the template topology has {counts[0]} vertices: /v1/body-model/template.obj)"
+                if mesh.faces is not None else "")
+        raise Invalid(loc, f"{exc}{hint}") from exc
+    return scan
+
+
+def read_garment_mesh(data: bytes, filename: str | None, loc: tuple, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (M, 3) float64 in the file's units and order, and faces (F, 3) int32, of one
+    garment mesh (OBJ/PLY/GLB/glTF/STL), within the garment size limits."""
+    try:
+        mesh = mesh_io.read_mesh_file(data, filename, keep_unused=True, require_faces=True,
+                                      min_points=MIN_GARMENT_VERTICES, max_points=MAX_GARMENT_VERTICES)
+    except ScanError as exc:
+        raise Invalid(loc, f"{label}: {exc}") from exc
+    assert mesh.faces is not None
+    if len(mesh.faces) > MAX_GARMENT_FACES:
+        raise Invalid(loc, f"{label}: {len(mesh.faces)} faces; at most {MAX_GARMENT_FACES} per garment")
+    return mesh.points, mesh.faces.astype(np.int32)
+
+
+def _text(data: bytes, field: str) -> str:
+    if not data:
+        raise Invalid(("body", field), f"the {field} file is empty")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def read_mhclo(model: BodyModel, mhclo: bytes, obj: bytes) -> tuple[Binding, np.ndarray]:
+    """A MakeHuman garment: its ``.mhclo`` binding to the hm08 base mesh and the faces (F, 3)
+    of its ``.obj`` (same vertices), within the garment size limits."""
+    binding, faces, _ = read_mhclo_layout(model, mhclo, obj)
+    return binding, faces
+
+
+def read_mhclo_layout(model: BodyModel, mhclo: bytes, obj: bytes) -> tuple[Binding, np.ndarray, RenderLayout | None]:
+    """:func:`read_mhclo` plus the render layout of the OBJ's texture coordinates (``vt``;
+    None when some face corner has none)."""
+    try:
+        binding = parse_mhclo(_text(mhclo, "mhclo"), model.mean.shape[0])
+    except MhcloError as exc:
+        raise Invalid(("body", "mhclo"), f"mhclo: {exc}") from exc
+    try:
+        mesh = parse_obj(_text(obj, "obj"))
+    except MhcloError as exc:
+        raise Invalid(("body", "obj"), f"obj: {exc}") from exc
+    n_v, faces = mesh.n_vertices, mesh.faces
+    n_b = len(binding.indices)
+    if n_v != n_b:
+        raise Invalid(("body", "obj"), f"the OBJ has {n_v} vertices but the mhclo binds {n_b}: they are not the "
+                                       "same garment")
+    if n_v > MAX_GARMENT_VERTICES:
+        raise Invalid(("body", "obj"), f"{n_v} vertices; at most {MAX_GARMENT_VERTICES} per garment")
+    if len(faces) > MAX_GARMENT_FACES:
+        raise Invalid(("body", "obj"), f"{len(faces)} faces; at most {MAX_GARMENT_FACES} per garment")
+    layout = None if mesh.face_uv is None else render_layout(faces, mesh.face_uv, mesh.uv)
+    return binding, faces.astype(np.int32), layout
+
+
+def _face_set(faces: np.ndarray) -> np.ndarray:
+    f = np.sort(np.asarray(faces, np.int64), axis=1)
+    return f[np.lexsort(f.T[::-1])]
+
+
+def obj_layout(data: bytes, faces: np.ndarray) -> tuple[np.ndarray, RenderLayout] | None:
+    """The faces (F, 3) int32 and render layout of an OBJ garment's ``vt`` texture coordinates,
+    when every face corner has one and the OBJ's own triangulation is the same set of triangles
+    as ``faces`` (as read by the mesh reader, which may order them differently); else None (the
+    garment is kept untextured)."""
+    try:
+        mesh = parse_obj(data.decode("utf-8", errors="replace"))
+    except MhcloError:
+        return None
+    if mesh.face_uv is None or mesh.faces.shape != np.shape(faces) \
+            or not np.array_equal(_face_set(mesh.faces), _face_set(faces)):
+        return None
+    return mesh.faces.astype(np.int32), render_layout(mesh.faces, mesh.face_uv, mesh.uv)
+
+
+def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | None] | None:
+    """The texture coordinates and embedded base-colour texture of a GLB garment with one mesh
+    primitive (its vertices are already split at the UV seams: the layout is the identity),
+    when its indices are ``faces`` (as read by the mesh reader); else None. A broken embedded
+    image is a 422 (field ``garment``)."""
+    try:
+        out = gltf.read_glb(data)
+    except Exception:
+        return None
+    doc = out["json"]
+    if len(out["meshes"]) != 1 or len(doc["meshes"][0].get("primitives", [])) != 1 or out["uv"] is None:
+        return None
+    if out["indices"].shape != np.shape(faces) or not np.array_equal(out["indices"], faces):
+        return None
+    uv = np.asarray(out["uv"], np.float32)
+    if not np.all(np.isfinite(uv)):
+        return None
+    texture = None
+    try:
+        mat = doc["materials"][out["material"]] if out["material"] is not None else {}
+        ti = mat.get("pbrMetallicRoughness", {}).get("baseColorTexture", {}).get("index")
+        src = doc["textures"][ti]["source"] if ti is not None else None
+        img = doc["images"][src] if src is not None else None
+    except (KeyError, IndexError, TypeError):
+        img = None
+    if img is not None and "bufferView" in img:
+        raw = gltf._view_bytes(doc, gltf._parse_glb(data)[1], img["bufferView"])
+        texture = read_texture(raw, img.get("name") or "texture", field="garment")
+    n = len(uv)
+    return RenderLayout(np.arange(n, dtype=np.int64), uv, np.asarray(faces, np.int64)), texture
+
+
+MAX_TEXTURE_BYTES = 8 * 1024 * 1024
+MAX_TEXTURE_PX = 8192
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+JPEG_MAGIC = b"\xff\xd8\xff"
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's first SOFn segment, or None."""
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            return None
+        marker = data[pos + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            pos += 2
+            continue
+        seg = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if pos + 9 > len(data):
+                return None
+            return int.from_bytes(data[pos + 7:pos + 9], "big"), int.from_bytes(data[pos + 5:pos + 7], "big")
+        if seg < 2:
+            return None
+        pos += 2 + seg
+    return None
+
+
+def read_texture(data: bytes, filename: str | None, field: str = "texture") -> Texture:
+    """An uploaded texture: PNG or JPEG (by magic bytes), at most :data:`MAX_TEXTURE_BYTES`
+    and :data:`MAX_TEXTURE_PX` a side; anything else is a 422 naming the field."""
+    loc = ("body", field)
+    if not data:
+        raise Invalid(loc, f"the {field} file is empty")
+    if len(data) > MAX_TEXTURE_BYTES:
+        raise Invalid(loc, f"the {field} is {len(data)} bytes; at most {MAX_TEXTURE_BYTES} (downscale it, e.g. to "
+                           "2048 px JPEG)")
+    if data.startswith(PNG_MAGIC):
+        mime = "image/png"
+        size = (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")) \
+            if len(data) >= 33 and data[12:16] == b"IHDR" else None
+    elif data.startswith(JPEG_MAGIC):
+        mime = "image/jpeg"
+        size = _jpeg_size(data)
+    else:
+        raise Invalid(loc, f"the {field} must be a PNG or JPEG image")
+    if size is None or min(size) < 1:
+        raise Invalid(loc, f"the {field} is not a readable {mime.split('/')[1].upper()} image (no image size found)")
+    if max(size) > MAX_TEXTURE_PX:
+        raise Invalid(loc, f"the {field} is {size[0]}x{size[1]} px; at most {MAX_TEXTURE_PX} px a side")
+    name = (filename or field).rsplit("/", 1)[-1][:100]
+    return Texture(name, mime, bytes(data))
+
+
+def parse_color(value: str | None, default: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """'#rrggbb' (sRGB) -> linear RGBA; None -> ``default``."""
+    if not value:
+        return default
+    h = value.lstrip("#")
+    if len(h) != 6 or any(c not in "0123456789abcdefABCDEF" for c in h):
+        raise Invalid(("body", "color"), "color must be #rrggbb")
+    srgb = np.array([int(h[i:i + 2], 16) / 255.0 for i in (0, 2, 4)])
+    lin = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    return (float(lin[0]), float(lin[1]), float(lin[2]), 1.0)
+
+
+def clean_name(value: str, field: str = "name") -> str:
+    """A garment's display name: Unicode NFC, surrounding whitespace stripped; refused (422)
+    when empty or whitespace only, longer than :data:`MAX_NAME_LENGTH`, or with control
+    characters (newlines, tabs, NUL, ...), bidirectional overrides, unassigned code points or
+    lone surrogates."""
+    name = unicodedata.normalize("NFC", str(value)).strip()
+    if not name:
+        raise Invalid(("body", field), f"{field} must not be empty or only whitespace")
+    if len(name) > MAX_NAME_LENGTH:
+        raise Invalid(("body", field), f"{field} is longer than {MAX_NAME_LENGTH} characters")
+    for ch in name:
+        if unicodedata.category(ch) in ("Cc", "Cs", "Cn", "Co", "Zl", "Zp") or ch in _BIDI_CONTROLS:
+            raise Invalid(("body", field), f"{field} contains a control character (U+{ord(ch):04X}); "
+                                           "use printable characters only")
+    return name
+
+
+def parse_bool(value: object, field: str, default: bool) -> bool:
+    """A form field's boolean (true/false, 1/0, yes/no, on/off)."""
+    if value is None:
+        return default
+    word = str(value).strip().lower()
+    if word not in TRUE_WORDS + FALSE_WORDS:
+        raise Invalid(("body", field), f"{field} must be true or false")
+    return word in TRUE_WORDS
+
+
+def parse_gender(value: object) -> str | None:
+    if value is None:
+        return None
+    if value not in ("female", "male"):
+        raise Invalid(("body", "gender"), "gender must be 'female' or 'male'")
+    return str(value)
+
+
+# -- a garment draped on one body --------------------------------------------------------------
+DRAPED_NEAR_MEDIAN_M = 0.08  # median distance of a draped garment to the body it claims
+DRAPED_FORMAT = 1
+# the up axes tried for a garment draped on an example avatar: as is (Y up), or Z up
+GARMENT_UPS = {"+y": np.eye(3), "+z": rotation_to_y(np.array([0.0, 0.0, 1.0]))}
+
+
+@dataclass
+class DrapedGarment:
+    """A garment draped on one body, checked, waiting for its build job.
+
+    vertices (M, 3) float64 and faces (F, 3) int32: in our frame (metres, Y up) when ``on`` is
+    an example avatar; in the ``avatar`` file's frame otherwise (the job's fit of the avatar
+    maps both into ours). ``avatar``: the retailer's body (any topology), or None."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    on: str | None
+    unit: str
+    up: str | None
+    avatar: Scan | None = None
+    layout: RenderLayout | None = None  # the OBJ's texture coordinates, seams split
+    texture: Texture | None = None  # the uploaded base-colour texture
+
+    def to_bytes(self) -> bytes:
+        arrays: dict[str, np.ndarray] = {"format": np.array(DRAPED_FORMAT), "vertices": self.vertices,
+                                         "faces": self.faces, "on": np.array(self.on or ""),
+                                         "unit": np.array(self.unit), "up": np.array(self.up or "")}
+        if self.avatar is not None:
+            arrays["avatar"] = np.frombuffer(mesh_io.scan_to_npz_bytes(self.avatar), np.uint8)
+        if self.layout is not None:
+            arrays.update(layout_vertex=self.layout.vertex, layout_uv=self.layout.uv, layout_faces=self.layout.faces)
+        if self.texture is not None:
+            arrays.update(texture=np.frombuffer(self.texture.data, np.uint8), texture_mime=np.array(self.texture.mime),
+                          texture_name=np.array(self.texture.name))
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "DrapedGarment":
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            if int(z["format"]) != DRAPED_FORMAT:
+                raise ValueError(f"unknown stored garment upload format {int(z['format'])}")
+            avatar = mesh_io.scan_from_npz_bytes(z["avatar"].tobytes()) if "avatar" in z.files else None
+            layout = texture = None
+            if "layout_vertex" in z.files:
+                layout = RenderLayout(np.asarray(z["layout_vertex"], np.int64), np.asarray(z["layout_uv"], np.float32),
+                                      np.asarray(z["layout_faces"], np.int64))
+            if "texture" in z.files:
+                texture = Texture(str(z["texture_name"]), str(z["texture_mime"]), z["texture"].tobytes())
+            return cls(vertices=np.asarray(z["vertices"], np.float64), faces=np.asarray(z["faces"], np.int32),
+                       on=str(z["on"]) or None, unit=str(z["unit"]), up=str(z["up"]) or None, avatar=avatar,
+                       layout=layout, texture=texture)
+
+
+def place_on_body(vertices: np.ndarray, body_tree: cKDTree, loc: tuple) -> tuple[np.ndarray, str, str]:
+    """A garment exported on one of our avatars, in our frame: the unit (m, cm, mm) and up axis
+    (Y, or Z as Blender's default) that put it closest to the body. Returns (vertices in metres,
+    Y up, unit, up); :class:`Invalid` when it is not around the body (median distance > 8 cm)."""
+    best = None
+    for unit, scale in UNITS.items():
+        for up, R in GARMENT_UPS.items():
+            v = (vertices * scale) @ R.T
+            med = float(np.median(body_tree.query(v)[0]))
+            if best is None or med < best[0]:
+                best = (med, v, unit, up)
+    assert best is not None
+    med, v, unit, up = best
+    if med > DRAPED_NEAR_MEDIAN_M:
+        raise Invalid(loc, f"the garment is not around the body it was draped on: its vertices are "
+                           f"{100 * med:.1f} cm from the body surface (median; limit {100 * DRAPED_NEAR_MEDIAN_M:.0f} "
+                           "cm). Export it on that avatar, in its frame (metres, Y up)")
+    return v, unit, up
+
+
+def read_draped_avatar(data: bytes, filename: str | None, garment: np.ndarray) -> tuple[Scan, str]:
+    """The retailer's own body a garment was draped on (any topology, unit and up axis), and
+    the garment checked to be around it (same file frame). Returns (the avatar as a scan, its
+    unit)."""
+    loc = ("body", "avatar")
+    try:
+        avatar = mesh_io.compact(mesh_io.read_mesh_file(data, filename, keep_unused=True))
+        unit, scale = detect_unit(avatar.points, what="the avatar")
+    except (ScanError, UnitError) as exc:
+        raise Invalid(loc, f"avatar: {exc}") from exc
+    med = float(np.median(cKDTree(avatar.points * scale).query(garment * scale)[0]))
+    if med > DRAPED_NEAR_MEDIAN_M:
+        raise Invalid(("body", "garment"), f"the garment is not around the avatar it was draped on: its vertices are "
+                                           f"{100 * med:.1f} cm from the avatar (median; limit "
+                                           f"{100 * DRAPED_NEAR_MEDIAN_M:.0f} cm). Export both in the same frame")
+    return avatar, unit

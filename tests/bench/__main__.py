@@ -1,0 +1,58 @@
+"""``tryon bench <suite> [--json] [options]`` (also ``python -m tests.bench``).
+
+Each suite is a module of this package with ``run(limit, repeats, **options) -> dict`` (the
+``--json`` output) and ``format_result(result) -> str`` (a table for people). Timings are medians
+beside a baseline measured in the same run; these machines are noisy.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+
+# suite -> (module, run function, format function, description)
+SUITES: dict[str, tuple[str, str, str, str]] = {
+    "body": ("tests.bench.body", "run", "format_result",
+             "body model: PCA, ISO accuracy of measurements -> avatar, estimation, timings"),
+    "avatar": ("tests.bench.avatar_speed", "run", "format_result",
+               "measurements -> avatar: the fast path beside the reference algorithm, same run"),
+    "look": ("tests.bench.look", "run", "format_result",
+             "avatar.glb: the added latency of the avatar's look (eyes, eyebrows, hair, underwear)"),
+    "tryon": ("tests.bench.tryon", "bench_tryon", "format_tryon",
+              "try-on: garment accuracy, penetration, latency, GLB bytes, HTTP"),
+    "examples": ("tests.bench.tryon", "bench_examples", "format_examples",
+                 "garment accuracy for a grid of example sets (chooses N and c)"),
+    "fitting": ("tests.bench.fitting", "run", "format_result",
+                "body fitting of synthetic scans, then jobs under worker kills"),
+    "autofit": ("tests.bench.autofit", "run", "format",
+                "garments from one draped mesh: auto-fit to the examples vs .mhclo references"),
+    "editing": ("tests.bench.editing", "run", "format",
+                "clothed-avatar editing: forward error, update time, elbow-twist volume"),
+    "load": ("tests.bench.load", "run", "format_result",
+             "mixed traffic at 80 req/s against a default tryon serve: p50/p99, errors, memory (--limit: seconds)"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="tryon bench", description=__doc__,
+                                 epilog="suites:\n" + "\n".join(f"  {k:<10}{v[3]}" for k, v in SUITES.items()),
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("suite", choices=sorted(SUITES))
+    ap.add_argument("--json", action="store_true", help="print JSON for machines")
+    ap.add_argument("--limit", type=int, default=0, help="held-out subjects/avatars to use (0 = the suite's default)")
+    ap.add_argument("--repeats", type=int, default=50, help="repetitions per timing")
+    ap.add_argument("--no-kill", action="store_true", help="fitting: skip the jobs-under-worker-kills part")
+    ap.add_argument("--max-pose-deg", type=float, default=45.0,
+                    help="fitting: largest random rotation per bone of the synthetic scans (default 45)")
+    args = ap.parse_args(argv)
+    module, run_name, fmt_name, _ = SUITES[args.suite]
+    mod = importlib.import_module(module)
+    extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg} if args.suite == "fitting" else {}
+    res = getattr(mod, run_name)(args.limit, args.repeats, **extra)
+    print(json.dumps(res, indent=2) if args.json else getattr(mod, fmt_name)(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,470 @@
+"""``tryon bench fitting [--limit N] [--json] [--no-kill]``: parametric body fitting of scans.
+
+1. Accuracy and time of ``service.model.fitting.fit_body`` on synthetic scans with a known body
+   (``tests/bench/synthetic_scans.py``): N held-out avatars (default 12, alternately male and
+   female; ``--limit`` sets N), each in a random pose (up to 45 degrees per bone, any yaw),
+   scanned under three conditions -- clothed mesh, unclothed mesh, clothed point cloud -- with
+   12,500 points, 2 mm noise, a random unit (m/cm/mm), up axis (+y/+z) and placement. The same
+   seed per avatar gives the same pose and frame in all three conditions. Per condition:
+
+   * body error: the fitted posed body is brought into the truth's model frame through the
+     scan (``truth.to_model @ inv(fit.to_model)``: yaw and translation may be split
+     differently between the frame and the root bone), then the true body vertices' mean
+     distance to the fitted body surface (point-to-surface), and the mean distance between
+     corresponding vertices (vertex-to-vertex, same topology: stricter); median and p90 over
+     the scans, beside a baseline fitted in the same run: the population mean shape in the
+     TRUE pose and translation (what shape recovery is worth);
+   * the 12 attributes measured on the fitted rest-pose body (the true gender) against those
+     of the true body: mean absolute error per attribute;
+   * posed joint positions: mean error over the 17 joints (mm);
+   * wall time per fit (median, p90), unit and up axis detected, failures (exceptions are
+     counted, never raised), refusals by the person check (false rejections), whole scans
+     flagged ``partial``;
+   * the rest-pose stature error (median |error| and worst), and body error and stature again
+     for the same scan fitted without the pose prior (``BEFORE_PARAMS``: no joint limits,
+     bone smoothness 0.1): before.
+
+1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
+   two people apart and touching) with the check off (before) and on; CesiumMan; single-view
+   front scans flagged ``partial``.
+
+2. Jobs lost under worker kills (skipped with ``--no-kill``): a real ``tryon serve`` on its own
+   embedded Redis in a temporary directory (never a database it did not create) with
+   ``TRYON_EMBEDDED_WORKER=0`` and 3 ``tryon worker`` processes on the same data directory; 50 small scans are uploaded
+   (``POST /v1/customers``, 202 + job) while every few seconds a random worker's whole process
+   group (worker and work-horse) is SIGKILLed and replaced; jobs are polled
+   (``GET /v1/jobs/{id}``) until done/failed or a 15-minute deadline: done, failed, lost.
+"""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import sys
+import time
+
+import httpx
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.model import measurements as M
+from service.model.body import load_body_model
+from service.model.geometry import closest_point_on_triangles, vertex_faces
+from tests.bench import synthetic_scans as SS
+from tests.bench.common import heldout_people, shared_data_dir
+from tests.harness import RETAILERS, run_server, start_worker, stop_process
+
+CONDITIONS = (  # name, clothed, point cloud
+    ("clothed_mesh", True, False),
+    ("unclothed_mesh", False, False),
+    ("clothed_cloud", True, True),
+)
+DEFAULT_AVATARS = 12
+N_POINTS = 12_500
+NOISE_MM = 2.0
+MAX_POSE_DEG = 45.0
+SEED = 2024
+GOALS = {"clothed_body_mm": 5.0, "unclothed_body_mm": 2.0, "seconds": 10.0}
+
+
+# -- ground truth and errors ------------------------------------------------------------------
+def BEFORE_PARAMS():
+    """The fit before issue 12's pose prior: no joint limits, bone smoothness 0.1."""
+    from service.model.fitting import FitParams
+
+    return FitParams(joint_limit_weight=0.0, bone_smoothness=0.1, coarse_bone_smoothness=0.1)
+
+
+def posed(model, weights: np.ndarray, rotvecs: np.ndarray, translation: np.ndarray):
+    """The posed body (V, 3) and joints (17, 3) of a shape and a pose (model frame)."""
+    out = model.forward(weights, rotvecs, translation)
+    return out.vertices, out.joints
+
+
+class BodySurface:
+    """Unsigned point-to-surface distances to a body mesh in the template topology (exact
+    among the triangles around the k nearest vertices)."""
+
+    def __init__(self, faces: np.ndarray, n_vertices: int, k: int = 8):
+        self.faces = np.asarray(faces, np.int64)
+        self.n = n_vertices
+        self.k = k
+        self.vert_faces = vertex_faces(self.faces, n_vertices)
+
+    def distances(self, points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+        V = np.asarray(vertices[: self.n], np.float64)
+        _, nn = cKDTree(V).query(points, k=self.k)
+        cand = self.vert_faces[nn].reshape(len(points), -1)
+        valid = cand >= 0
+        tri = V[self.faces[np.where(valid, cand, 0)]]  # (P, C, 3, 3)
+        p = np.asarray(points, np.float64)[:, None, :]
+        q = closest_point_on_triangles(p, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
+        return np.where(valid, np.linalg.norm(p - q, axis=-1), np.inf).min(axis=1)
+
+
+def _apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def evaluate(model, scan, fit, surface: BodySurface) -> dict:
+    """Errors of a fit against the scan's truth (see the module docstring)."""
+    nb = model.n_body_vertices
+    C = scan.to_model @ np.linalg.inv(np.asarray(fit.to_model, np.float64))  # fit frame -> truth frame
+    Pf = _apply(C, np.asarray(fit.posed_vertices, np.float64))
+    truth = scan.true_posed[:nb]
+    _, Jf = posed(model, fit.weights, fit.rotvecs, fit.translation)
+    fitted_m = model.measure(model.vertices(fit.weights), scan.gender)
+    return {
+        "v2v_mm": 1000 * float(np.linalg.norm(Pf[:nb] - truth, axis=1).mean()),
+        "p2s_mm": 1000 * float(surface.distances(truth, Pf).mean()),
+        "joints_mm": 1000 * float(np.linalg.norm(_apply(C, Jf) - scan.true_joints, axis=1).mean()),
+        "measurements": {n: float(fitted_m[n] - scan.measurements[n]) for n in M.ATTRIBUTES[1:]},
+        "unit_ok": fit.unit == scan.unit, "up_ok": fit.up == scan.up,
+        "residual_mm": float(fit.residual_mm), "partial": bool(fit.partial),
+        "stature_err_cm": float(fitted_m["height_cm"] - scan.measurements["height_cm"]),
+        "iterations": [int(fit.outer_iterations), int(fit.inner_iterations)],
+    }
+
+
+def baseline(model, scan, surface: BodySurface) -> dict:
+    """The population mean shape in the true pose and translation, against the truth."""
+    nb = model.n_body_vertices
+    V, _ = posed(model, np.zeros(model.n_components), scan.rotvecs, scan.translation)
+    truth = scan.true_posed[:nb]
+    return {"v2v_mm": 1000 * float(np.linalg.norm(V[:nb] - truth, axis=1).mean()),
+            "p2s_mm": 1000 * float(surface.distances(truth, V).mean())}
+
+
+def _stats(values: list[float]) -> dict:
+    a = np.asarray(values, np.float64)
+    if not len(a):
+        return {"n": 0, "median": None, "p90": None, "mean": None}
+    return {"n": int(len(a)), "median": float(np.median(a)), "p90": float(np.percentile(a, 90)),
+            "mean": float(a.mean())}
+
+
+# -- 1. accuracy ------------------------------------------------------------------------------
+def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = MAX_POSE_DEG) -> dict:
+    from service.model.fitting import fit_body
+
+    model = load_body_model()
+    clothes = shared_data_dir() / "makehuman_clothes"
+    n = limit or DEFAULT_AVATARS
+    people = heldout_people(model, n)
+    surface = BodySurface(model.body_faces, model.n_body_vertices)
+    rows: dict[str, list] = {c[0]: [] for c in CONDITIONS}
+    failures: dict[str, list] = {c[0]: [] for c in CONDITIONS}
+    base: dict[str, list] = {c[0]: [] for c in CONDITIONS}
+    scan_seconds = []
+    for k, person in enumerate(people):
+        for name, clothed, cloud in CONDITIONS:
+            t0 = time.perf_counter()
+            scan = SS.make_scan(model, np.random.default_rng([SEED, person["index"]]), person["weights"],
+                                person["gender"], clothed=clothed, point_cloud=cloud, n_points=N_POINTS,
+                                noise_mm=NOISE_MM, max_pose_deg=max_pose_deg, clothes_dir=clothes)
+            scan_seconds.append(time.perf_counter() - t0)
+            base[name].append(baseline(model, scan, surface))
+            t0 = time.perf_counter()
+            try:
+                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed)
+                seconds = time.perf_counter() - t0
+                row = evaluate(model, scan, fit, surface)
+            except Exception as exc:  # noqa: BLE001 - a benchmark counts failures, never crashes
+                failures[name].append({"avatar": person["index"], "error": f"{type(exc).__name__}: {exc}"[:300]})
+                continue
+            try:  # the same scan without the pose prior (BEFORE_PARAMS): "before", same run
+                prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed,
+                                                      params=BEFORE_PARAMS()), surface)
+                row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"]}
+            except Exception as exc:  # noqa: BLE001
+                row["before"] = {"error": f"{type(exc).__name__}: {exc}"[:200]}
+            row.update({"avatar": person["index"], "gender": person["gender"], "seconds": seconds,
+                        "unit": scan.unit, "up": scan.up, "garments": scan.garments,
+                        "points": int(len(scan.points))})
+            rows[name].append(row)
+            if progress:
+                progress(f"[{k + 1}/{len(people)}] {name}: {row['p2s_mm']:.2f} mm, {seconds:.1f} s")
+    out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
+           "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
+           "goal": GOALS, "conditions": {}}
+    for name, clothed, cloud in CONDITIONS:
+        r = rows[name]
+        E = {a: [abs(x["measurements"][a]) for x in r] for a in M.ATTRIBUTES[1:]}
+        goal_mm = GOALS["clothed_body_mm" if clothed else "unclothed_body_mm"]
+        p2s = _stats([x["p2s_mm"] for x in r])
+        t = _stats([x["seconds"] for x in r])
+        out["conditions"][name] = {
+            "clothed": clothed, "point_cloud": cloud, "fits": len(r), "failures": len(failures[name]),
+            "failure_examples": failures[name][:3],
+            "body_p2s_mm": p2s, "body_v2v_mm": _stats([x["v2v_mm"] for x in r]),
+            "baseline_mean_shape_true_pose": {
+                "p2s_mm": _stats([b["p2s_mm"] for b in base[name]]),
+                "v2v_mm": _stats([b["v2v_mm"] for b in base[name]])},
+            "joints_mm": _stats([x["joints_mm"] for x in r]),
+            "measurements_mae": {a: (float(np.mean(v)) if v else None) for a, v in E.items()},
+            "seconds": t,
+            "unit_detected": sum(x["unit_ok"] for x in r), "up_detected": sum(x["up_ok"] for x in r),
+            "residual_mm": _stats([x["residual_mm"] for x in r]),
+            "stature_abs_err_cm": _stats([abs(x["stature_err_cm"]) for x in r]),
+            "stature_worst_cm": max((abs(x["stature_err_cm"]) for x in r), default=None),
+            "flagged_partial": sum(x["partial"] for x in r),
+            "before_no_joint_limits": {
+                "fits": sum("p2s_mm" in x["before"] for x in r),
+                "body_p2s_mm": _stats([x["before"]["p2s_mm"] for x in r if "p2s_mm" in x["before"]]),
+                "stature_abs_err_cm": _stats([abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]]),
+                "stature_worst_cm": max((abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]),
+                                        default=None)},
+            "refused_as_not_person": sum(("not a person" in f["error"]) or ("outside the population" in f["error"])
+                                         for f in failures[name]),
+            "goal": {"body_p2s_median_mm": goal_mm, "seconds_median": GOALS["seconds"]},
+            "meets_goal": bool(r) and not failures[name] and p2s["median"] <= goal_mm
+            and t["median"] <= GOALS["seconds"],
+            "per_scan": r,
+        }
+    return out
+
+
+# -- 1b. the person check and partial scans --------------------------------------------------
+CESIUM_STATURE_M = 1.51  # CesiumMan (glTF sample): a 1.51 m clothed game character in T-pose
+N_PARTIAL = 4
+
+
+def bench_person_check(progress=None) -> dict:
+    """Non-person shapes (``synthetic_scans.NON_PERSON_KINDS``, point clouds of 12,500 points)
+    fitted with the person check off (before) and on (after): rejected or not, with the
+    reason; CesiumMan (fitted stature or the refusal); single-view front scans of bare
+    held-out people (flagged ``partial`` or refused)."""
+    from service.model.fitting import FitError, FitParams, fit_body
+    from service.model.mesh_io import read_scan
+
+    model = load_body_model()
+    rng = np.random.default_rng([SEED, 99])
+    shapes = []
+    for kind in SS.NON_PERSON_KINDS:
+        pts, nrm, unit, up = SS.non_person_scan(model, kind, rng, n_points=N_POINTS)
+        row = {"shape": kind}
+        for label, params in (("before", FitParams(person_check=False)), ("after", FitParams())):
+            try:
+                fit = fit_body(model, pts, nrm, None, clothed=True, params=params)
+                m = model.measure(model.vertices(fit.weights), "female")
+                row[label] = {"rejected": False, "height_cm": round(m["height_cm"], 1),
+                              "weight_kg": round(m["weight_kg"], 1)}
+            except FitError as exc:
+                row[label] = {"rejected": True, "reason": str(exc)}
+        shapes.append(row)
+        if progress:
+            progress(f"non-person {kind}: {row}")
+    out: dict = {"shapes": shapes,
+                 "rejected_before": sum(r["before"]["rejected"] for r in shapes),
+                 "rejected_after": sum(r["after"]["rejected"] for r in shapes)}
+    path = shared_data_dir() / "gltf_samples" / "CesiumMan.glb"
+    if path.is_file():
+        sc = read_scan(path.read_bytes(), path.name)
+        try:
+            fit = fit_body(model, sc.points, sc.normals, sc.faces, clothed=True)
+            h = model.measure(model.vertices(fit.weights), "male")["height_cm"]
+            out["cesium_man"] = {"outcome": "fitted", "height_cm": round(h, 1),
+                                 "stature_err_cm": round(h - 100 * CESIUM_STATURE_M, 1)}
+        except FitError as exc:
+            out["cesium_man"] = {"outcome": "refused", "reason": str(exc)}
+    partial = []
+    clothes = shared_data_dir() / "makehuman_clothes"
+    for person in heldout_people(model, N_PARTIAL):
+        scan = SS.make_scan(model, np.random.default_rng([SEED, 5, person["index"]]), person["weights"],
+                            person["gender"], clothed=False, point_cloud=True, n_points=N_POINTS,
+                            noise_mm=NOISE_MM, max_pose_deg=20.0, clothes_dir=clothes)
+        front = SS.front_only(scan)
+        try:
+            fit = fit_body(model, front.points, front.normals, None, clothed=False)
+            partial.append({"avatar": person["index"], "outcome": "partial" if fit.partial else "whole",
+                            "coverage": fit.coverage})
+        except FitError as exc:
+            partial.append({"avatar": person["index"], "outcome": "refused", "reason": str(exc)})
+    out["front_only"] = partial
+    out["front_only_flagged_or_refused"] = sum(p["outcome"] != "whole" for p in partial)
+    return out
+
+
+# -- 2. jobs under worker kills ---------------------------------------------------------------
+def bench_job_kills(n_jobs: int = 50, n_workers: int = 3, kill_every_s: float = 5.0,
+                    deadline_s: float = 900.0, progress=None) -> dict:
+    """Jobs done/failed/lost while workers are SIGKILLed (module docstring, part 2)."""
+    # a few distinct small unclothed scans (PLY), cycled over the jobs
+    model = load_body_model()
+    people = heldout_people(model, 5)
+    files = []
+    for p in people:
+        scan = SS.make_scan(model, np.random.default_rng([SEED, 7, p["index"]]), p["weights"], p["gender"],
+                            clothed=False, point_cloud=False, n_points=3000, noise_mm=NOISE_MM,
+                            max_pose_deg=MAX_POSE_DEG)
+        files.append(SS.scan_file_bytes(scan, "ply"))
+    worker_args = ("--worker-ttl", "10", "--job-monitoring-interval", "2", "--maintenance-interval", "5")
+    rng = random.Random(SEED)
+    result: dict = {"redis": "embedded (temporary data directory)", "jobs": n_jobs, "workers": n_workers,
+                    "kill_every_s": kill_every_s, "deadline_s": deadline_s}
+    try:
+        with run_server(None, "embedded", log_level="warning", check_log=False, TRYON_EMBEDDED_WORKER="0") as server:
+            server.client.headers["X-API-Key"] = RETAILERS["acme"]  # its customers' jobs open with its key
+            workers = [start_worker(server.env, *worker_args) for _ in range(n_workers)]
+            try:
+                _run_kills(server.client, files, workers, lambda: start_worker(server.env, *worker_args),
+                           n_jobs, kill_every_s, deadline_s, rng, result, progress)
+            finally:
+                for w in workers:
+                    stop_process(w, signal.SIGKILL, wait=30)
+    except Exception as exc:  # noqa: BLE001 - reported, never raised
+        result["error"] = f"{type(exc).__name__}: {exc}"
+    return result
+
+
+def _run_kills(client, files, workers, start, n_jobs, kill_every_s, deadline_s, rng, result, progress) -> None:
+    t0 = time.monotonic()
+    jobs: dict[str, dict] = {}
+    rejected: list[str] = []
+    for i in range(n_jobs):
+        r = client.post("/v1/customers", files={"mesh": (f"scan{i}.ply", files[i % len(files)],
+                                                         "application/octet-stream")},
+                        data={"clothed": "false"})
+        body = r.json() if r.headers.get("content-type", "").startswith("application/json") else {}
+        if r.status_code == 202 and isinstance(body.get("job"), dict) and body["job"].get("id"):
+            jobs[body["job"]["id"]] = {"status": body["job"].get("status", "queued"), "customer_id": body.get("id")}
+        else:
+            rejected.append(f"{r.status_code}: {str(body or r.text)[:200]}")
+    result.update(submitted=len(jobs), rejected=len(rejected), rejected_examples=rejected[:3])
+    kills, last_kill = 0, time.monotonic()
+    errors: dict[str, int] = {}
+    while jobs and time.monotonic() - t0 < deadline_s:
+        pending = [j for j, s in jobs.items() if s["status"] not in ("done", "failed")]
+        if not pending:
+            break
+        for j in pending:
+            try:
+                r = client.get(f"/v1/jobs/{j}")
+            except httpx.HTTPError:
+                continue
+            if r.status_code == 200:
+                s = r.json()
+                jobs[j]["status"] = s.get("status", "queued")
+                if s.get("status") == "failed":
+                    err = str(s.get("error"))[:120]
+                    errors[err] = errors.get(err, 0) + 1
+        if time.monotonic() - last_kill >= kill_every_s and any(
+                s["status"] not in ("done", "failed") for s in jobs.values()):
+            k = rng.randrange(len(workers))
+            stop_process(workers[k], signal.SIGKILL, wait=30)  # the worker and its work-horse
+            workers[k] = start()
+            kills += 1
+            last_kill = time.monotonic()
+            if progress:
+                done = sum(s["status"] == "done" for s in jobs.values())
+                progress(f"kill {kills}: {done}/{len(jobs)} done after {time.monotonic() - t0:.0f} s")
+        time.sleep(1.0)
+    states = [s["status"] for s in jobs.values()]
+    result.update({
+        "done": states.count("done"), "failed": states.count("failed"),
+        "lost": sum(s not in ("done", "failed") for s in states), "kills": kills,
+        "wall_s": time.monotonic() - t0, "failure_errors": errors, "goal": {"lost": 0},
+    })
+
+
+# -- the suite --------------------------------------------------------------------------------
+def run(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float = MAX_POSE_DEG) -> dict:
+    """The ``fitting`` suite (``repeats`` is unused: each fit is timed once)."""
+    say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
+    res: dict = {"suite": "fitting",
+                 "accuracy": bench_fitting_accuracy(limit, progress=say, max_pose_deg=max_pose_deg),
+                 "person_check": bench_person_check(progress=say)}
+    res["job_kills"] = bench_job_kills(progress=say) if kill else {"skipped": "--no-kill"}
+    return res
+
+
+def _f(x, fmt="{:.2f}") -> str:
+    return "-" if x is None else fmt.format(x)
+
+
+def format_result(r: dict) -> str:
+    a = r["accuracy"]
+    conds = a["conditions"]
+    names = list(conds)
+    L = [f"body fitting: {a['avatars']} held-out avatars x {len(names)} conditions; scans of {a['points']} points, "
+         f"{a['noise_mm']:g} mm noise, poses up to {a['max_pose_deg']:g} deg per bone, random unit/up/yaw/placement; "
+         f"{a['cpu_count']} CPU cores"]
+    head = f"  {'':<40}" + "".join(f"{n.replace('_', ' '):>17}" for n in names)
+    L.append(head)
+
+    def row(label, values, goal=""):
+        L.append(f"  {label:<40}" + "".join(f"{v:>17}" for v in values) + (f"   {goal}" if goal else ""))
+
+    row("fits (failures)", [f"{c['fits']} ({c['failures']})" for c in conds.values()])
+    goals = "goal: " + " / ".join(f"<= {c['goal']['body_p2s_median_mm']:g}" for c in conds.values())
+    row("body error, point-to-surface median mm", [_f(c["body_p2s_mm"]["median"]) for c in conds.values()], goals)
+    row("  p90 mm", [_f(c["body_p2s_mm"]["p90"]) for c in conds.values()])
+    row("body error, vertex-to-vertex median mm", [_f(c["body_v2v_mm"]["median"]) for c in conds.values()])
+    row("  p90 mm", [_f(c["body_v2v_mm"]["p90"]) for c in conds.values()])
+    row("baseline: mean shape, true pose, p2s mm", [_f(c["baseline_mean_shape_true_pose"]["p2s_mm"]["median"])
+                                                   for c in conds.values()])
+    row("  v2v mm", [_f(c["baseline_mean_shape_true_pose"]["v2v_mm"]["median"]) for c in conds.values()])
+    row("joints, mean over 17, median mm", [_f(c["joints_mm"]["median"]) for c in conds.values()])
+    row("  p90 mm", [_f(c["joints_mm"]["p90"]) for c in conds.values()])
+    row("unit / up axis detected", [f"{c['unit_detected']}/{c['up_detected']} of {c['fits']}" for c in conds.values()])
+    row("time per fit, median s", [_f(c["seconds"]["median"]) for c in conds.values()],
+        f"goal: <= {a['goal']['seconds']:g} s")
+    row("  p90 s", [_f(c["seconds"]["p90"]) for c in conds.values()])
+    row("rest-pose stature |error| median cm", [_f(c["stature_abs_err_cm"]["median"]) for c in conds.values()],
+        "goal: <= 0.5")
+    row("  worst cm", [_f(c["stature_worst_cm"]) for c in conds.values()], "goal: <= 1")
+    row("before (no pose prior): p2s median mm", [_f(c["before_no_joint_limits"]["body_p2s_mm"]["median"])
+                                                     for c in conds.values()])
+    row("  p90 mm", [_f(c["before_no_joint_limits"]["body_p2s_mm"]["p90"]) for c in conds.values()])
+    row("  stature |error| median cm", [_f(c["before_no_joint_limits"]["stature_abs_err_cm"]["median"])
+                                        for c in conds.values()])
+    row("  worst cm", [_f(c["before_no_joint_limits"]["stature_worst_cm"]) for c in conds.values()])
+    row("refused (not a person / outside population)", [str(c["refused_as_not_person"]) for c in conds.values()],
+        "goal: 0 (false rejections)")
+    row("flagged partial (whole scans)", [str(c["flagged_partial"]) for c in conds.values()], "goal: 0")
+    row("meets goals", ["yes" if c["meets_goal"] else "no" for c in conds.values()])
+    L.append("  measurements on the fitted rest body, mean |error| (cm, kg)")
+    for attr in M.ATTRIBUTES[1:]:
+        row(f"    {attr}", [_f(c["measurements_mae"][attr]) for c in conds.values()])
+    for n, c in conds.items():
+        for f in c["failure_examples"]:
+            L.append(f"  failure ({n}, avatar {f['avatar']}): {f['error']}")
+    L.append(f"  (scan generation, median {a['scan_generation_s_median']:.2f} s per scan, not counted)")
+
+    pc = r.get("person_check")
+    if pc:
+        L.append("")
+        L.append(f"non-person shapes rejected: {pc['rejected_after']} of {len(pc['shapes'])} "
+                 f"(before, person check off, same run: {pc['rejected_before']} of {len(pc['shapes'])}); goal: all")
+        for row_ in pc["shapes"]:
+            b, a = row_["before"], row_["after"]
+            L.append(f"  {row_['shape']:<22} before: " + ("rejected" if b["rejected"] else
+                     f"accepted ({b['height_cm']} cm, {b['weight_kg']} kg)") + "; after: "
+                     + (a.get("reason", "rejected") if a["rejected"] else f"ACCEPTED ({a['height_cm']} cm)"))
+        cm = pc.get("cesium_man")
+        if cm:
+            L.append("  CesiumMan (1.51 m, T-pose, clothed): " + (
+                f"fitted at {cm['height_cm']} cm ({cm['stature_err_cm']:+.1f} cm)" if cm["outcome"] == "fitted"
+                else f"refused: {cm['reason']}"))
+        L.append(f"single-view front scans (bare, <= 20 deg): {pc['front_only_flagged_or_refused']} of "
+                 f"{len(pc['front_only'])} flagged partial or refused; goal: all")
+        for p_ in pc["front_only"]:
+            L.append(f"  avatar {p_['avatar']}: {p_['outcome']} {p_.get('coverage', p_.get('reason', ''))}")
+
+    k = r.get("job_kills", {})
+    L.append("")
+    if "skipped" in k:
+        L.append(f"jobs under worker kills: skipped ({k['skipped']})")
+    elif "error" in k:
+        L.append(f"jobs under worker kills: error: {k['error']}")
+    else:
+        L.append(f"jobs under worker kills: {k['jobs']} scans uploaded, {k['workers']} workers, one SIGKILLed "
+                 f"(process group) every {k['kill_every_s']:g} s and replaced ({k['kills']} kills), "
+                 f"Redis {k['redis']}")
+        L.append(f"  done {k['done']}, failed {k['failed']}, lost {k['lost']} (goal 0; deadline "
+                 f"{k['deadline_s']:g} s), rejected uploads {k['rejected']}, wall time {k['wall_s']:.1f} s")
+        for err, count in k.get("failure_errors", {}).items():
+            L.append(f"  failed x{count}: {err}")
+        for ex in k.get("rejected_examples", []):
+            L.append(f"  rejected: {ex}")
+    return "\n".join(L)

@@ -1,0 +1,605 @@
+"""Synthetic 3D scans of people with a known body: the ground truth of the fitting benchmark
+(``tryon bench fitting``) and of its tests. Pure numpy/scipy/trimesh; tests and benchmarks only
+(not part of the service package).
+
+What :func:`make_scan` builds, in this order (every random choice comes from ``rng``, drawn in
+a fixed order, so one seed gives the same person, pose, frame and garments whether clothed or
+not):
+
+1. **Body.** ``model.vertices(weights)`` (all 19,158 vertices, rest pose), measured with
+   ``model.measure`` (the truth of the 12 attributes).
+2. **Pose** (:func:`random_pose`): every bone but the root gets a uniformly random axis and an
+   angle uniform in ``[0, max_pose_deg]``; the root gets a whole-body yaw uniform in
+   [-180, 180) degrees (the fitter does not know the facing anyway) composed with a tilt of at
+   most 10 degrees about a random horizontal axis (a standing person: a 45-degree root tilt
+   would lay the body down). The posed body is lifted so that its lowest vertex is at y = 0.
+3. **Clothes** (``clothed=True``): a MakeHuman CC0 suit (one of the ``*suit*`` folders, of the
+   body's gender when there is one), plus, with probability 1/2, shoes (40 %) or a fedora
+   (10 %). Each garment is fitted in the rest pose with its ``.mhclo`` binding
+   (``mhclo.Binding.fit`` on the full rest vertices), pushed out of the body as a try-on does
+   (``garment.push_out``, 3 mm clearance), and posed with the body: a garment vertex moves
+   with the blend, by its binding weights, of the skinning transforms of its three bound
+   base-mesh vertices (helper geometry included), i.e. it is skinned like the body it is
+   bound to. Head, hands and whatever skin the garments leave uncovered stay visible.
+4. **Outer surface only.** A real scanner sees neither skin under a shirt nor the inside of a
+   garment. A body face is dropped when (a) two of its three vertices are covered: the
+   nearest garment surface sample q (normal n) is within 5 mm (contact, either side: posing
+   can push skin through cloth), or within 4 cm with the cloth in front of the skin,
+   ``(q - p) . n >= 0.5 |q - p|`` (which keeps the skin just past a cuff), or (b) a virtual
+   scanner sees it without the clothes but not with them (legs under a skirt, skin further
+   under loose cloth). The virtual scanner is an orthographic z-buffer over 25 views (8
+   azimuths at elevations -20, 10 and 45 degrees, plus one from above) of ~4 mm surface
+   samples with 8 mm pixels (3 x 3 max filter against splatting holes, 1 cm depth
+   tolerance); a face is seen when any of its samples is. Garment faces seen by no view are
+   dropped too (inner layers, cloth pushed into the body by posing). Body faces that the
+   scanner cannot see even unclothed (armpits, soles) stay unless (a) applies, so clothed
+   and unclothed scans differ only by what the clothes cover. ``clothed=False`` scans are the
+   whole watertight body surface.
+5. **Re-meshing** (``point_cloud=False``): the merged visible mesh is subdivided (edges <
+   0.6 h) and re-meshed by vertex clustering (Rossignac-Borrel) on a randomly offset grid of
+   voxel size h, tuned so that about ``n_points`` vertices remain; each cluster is
+   represented by its member nearest to the cluster's mean (so vertices lie on the true
+   surface), triangles collapsed by the clustering are removed, and the vertex order is
+   shuffled. The topology is unrelated to the template (thin gaps such as cloth over skin may
+   fuse, as in a real scanner's mesh). Normals: smooth vertex normals of the noisy mesh.
+   ``point_cloud=True``: ``n_points`` points sampled evenly on the merged visible surface
+   (``trimesh.sample.sample_surface_even``, topped up with area-weighted samples if short),
+   normals of the triangles they were sampled on; no faces.
+6. **Noise and frame.** Gaussian noise of ``noise_mm`` per coordinate (in metres, model
+   frame), then a random yaw, a random translation (up to 1 m per axis), the up axis (+y, or
+   +z: Y-up rotated to Z-up by +90 degrees about X) and the unit (m, cm, mm).
+   ``to_model @ [p, 1]`` maps the noise-free scan back to the model frame.
+
+Frames: model frame = metres, Y up, facing +Z (before the root's yaw). Shapes: points (P, 3).
+"""
+from __future__ import annotations
+
+import functools
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.model import garment as G_
+from service.model import lbs, mhclo
+from tests.bench.common import shared_data_dir
+from service.model.geometry import vertex_normals
+
+UNIT_SCALE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}  # file units per metre
+UPS = ("+y", "+z")
+ROOT_MAX_TILT_DEG = 10.0
+HIDDEN_BEHIND_CLOTH_M = 0.04
+CONTACT_M = 0.005  # skin this close to cloth is covered, whichever side (cloth pushed in by posing)
+SHOES_P, HAT_P = 0.4, 0.1
+# virtual scanner
+SAMPLE_SPACING_M = 0.004
+PIXEL_M = 0.008
+DEPTH_TOL_M = 0.01
+VIEW_ELEVATIONS_DEG = (-20.0, 10.0, 45.0)
+VIEW_AZIMUTHS = 8
+
+
+@dataclass
+class SyntheticScan:
+    """A synthetic scan and its truth (see the module docstring)."""
+
+    points: np.ndarray  # (P, 3) float64, scan units and axes
+    normals: np.ndarray | None  # (P, 3) unit, scan axes
+    faces: np.ndarray | None  # (F, 3) int64; None for a point cloud
+    unit: str  # 'm' | 'cm' | 'mm'
+    up: str  # '+y' | '+z'
+    to_model: np.ndarray  # (4, 4) similarity: scan -> model frame (metres, Y up)
+    weights: np.ndarray  # (K,) true shape
+    rotvecs: np.ndarray  # (17, 3) true pose (local axis-angle per bone)
+    translation: np.ndarray  # (3,) metres, model frame
+    true_posed: np.ndarray  # (V, 3) true posed body, model frame, all vertices
+    true_joints: np.ndarray  # (17, 3) posed joints, model frame
+    gender: str
+    measurements: dict  # the 12 attributes measured on the rest-pose true body
+    garments: list[str]
+    clothed: bool
+    point_is_body: np.ndarray = field(default=None)  # (P,) bool: the point lies on the skin
+
+    @property
+    def point_cloud(self) -> bool:
+        return self.faces is None
+
+    def points_in_model_frame(self) -> np.ndarray:
+        """The scan's points mapped by ``to_model`` (metres, model frame)."""
+        return self.points @ self.to_model[:3, :3].T + self.to_model[:3, 3]
+
+
+# -- pose ------------------------------------------------------------------------------------
+def _random_axes(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def random_pose(rng: np.random.Generator, max_deg: float = 45.0) -> np.ndarray:
+    """(17, 3) rotvecs: every non-root bone a uniformly random axis and an angle uniform in
+    [0, max_deg] degrees; the root a yaw uniform in [-180, 180) degrees (about +Y) after a
+    tilt of at most min(max_deg, 10) degrees about a random horizontal axis."""
+    from scipy.spatial.transform import Rotation
+
+    from service.model.body import BONES
+
+    n = len(BONES)
+    axes = _random_axes(rng, n)
+    angles = np.radians(rng.uniform(0.0, max_deg, size=n))
+    rv = axes * angles[:, None]
+    yaw = rng.uniform(-np.pi, np.pi)
+    a = rng.uniform(0.0, 2 * np.pi)
+    tilt = np.radians(rng.uniform(0.0, min(max_deg, ROOT_MAX_TILT_DEG)))
+    root = Rotation.from_rotvec([0.0, yaw, 0.0]) * Rotation.from_rotvec(tilt * np.array([np.cos(a), 0.0, np.sin(a)]))
+    rv[0] = root.as_rotvec()
+    return rv
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _rot_y(rad: float) -> np.ndarray:
+    c, s = np.cos(rad), np.sin(rad)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
+def up_rotation(up: str) -> np.ndarray:
+    """Rotation from the model's Y-up axes to a file's axes with ``up`` up."""
+    return np.eye(3) if up == "+y" else _rot_x(90.0)
+
+
+# -- garments --------------------------------------------------------------------------------
+def default_clothes_dir() -> Path:
+    return shared_data_dir() / "makehuman_clothes"
+
+
+def available_garments(clothes_dir: Path | None = None) -> list[str]:
+    """The stems of the ``.mhclo`` files under ``clothes_dir`` (sorted)."""
+    base = Path(clothes_dir or default_clothes_dir())
+    return sorted(f.stem for f in base.glob("*/*.mhclo"))
+
+
+@functools.lru_cache(maxsize=64)
+def _load_garment(path: str, n_base: int) -> tuple[mhclo.Binding, np.ndarray]:
+    p = Path(path)
+    binding = mhclo.parse_mhclo(p.read_text(encoding="utf-8", errors="replace"), n_base)
+    _, faces = mhclo.parse_obj_faces(p.with_suffix(".obj").read_text(encoding="utf-8", errors="replace"))
+    return binding, faces
+
+
+def _garment_path(clothes_dir: Path, stem: str) -> Path:
+    hits = sorted(Path(clothes_dir).glob(f"*/{stem}.mhclo"))
+    if not hits:
+        raise FileNotFoundError(f"no garment {stem!r} under {clothes_dir}")
+    return hits[0]
+
+
+def _choose_garments(rng: np.random.Generator, names: list[str], gender: str) -> list[str]:
+    """One suit (the body's gender when available) and maybe shoes or a hat. Always draws the
+    same number of random values."""
+    u = rng.uniform(size=3)
+    suits = [n for n in names if "suit" in n]
+    own = [n for n in suits if n.startswith(f"{gender}_")] or suits
+    shoes = [n for n in names if n.startswith("shoes")]
+    hats = [n for n in names if n.startswith("fedora")]
+    out = [own[int(u[0] * len(own))]] if own else []
+    if u[1] < SHOES_P and shoes:
+        out.append(shoes[int(u[2] * len(shoes))])
+    elif SHOES_P <= u[1] < SHOES_P + HAT_P and hats:
+        out.append(hats[int(u[2] * len(hats))])
+    return out
+
+
+# -- visibility ------------------------------------------------------------------------------
+def _view_directions() -> np.ndarray:
+    dirs = [[0.0, 1.0, 0.0]]
+    for el in np.radians(VIEW_ELEVATIONS_DEG):
+        for az in np.arange(VIEW_AZIMUTHS) * 2 * np.pi / VIEW_AZIMUTHS:
+            dirs.append([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+    return np.array(dirs)
+
+
+def _seen(points: np.ndarray, n_body: int) -> tuple[np.ndarray, np.ndarray]:
+    """Orthographic z-buffer visibility of surface samples (the first ``n_body`` on the skin,
+    the others on garments) from every view direction: (seen with everything, seen with the
+    body samples alone), each (N,) bool."""
+    from scipy.ndimage import maximum_filter
+
+    X, Y, Z = np.ascontiguousarray(np.asarray(points, np.float32).T)  # 1-D columns: fast
+    seen_all = np.zeros(len(X), bool)
+    seen_body = np.zeros(n_body, bool)
+    inv_pix = np.float32(1.0 / PIXEL_M)
+    for d in _view_directions():
+        u = np.cross(d, [0.0, 0.0, 1.0] if abs(d[1]) > 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(d, u)
+        a, b, z = ((np.float32(e[0]) * X + np.float32(e[1]) * Y + np.float32(e[2]) * Z) for e in (u, v, d))
+        i = ((a - a.min()) * inv_pix).astype(np.int64) + 1
+        j = ((b - b.min()) * inv_pix).astype(np.int64) + 1
+        shape = (int(i.max()) + 2, int(j.max()) + 2)
+        flat = i * shape[1] + j
+        # z: larger = nearer the camera
+        zb_body = np.full(shape[0] * shape[1], -np.inf, np.float32)
+        np.maximum.at(zb_body, flat[:n_body], z[:n_body])
+        zb_all = zb_body.copy()
+        np.maximum.at(zb_all, flat[n_body:], z[n_body:])
+        zb_all = maximum_filter(zb_all.reshape(shape), size=3).reshape(-1)
+        zb_body = maximum_filter(zb_body.reshape(shape), size=3).reshape(-1)
+        seen_all |= z >= zb_all[flat] - DEPTH_TOL_M
+        seen_body |= z[:n_body] >= zb_body[flat[:n_body]] - DEPTH_TOL_M
+    return seen_all, seen_body
+
+
+def _surface_samples(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator):
+    """Face centroids plus area-weighted random samples (~SAMPLE_SPACING_M apart):
+    (points (N, 3), face index (N,))."""
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    n = int(area.sum() / SAMPLE_SPACING_M**2)
+    fi = rng.choice(len(faces), size=n, p=area / area.sum())
+    r = rng.uniform(size=(n, 2))
+    flip = r.sum(1) > 1
+    r[flip] = 1 - r[flip]
+    t = tri[fi]
+    pts = t[:, 0] + r[:, :1] * (t[:, 1] - t[:, 0]) + r[:, 1:] * (t[:, 2] - t[:, 0])
+    return np.concatenate([tri.mean(1), pts]), np.concatenate([np.arange(len(faces)), fi])
+
+
+def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    t = vertices[faces]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+
+
+def _visible_faces(vertices: np.ndarray, faces: np.ndarray, face_label: np.ndarray,
+                   rng: np.random.Generator) -> np.ndarray:
+    """(F,) bool: the faces a scanner sees of the merged posed mesh (label 0 = body, > 0 =
+    garments); see the module docstring (step 4)."""
+    is_body_face = face_label == 0
+    pts, fi = _surface_samples(vertices, faces, rng)
+    order = np.argsort(~is_body_face[fi], kind="stable")  # skin samples first
+    pts, fi = pts[order], fi[order]
+    n_body = int(is_body_face[fi].sum())
+    seen_all, seen_body = _seen(pts, n_body)
+    face_seen = np.zeros(len(faces), bool)
+    face_seen[fi[seen_all]] = True
+    face_seen_naked = np.zeros(len(faces), bool)
+    face_seen_naked[fi[:n_body][seen_body]] = True
+
+    # skin just behind cloth: nearest garment sample in front of the skin
+    g = np.arange(n_body, len(pts))
+    gn = _face_normals(vertices, faces)[fi[g]]
+    body_faces = faces[is_body_face]
+    bv = np.unique(body_faces)
+    dist, nn = cKDTree(pts[g]).query(vertices[bv], distance_upper_bound=HIDDEN_BEHIND_CLOTH_M)
+    hit = np.isfinite(dist)
+    hidden_v = np.zeros(len(vertices), bool)
+    q = pts[g][nn[hit]]
+    n = gn[nn[hit]]
+    d = q - vertices[bv[hit]]  # skin -> cloth
+    front = np.einsum("ij,ij->i", d, n)
+    dn = np.linalg.norm(d, axis=1)
+    hidden_v[bv[hit]] = (dn < CONTACT_M) | ((front >= 0) & (front >= 0.5 * dn))
+    behind_cloth = hidden_v[faces].sum(1) >= 2
+
+    keep = np.where(is_body_face, ~((face_seen_naked & ~face_seen) | behind_cloth), face_seen)
+    return keep
+
+
+# -- re-meshing ------------------------------------------------------------------------------
+def _cluster(vertices: np.ndarray, faces: np.ndarray, h: float, offset: np.ndarray):
+    """Vertex clustering on a grid of voxel size h: (vertex index of each cluster's
+    representative (C,), new faces (F', 3) into the clusters)."""
+    k = np.floor((vertices - offset) / h).astype(np.int64)
+    k -= k.min(0)
+    key = (k[:, 0] * (k[:, 1].max() + 1) + k[:, 1]) * (k[:, 2].max() + 1) + k[:, 2]
+    _, cid, counts = np.unique(key, return_inverse=True, return_counts=True)
+    C = len(counts)
+    mean = np.zeros((C, 3))
+    np.add.at(mean, cid, vertices)
+    mean /= counts[:, None]
+    d2 = np.einsum("ij,ij->i", vertices - mean[cid], vertices - mean[cid])
+    order = np.lexsort((d2, cid))  # within each cluster, nearest to the mean first
+    first = np.ones(len(order), bool)
+    first[1:] = cid[order][1:] != cid[order][:-1]
+    rep = np.empty(C, np.int64)
+    rep[cid[order][first]] = order[first]
+    F = cid[faces]
+    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])]
+    S = np.sort(F, axis=1)
+    _, uniq = np.unique((S[:, 0] * C + S[:, 1]) * C + S[:, 2], return_index=True)
+    F = F[np.sort(uniq)]
+    used = np.unique(F)
+    remap = np.full(C, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return rep[used], remap[F]
+
+
+def remesh(vertices: np.ndarray, faces: np.ndarray, n_points: int, rng: np.random.Generator,
+           face_labels: np.ndarray | None = None, iterations: int = 4):
+    """Re-mesh by vertex clustering to about ``n_points`` vertices (module docstring, step 5):
+    (vertices (C, 3), faces (F', 3), each vertex's label from ``face_labels`` (F,) or None)."""
+    import trimesh
+
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    h = np.sqrt(1.5 * area / n_points)
+    Vs, Fs, src = trimesh.remesh.subdivide_to_size(vertices, faces, max_edge=0.6 * h, max_iter=12,
+                                                   return_index=True)
+    offset = rng.uniform(0.0, 1.0, size=3)
+    best = None
+    for _ in range(iterations):
+        rep, F = _cluster(Vs, Fs, h, offset * h)
+        if best is None or abs(len(rep) - n_points) < abs(len(best[0]) - n_points):
+            best = (rep, F)
+        h *= np.sqrt(len(rep) / n_points)
+    rep, F = best
+    perm = rng.permutation(len(rep))
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    labels = None
+    if face_labels is not None:
+        vl = np.empty(len(Vs), np.asarray(face_labels).dtype)
+        vl[Fs] = np.asarray(face_labels)[src][:, None]
+        labels = vl[rep[perm]]
+    return Vs[rep[perm]], inv[F], labels
+
+
+# -- clothes ---------------------------------------------------------------------------------
+def dress(model, X: np.ndarray, transforms: np.ndarray, translation: np.ndarray, names: list[str],
+          clothes_dir: Path | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The garments ``names`` (mhclo stems) on the rest body X (V, 3): each fitted by its
+    binding, pushed out of the body like a try-on (3 mm), then posed with the blend, by its
+    binding weights, of its bound vertices' skinning transforms (``transforms`` (J, 4, 4) of
+    ``model.forward``) and moved by ``translation``. Returns [(vertices (M, 3), faces)]."""
+    nb = model.n_body_vertices
+    if not names:
+        return []
+    clothes_dir = Path(clothes_dir or default_clothes_dir())
+    A = lbs.blend_transforms(transforms, model.lbs_indices, model.lbs_weights)
+    body_n = vertex_normals(X[:nb], model.body_faces)
+    body_tree = cKDTree(X[:nb])
+    out = []
+    for name in names:
+        binding, gfaces = _load_garment(str(_garment_path(clothes_dir, name)), X.shape[0])
+        g = binding.fit(X)
+        g, _ = G_.push_out(g, X[:nb], body_n, body_tree.query(g)[1][:, None],
+                           G_.laplacian_smoother(gfaces, len(g)))
+        g = np.asarray(g, np.float64)
+        w = binding.weights / binding.weights.sum(1, keepdims=True)
+        Ag = np.einsum("mk,mkij->mij", w, A[binding.indices])
+        out.append((np.einsum("mij,mj->mi", Ag[:, :3, :3], g) + Ag[:, :3, 3] + translation,
+                    np.asarray(gfaces, np.int64)))
+    return out
+
+
+# -- the scan --------------------------------------------------------------------------------
+def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str, *, clothed: bool,
+              point_cloud: bool, n_points: int = 12_500, noise_mm: float = 2.0, max_pose_deg: float = 45.0,
+              garments: list[str] | None = None, clothes_dir: Path | None = None, unit: str | None = None,
+              up: str | None = None) -> SyntheticScan:
+    """A synthetic scan of the body ``weights`` (see the module docstring). ``garments``
+    (mhclo stems) overrides the random choice; ``unit``/``up`` override the random frame."""
+    weights = np.asarray(weights, np.float64)
+    X = model.vertices(weights).astype(np.float64)
+    nb = model.n_body_vertices
+    measurements = model.measure(X, gender)
+
+    # random draws in a fixed order (same person/pose/frame/garments whether clothed or not)
+    rotvecs = random_pose(rng, max_pose_deg)
+    u_unit, u_up = rng.uniform(size=2)
+    yaw = rng.uniform(-np.pi, np.pi)
+    shift = rng.uniform(-1.0, 1.0, size=3)
+    clothes_dir = Path(clothes_dir or default_clothes_dir())
+    names = available_garments(clothes_dir) if clothes_dir.is_dir() else []
+    chosen = _choose_garments(rng, names, gender)
+    seed_vis, seed_mesh, seed_noise = rng.integers(0, 2**63 - 1, size=3)
+    unit = unit or tuple(UNIT_SCALE)[int(u_unit * 3)]
+    up = up or UPS[int(u_up * 2)]
+    if unit not in UNIT_SCALE or up not in UPS:
+        raise ValueError(f"unit must be one of {tuple(UNIT_SCALE)} and up one of {UPS}")
+    if not clothed:
+        chosen = []
+    elif garments is not None:
+        chosen = list(garments)
+    if clothed and not chosen:
+        raise FileNotFoundError(f"no MakeHuman garments under {clothes_dir}")
+
+    # pose the body (lifted onto the floor) and the joints
+    rest_posed = model.forward(pose=rotvecs, vertices=X)
+    translation = np.array([0.0, -rest_posed.vertices[:nb, 1].min(), 0.0])
+    posed = rest_posed.vertices + translation
+    joints = rest_posed.joints + translation
+
+    # dress in the rest pose (pushed out of the body like a try-on), pose with the bound
+    # vertices' transforms
+    parts_v, parts_f, labels = [posed[:nb]], [np.asarray(model.body_faces, np.int64)], [0]
+    offset = nb
+    for k, (gv, gf) in enumerate(dress(model, X, rest_posed.transforms, translation, chosen, clothes_dir), start=1):
+        parts_v.append(gv)
+        parts_f.append(gf + offset)
+        labels.append(k)
+        offset += len(gv)
+    V = np.concatenate(parts_v)
+    F = np.concatenate(parts_f)
+    face_label = np.concatenate([np.full(len(f), lab) for f, lab in zip(parts_f, labels)])
+
+    if chosen:
+        keep = _visible_faces(V, F, face_label, np.random.default_rng(seed_vis))
+        F, face_label = F[keep], face_label[keep]
+    used = np.unique(F)
+    remap = np.full(len(V), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    V, F = V[used], remap[F]
+
+    mesh_rng = np.random.default_rng(seed_mesh)
+    if point_cloud:
+        import trimesh
+
+        tm = trimesh.Trimesh(V, F, process=False)
+        # ask for 15 % more (a smaller rejection radius), keep the first n_points
+        pts, fi = trimesh.sample.sample_surface_even(tm, int(1.15 * n_points) + 1, seed=mesh_rng)
+        if len(pts) < n_points:
+            more, fi2 = trimesh.sample.sample_surface(tm, n_points - len(pts), seed=mesh_rng)
+            pts, fi = np.concatenate([pts, more]), np.concatenate([fi, fi2])
+        pts, fi = np.asarray(pts[:n_points], np.float64), fi[:n_points]
+        normals = _face_normals(V, F)[fi]
+        out_faces = None
+        is_body = face_label[fi] == 0
+    else:
+        pts, out_faces, lab = remesh(V, F, n_points, mesh_rng, face_labels=face_label)
+        is_body = lab == 0
+        normals = None
+
+    noisy = pts + np.random.default_rng(seed_noise).normal(scale=noise_mm / 1000.0, size=pts.shape)
+    if out_faces is not None:
+        normals = vertex_normals(noisy, out_faces).astype(np.float64)
+
+    # model frame -> scan frame: p_s = s Rup (Ryaw p + t)
+    s = UNIT_SCALE[unit]
+    Rm = up_rotation(up) @ _rot_y(yaw)
+    to_scan = np.eye(4)
+    to_scan[:3, :3] = s * Rm
+    to_scan[:3, 3] = s * (up_rotation(up) @ shift)
+    to_model = np.linalg.inv(to_scan)
+    points = noisy @ to_scan[:3, :3].T + to_scan[:3, 3]
+    if normals is not None:
+        normals = normals @ Rm.T
+    return SyntheticScan(points=points, normals=normals, faces=out_faces, unit=unit, up=up, to_model=to_model,
+                         weights=weights, rotvecs=rotvecs, translation=translation, true_posed=posed,
+                         true_joints=joints, gender=gender, measurements=measurements, garments=chosen,
+                         clothed=bool(clothed), point_is_body=is_body)
+
+
+# -- files -----------------------------------------------------------------------------------
+FORMATS = ("obj", "ply", "stl", "glb", "xyz")
+POINT_CLOUD_FORMATS = ("ply", "xyz", "obj")
+
+
+def scan_file_bytes(scan: SyntheticScan, fmt: str) -> bytes:
+    """The scan as a file: ``obj``, ``ply``, ``stl``, ``glb`` (meshes, trimesh's exporters;
+    normals where the format carries them) or ``xyz`` (text ``x y z nx ny nz`` per line).
+    Point clouds only as ``ply`` (binary, x y z nx ny nz), ``xyz`` or ``obj`` (``v``/``vn``)."""
+    fmt = fmt.lower().lstrip(".")
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    P = np.asarray(scan.points, np.float64)
+    N = scan.normals
+    if fmt == "xyz":
+        cols = P if N is None else np.hstack([P, N])
+        buf = io.StringIO()
+        np.savetxt(buf, cols, fmt="%.6f")
+        return buf.getvalue().encode()
+    if scan.faces is None:
+        if fmt not in POINT_CLOUD_FORMATS:
+            raise ValueError(f"a point cloud cannot be written as {fmt!r}; use one of {POINT_CLOUD_FORMATS}")
+        if fmt == "obj":
+            lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in P]
+            if N is not None:
+                lines += [f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in N]
+            return ("\n".join(lines) + "\n").encode()
+        props = ["x", "y", "z"] + ([] if N is None else ["nx", "ny", "nz"])
+        head = ("ply\nformat binary_little_endian 1.0\n"
+                f"element vertex {len(P)}\n" + "".join(f"property float {p}\n" for p in props)
+                + "end_header\n").encode()
+        data = (P if N is None else np.hstack([P, N])).astype("<f4")
+        return head + data.tobytes()
+    import trimesh
+
+    kw = {} if N is None else {"vertex_normals": np.asarray(N, np.float64)}
+    mesh = trimesh.Trimesh(P, scan.faces, process=False, **kw)
+    if fmt == "obj":
+        return mesh.export(file_type="obj", include_normals=N is not None, include_texture=False).encode()
+    if fmt == "ply":
+        return mesh.export(file_type="ply", encoding="binary", vertex_normal=N is not None)
+    if fmt == "stl":
+        return mesh.export(file_type="stl")
+    return mesh.export(file_type="glb", include_normals=N is not None)
+
+
+__all__ = ["SyntheticScan", "random_pose", "make_scan", "scan_file_bytes", "available_garments", "remesh",
+           "up_rotation", "UNIT_SCALE", "FORMATS", "POINT_CLOUD_FORMATS"]
+
+
+# -- shapes that are not a person (the person check) -------------------------------------------
+NON_PERSON_KINDS = ("box", "ellipsoid", "chair", "two_people", "two_people_touching")
+
+
+def _non_person_mesh(model, kind: str, rng: np.random.Generator):
+    """(vertices (V, 3), faces (F, 3)) of a person-sized shape that is not one person, in the
+    model frame (metres, Y up, standing on y = 0)."""
+    import trimesh
+
+    if kind == "box":  # a dense person-sized box
+        m = trimesh.creation.box(extents=(0.5, 1.8, 0.3))
+        m.apply_translation((0, 0.9, 0))
+        m = m.subdivide_to_size(0.02)
+    elif kind == "ellipsoid":
+        m = trimesh.creation.icosphere(subdivisions=5)
+        m.apply_scale((0.25, 0.87, 0.16))
+        m.apply_translation((0, 0.87, 0))
+    elif kind == "chair":  # seat, four legs, a back: 1.1 m high
+        parts = [trimesh.creation.box(extents=(0.5, 0.05, 0.5)).apply_translation((0, 0.45, 0)),
+                 trimesh.creation.box(extents=(0.5, 0.6, 0.05)).apply_translation((0, 0.8, -0.225))]
+        for x in (-0.22, 0.22):
+            for z in (-0.22, 0.22):
+                parts.append(trimesh.creation.box(extents=(0.04, 0.45, 0.04)).apply_translation((x, 0.225, z)))
+        m = trimesh.util.concatenate(parts)
+        m = m.subdivide_to_size(0.02)
+    elif kind in ("two_people", "two_people_touching"):  # two people side by side (T-pose span 1.2 m)
+        nb = model.n_body_vertices
+        vs, fs = [], []
+        gap = 0.8 if kind == "two_people" else 0.5  # 40 cm apart, or hands overlapping
+        for k, dx in enumerate((-gap, gap)):
+            w = np.zeros(model.n_components)
+            w[:3] = rng.normal(scale=0.5, size=3) * np.sqrt(model.variances[:3])
+            pose = random_pose(rng, 10.0)
+            pose[0] = 0.0  # both facing +Z
+            out = model.forward(w, pose, np.zeros(3))
+            v = out.vertices[:nb] + [dx, -out.vertices[:nb, 1].min(), 0.0]
+            vs.append(v)
+            fs.append(np.asarray(model.body_faces, np.int64) + k * nb)
+        return np.concatenate(vs), np.concatenate(fs)
+    else:
+        raise ValueError(f"unknown shape {kind!r}; expected one of {NON_PERSON_KINDS}")
+    return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+
+
+def non_person_scan(model, kind: str, rng: np.random.Generator, n_points: int = 12_500, noise_mm: float = 2.0,
+                    unit: str | None = None, up: str | None = None):
+    """A point cloud (points (P, 3) file units, normals (P, 3), unit, up) of a shape that is
+    not one person (``NON_PERSON_KINDS``), in a random unit, up axis, yaw and placement."""
+    import trimesh
+
+    V, F = _non_person_mesh(model, kind, rng)
+    unit = unit or tuple(UNIT_SCALE)[int(rng.integers(3))]
+    up = up or UPS[int(rng.integers(2))]
+    tm = trimesh.Trimesh(V, F, process=False)
+    pts, fi = trimesh.sample.sample_surface(tm, n_points, seed=rng)
+    normals = _face_normals(V, F)[fi]
+    pts = np.asarray(pts, np.float64) + rng.normal(scale=noise_mm / 1000.0, size=(len(pts), 3))
+    Rm = up_rotation(up) @ _rot_y(rng.uniform(-np.pi, np.pi))
+    s = UNIT_SCALE[unit]
+    points = s * (pts @ Rm.T + up_rotation(up) @ rng.uniform(-1.0, 1.0, size=3))
+    return points, normals @ Rm.T, unit, up
+
+
+def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
+    """A single-view (front) scan from a point-cloud scan: only the points whose normal faces the
+    camera in front of the person (the true root's facing), as a depth camera sees them
+    (self-occlusion ignored). The truth is the scan's."""
+    from dataclasses import replace
+
+    from service.model.lbs import axis_angle_to_matrix
+
+    if scan.faces is not None or scan.normals is None:
+        raise ValueError("front_only needs a point cloud with normals")
+    R = scan.to_model[:3, :3] / np.cbrt(np.linalg.det(scan.to_model[:3, :3]))
+    facing = axis_angle_to_matrix(scan.rotvecs[:1])[0] @ np.array([0.0, 0.0, 1.0])
+    keep = (scan.normals @ R.T) @ facing > min_cos
+    return replace(scan, points=scan.points[keep], normals=scan.normals[keep],
+                   point_is_body=None if scan.point_is_body is None else scan.point_is_body[keep])

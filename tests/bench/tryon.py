@@ -1,0 +1,544 @@
+"""``tryon bench tryon`` and ``tryon bench examples``: garment accuracy of the clothing basis on
+held-out avatars, penetration, in-process try-on latency, GLB bytes, HTTP load on loopback; and
+the example-set sweep that chose N and c."""
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.model import demo_garments as D
+from service.model import gltf
+from service.model import shape as S
+from service.model import tryon as T
+from service.model.body import load_body_model
+from service.model.geometry import closest_point_on_triangles, vertex_faces, winding_numbers
+from tests.bench.common import heldout_avatars, makehuman_garments, median_ms, read_ansur
+from tests.harness import run_server
+
+
+def bench_garments(model) -> dict:
+    """All benchmark garments: the demo ones, a 10k-vertex skirt, and MakeHuman's."""
+    demos = D.make_demo_garments(model)
+    out = {f"demo-{n}": ((lambda X, g=g: g.fit(model, X)), g.faces) for n, g in demos.items()}
+    big = D.DemoGarment("skirt", D.skirt_faces(64, 160))
+    out["demo-skirt-10k"] = ((lambda X: D.skirt_rings(model, X, rings=64, angles=160)), big.faces)
+    out.update({f"mh-{k}": v for k, v in makehuman_garments(model).items()})
+    return out
+
+
+def penetration_depths(garment: np.ndarray, body: np.ndarray, faces: np.ndarray, tree, vert_faces) -> np.ndarray:
+    """Depth (m, > 0 inside) of each garment vertex below the body surface: exact distance to
+    the closest triangle among those around the 8 nearest body vertices; inside means a
+    generalised winding number > 1/2. garment (M, 3), body (V, 3)."""
+    _, nn = tree.query(garment, k=8)
+    cand = vert_faces[nn].reshape(len(garment), -1)
+    valid = cand >= 0
+    tri = body[faces[np.where(valid, cand, 0)]]  # (M, C, 3, 3)
+    p = garment[:, None, :]
+    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+    q = closest_point_on_triangles(p, a, b, c)
+    d = np.linalg.norm(p - q, axis=-1)
+    d = np.where(valid, d, np.inf)
+    j = np.argmin(d, axis=1)
+    r = np.arange(len(garment))
+    n = np.cross(b[r, j] - a[r, j], c[r, j] - a[r, j])
+    sign = np.sign(np.einsum("ij,ij->i", garment - q[r, j], n))
+    depth = -sign * d[r, j]
+    # the face-normal sign misfires near convex edges: confirm every "inside" candidate with
+    # the generalised winding number (exact)
+    cand = np.flatnonzero(depth > 0)
+    if len(cand):
+        outside = winding_numbers(garment[cand], body, faces) < 0.5
+        depth[cand[outside]] = -depth[cand[outside]]
+    return depth
+
+
+def bench_tryon(limit: int, repeats: int) -> dict:
+    model = load_body_model()
+    nb = model.n_body_vertices
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    garments = bench_garments(model)
+    bases = {}
+    for name, (fit, faces) in garments.items():
+        fits = np.stack([fit(E) for E in EX])
+        bases[name] = T.build_garment_basis(model, fits, faces, ex)
+    res: dict = {"suite": "tryon", "examples": {"n": ex.n, "c": ex.c, "count": 1 + 2 * ex.n},
+                 "garments": {k: v.n_vertices for k, v in bases.items()}}
+
+    # 1. accuracy on held-out avatars: basis-fitted vs fitted directly by the same method
+    H = heldout_avatars(model)
+    if limit:
+        H = H[:limit]
+    W = model.project(H)
+    per = {}
+    all_err = []
+    for name, (fit, _) in garments.items():
+        errs = []
+        for Xh, w in zip(H, W):
+            direct = fit(Xh)
+            synth = T.G.synthesize(bases[name].g, bases[name].B, w)
+            errs.append(np.linalg.norm(synth - direct, axis=1))
+        e = np.concatenate(errs) * 1000
+        per[name] = {"mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99))}
+        all_err.append(e)
+    e = np.concatenate(all_err)
+    res["accuracy_mm"] = {"avatars": len(H), "mean": float(e.mean()), "p99": float(np.percentile(e, 99)),
+                          "goal": {"mean": 2.0, "p99": 8.0}, "per_garment": per}
+
+    # 2. penetration over random customers (held-out ANSUR subjects' measurements)
+    rng = np.random.default_rng(1)
+    held = read_ansur(heldout=True)
+    specs = {a.name: a for a in model.attributes}
+    held = [h for h in held if all(specs[k].min <= v <= specs[k].max for k, v in h["measurements"].items() if k != "gender")]
+    n_cust = 200 if not limit else min(200, max(20, limit))
+    picks = rng.choice(len(held), size=n_cust, replace=False)
+    vert_faces = vertex_faces(model.body_faces, nb)
+    inside, selfx, total, worst = 0, 0, 0, 0.0
+    per_pen = {k: 0 for k in bases}
+    for i in picks:
+        fitc = S.avatar_from_measurements(model, held[i]["measurements"])
+        body = T.customer_body(model, fitc.weights)
+        tree = cKDTree(body.vertices[:nb])
+        for name, basis in bases.items():
+            v, _ = T.try_on(basis, body)
+            Xb = body.vertices[:nb].astype(np.float64)
+            dep = penetration_depths(v.astype(np.float64), Xb, model.body_faces, tree, vert_faces)
+            bad = np.flatnonzero(dep > 0.001)
+            if len(bad):
+                # where the avatar's own skin is inside the body (heavy inner thighs overlapping),
+                # no cloth between can be outside: count those apart
+                _, nn = tree.query(v[bad])
+                probe = Xb[nn] + 0.002 * body.normals[nn]
+                own = winding_numbers(probe, Xb, model.body_faces) > 0.5
+                selfx += int(own.sum())
+                bad = bad[~own]
+            inside += len(bad)
+            per_pen[name] += len(bad)
+            total += len(v)
+            if len(bad):
+                worst = max(worst, float(dep[bad].max()))
+    res["penetration"] = {"customers": int(n_cust), "garments": len(bases), "vertices_checked": int(total),
+                          "vertices_more_than_1mm_inside": int(inside), "deepest_mm": 1000 * worst,
+                          "inside_avatar_self_intersections": int(selfx), "per_garment": per_pen, "goal": 0}
+
+    # 3. in-process try-on of a 10k-vertex garment: synthesis + push-out + GLB, beside synthesis
+    basis = bases["demo-skirt-10k"]
+    bodies = [T.customer_body(model, S.avatar_from_measurements(model, held[i]["measurements"]).weights)
+              for i in picks[:10]]
+    it = iter(range(10**9))
+    g, B = np.asarray(basis.g), np.asarray(basis.B)
+    t_syn = median_ms(lambda: T.G.synthesize(g, B, bodies[next(it) % 10].weights), repeats)
+
+    def full(compression=None):
+        body = bodies[next(it) % 10]
+        v, _ = T.try_on(basis, body)
+        return gltf.mesh_to_glb(v, basis.faces, normals=basis.normals(v, body.weights), name="garment",
+                                compression=compression)
+
+    t_full = median_ms(full, repeats)
+    firsts = []
+    for i in picks[10:20]:  # first try-on of a garment on a body: + nearest-vertex binding
+        body = T.customer_body(model, S.avatar_from_measurements(model, held[i]["measurements"]).weights)
+        t0 = time.perf_counter()
+        T.try_on(basis, body)
+        firsts.append(time.perf_counter() - t0)
+    res["timing_ms"] = {"garment_vertices": basis.n_vertices, "synthesis_3MN": t_syn,
+                        "tryon_synthesis_pushout_glb": t_full, "ratio": t_full / t_syn, "goal": 2.0,
+                        "first_tryon_per_customer_and_garment": 1000 * float(np.median(firsts)),
+                        "multiply_adds": 3 * basis.n_vertices * ex.n}
+
+    # 4. GLB bytes: the fitted 10k garment and its morph-target basis, plain vs compressed
+    sizes = {}
+    for mode in (None, "quantize", "meshopt"):
+        key = mode or "plain"
+        sizes[key] = {"tryon_glb": len(full(mode)),
+                      "basis_glb": len(gltf.basis_to_glb(basis.g, basis.B, basis.faces, compression=mode))}
+    res["glb_bytes"] = {"garment_vertices": basis.n_vertices, "morph_targets": ex.n, **sizes}
+
+    # 4b. textures: the 10k garment textured (UV seams split, base colour + normal map) through
+    # the service's try-on path, beside the untextured one; texture bytes per try-on GLB
+    res["textures"] = bench_textures(model, basis, bodies, repeats)
+
+    # 5. HTTP on loopback with concurrent clients
+    res["http"] = bench_http()
+
+    # 6. pose stretch (skin weights) and layering
+    res.update(bench_clothes_motion(limit))
+    return res
+
+
+def skirt_layout(rings: int = 64, angles: int = 160):
+    """A render layout of the demo skirt grid (``D.skirt_faces``): u around (a seam where the
+    rings close: one extra uv column), v down the rings."""
+    from service.model.catalogue import render_layout
+
+    r, a = np.meshgrid(np.arange(rings - 1), np.arange(angles), indexing="ij")
+    t0 = (r * (angles + 1) + a).reshape(-1)
+    t1 = (r * (angles + 1) + a + 1).reshape(-1)
+    face_uv = np.concatenate([np.stack([t0, t1 + angles + 1, t1], 1), np.stack([t0, t0 + angles + 1, t1 + angles + 1], 1)])
+    U, V = np.meshgrid(np.arange(angles + 1) / angles, 1.0 - np.arange(rings) / (rings - 1))
+    uv = np.stack([U, V], axis=-1).reshape(-1, 2)
+    return render_layout(D.skirt_faces(rings, angles), face_uv, uv)
+
+
+def bench_textures(model, basis, bodies, repeats: int) -> dict:
+    """P1 try-on latency of ``basis`` (the 10k-vertex skirt) with and without its look (measured
+    in the same run through ``scenes.garment_mesh`` + ``gltf.scene_to_glb``), and the texture
+    bytes of every demo-catalogue item's try-on GLB."""
+    import dataclasses
+
+    from service.application import scenes
+    from service.model.catalogue import load_catalogue
+    from service.records import Garment
+
+    cat = load_catalogue()
+    mat = dataclasses.replace(cat.items["cropped-tee"].material)  # base colour + normal textures
+    lay = skirt_layout()
+    textured = dataclasses.replace(basis, render_vertex=lay.vertex.astype(np.int32), render_uv=lay.uv,
+                                   render_faces=lay.faces.astype(np.int32), material=mat, _render_skin=None,
+                                   _render_tangents=None)
+    rec = Garment(id="bench", body_model=model.version, owner="bench", name="skirt", source="demo",
+                  color=[0.5, 0.5, 0.5, 1.0], layer=1)
+    skel = {k: v for k, v in scenes.skeleton(model, bodies[0].vertices).items()}
+    it = iter(range(10**9))
+
+    def run(b, compression=None):
+        body = bodies[next(it) % len(bodies)]
+        return gltf.scene_to_glb([scenes.garment_mesh(b, rec, body, 0)], skin=skel, compression=compression)
+
+    for b in (basis, textured):  # warm: bindings, render skin, mean tangents
+        for body in bodies:
+            scenes.garment_mesh(b, rec, body, 0)
+    ts: dict = {"plain": [], "tex": []}
+    for _ in range(repeats):  # interleaved: both see the same machine load
+        for key, b in (("plain", basis), ("tex", textured)):
+            t0 = time.perf_counter()
+            run(b)
+            ts[key].append(time.perf_counter() - t0)
+    t_plain, t_tex = (1000.0 * float(np.median(ts[k])) for k in ("plain", "tex"))
+    sizes = {mode or "plain": {"untextured": len(run(basis, mode)), "textured": len(run(textured, mode))}
+             for mode in (None, "quantize", "meshopt")}
+    per_item = {}
+    for item in cat.garments():
+        m = item.material
+        per_item[item.id] = sum(len(t.data) for t in (m.base_color_texture, m.normal_texture) if t is not None)
+    vals = np.array(list(per_item.values()))
+    return {"garment_vertices": basis.n_vertices, "render_vertices": int(len(lay.vertex)),
+            "texture_bytes_bench_garment": sum(len(t.data) for t in (mat.base_color_texture, mat.normal_texture)),
+            "tryon_glb_ms": {"untextured": t_plain, "textured": t_tex, "ratio": t_tex / t_plain, "goal": 2.0},
+            "glb_bytes": sizes,
+            "catalogue_texture_bytes": {"items": len(per_item), "min": int(vals.min()), "median": float(np.median(vals)),
+                                        "max": int(vals.max()), "per_item": per_item}}
+
+
+def format_textures(x: dict) -> list[str]:
+    t, c = x["tryon_glb_ms"], x["catalogue_texture_bytes"]
+    L = [f"\ntextures: {x['garment_vertices']}-vertex garment, {x['render_vertices']} render vertices (UV seams "
+         f"split), base colour + normal map ({x['texture_bytes_bench_garment']} texture bytes)",
+         f"  skinned try-on GLB (synthesis + push-out + GLB), median ms: untextured {t['untextured']:.3f}, "
+         f"textured {t['textured']:.3f} (x{t['ratio']:.2f}; goal <= 2 ms)",
+         f"  {'':<10}{'untextured':>12}{'textured':>12}"]
+    for k, v in x["glb_bytes"].items():
+        L.append(f"  {k:<10}{v['untextured']:>12}{v['textured']:>12}")
+    L.append(f"  texture bytes per try-on GLB, {c['items']} demo catalogue items: min {c['min']}, median "
+             f"{c['median']:.0f}, max {c['max']}")
+    return L
+
+
+def format_tryon(r: dict) -> str:
+    L = [f"examples: N = {r['examples']['n']} components, c = {r['examples']['c']} "
+         f"({r['examples']['count']} example avatars); {len(r['garments'])} garments"]
+    a = r["accuracy_mm"]
+    L.append(f"\ngarment accuracy on {a['avatars']} held-out avatars (basis vs direct fit): mean {a['mean']:.3f} mm, "
+             f"p99 {a['p99']:.3f} mm (goal <= 2 / <= 8)")
+    L.append(f"  {'garment':<34}{'vertices':>9}{'mean mm':>10}{'p99 mm':>10}")
+    for k, v in a["per_garment"].items():
+        L.append(f"  {k:<34}{r['garments'][k]:>9}{v['mean_mm']:>10.3f}{v['p99_mm']:>10.3f}")
+    p = r["penetration"]
+    L.append(f"\npenetration: {p['customers']} customers x {p['garments']} garments, {p['vertices_checked']} vertices: "
+             f"{p['vertices_more_than_1mm_inside']} more than 1 mm inside (goal 0); deepest {p['deepest_mm']:.2f} mm; "
+             f"plus {p['inside_avatar_self_intersections']} where the avatar's own skin is inside the body "
+             f"(overlapping inner thighs)")
+    t = r["timing_ms"]
+    L.append(f"\nin-process try-on, {t['garment_vertices']}-vertex garment (median ms)")
+    L.append(f"  bare synthesis (3MN = {t['multiply_adds']} multiply-adds)   {t['synthesis_3MN']:8.3f}")
+    L.append(f"  synthesis + push-out + GLB bytes            {t['tryon_synthesis_pushout_glb']:8.3f}  "
+             f"(x{t['ratio']:.1f}; goal <= 2 ms)")
+    L.append(f"  first try-on of a garment on a body (+ nearest-vertex binding, then cached) "
+             f"{t['first_tryon_per_customer_and_garment']:8.3f}")
+    b = r["glb_bytes"]
+    L.append(f"\nGLB bytes, {b['garment_vertices']} vertices ({b['morph_targets']} morph targets in the basis)")
+    L.append(f"  {'':<10}{'try-on':>12}{'basis':>12}")
+    for k in ("plain", "quantize", "meshopt"):
+        L.append(f"  {k:<10}{b[k]['tryon_glb']:>12}{b[k]['basis_glb']:>12}")
+    if "textures" in r:
+        L += format_textures(r["textures"])
+    h = r["http"]
+    L.append(f"\nHTTP on loopback (same 2 cores for clients and {h['server_workers']} server processes), "
+             f"{h['seconds']} s per row; try-on of {h['garments']} demo garments")
+    L.append(f"  {'clients':>7}  {'try-on p50':>10} {'p99':>8} {'req/s':>8}   {'healthz p50':>11} {'p99':>7} {'req/s':>8}")
+    for row in h["levels"]:
+        t, z = row["tryon"], row["healthz"]
+        L.append(f"  {row['clients']:>7}  {t['p50_ms']:>8.2f}ms {t['p99_ms']:>6.2f}ms {t['rps']:>8.1f}   "
+                 f"{z['p50_ms']:>9.2f}ms {z['p99_ms']:>5.2f}ms {z['rps']:>8.1f}"
+                 + (f"  ({t['errors'] + z['errors']} errors)" if t['errors'] + z['errors'] else ""))
+    L.append("  goal (try-on): p50 <= 10 ms, p99 <= 30 ms, >= 500 req/s")
+    if "pose_stretch" in r:
+        L.append(format_clothes_motion(r))
+    return "\n".join(L)
+
+
+# -- HTTP load on loopback ------------------------------------------------------------------
+async def _load(port: int, paths: list[str], clients: int, seconds: float,
+                headers: str = "") -> tuple[list[float], int]:
+    """``clients`` keep-alive connections, each requesting paths round-robin for ``seconds``.
+    Returns (latencies in seconds, non-200 count). Raw asyncio streams: light on the client
+    side, so the server keeps most of the CPU."""
+    lat: list[float] = []
+    errors = 0
+    stop = time.perf_counter() + seconds
+
+    async def client(k: int):
+        nonlocal errors
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        i = k
+        while time.perf_counter() < stop:
+            path = paths[i % len(paths)]
+            i += 1
+            t = time.perf_counter()
+            writer.write(f"GET {path} HTTP/1.1\r\nHost: bench\r\n{headers}\r\n".encode())
+            await writer.drain()
+            head = await reader.readuntil(b"\r\n\r\n")
+            length = 0
+            for line in head.split(b"\r\n"):
+                if line.lower().startswith(b"content-length:"):
+                    length = int(line.split(b":")[1])
+            await reader.readexactly(length)
+            lat.append(time.perf_counter() - t)
+            if not head.startswith(b"HTTP/1.1 200"):
+                errors += 1
+        writer.close()
+
+    await asyncio.gather(*(client(k) for k in range(clients)))
+    return lat, errors
+
+
+def bench_http(levels: tuple[int, ...] = (1, 4, 8, 16), seconds: float = 6.0, workers: int = 2) -> dict:
+    """p50/p99 and requests/s of try-on GETs (the demo garments, one customer) against a real
+    ``tryon serve`` on loopback (its own embedded Redis in a temporary directory), at several
+    numbers of concurrent keep-alive clients, beside ``/healthz`` (the framework's own floor)
+    measured the same way in the same run. With C clients, p50 ~ C / throughput (Little's law):
+    latency is a function of concurrency."""
+    with run_server(None, "embedded", workers=workers, log_level="warning", check_log=False) as server:
+        client = server.client
+        garments = [g["id"] for g in client.get("/v1/garments").json()]
+        created = client.post("/v1/customers", json={"measurements": {
+            "gender": "female", "height_cm": 166, "weight_kg": 68, "waist_cm": 80}}).json()
+        cust, auth = created["id"], f"Authorization: Bearer {created['token']}\r\n"
+        paths = [f"/v1/customers/{cust}/garments/{g}.glb" for g in garments]
+        for _ in range(4 * workers):  # warm every server process (customer body, mmapped bases)
+            for p in paths:
+                client.get(p, headers={"Authorization": f"Bearer {created['token']}"})
+        out = {"seconds": seconds, "server_workers": workers, "garments": len(paths), "levels": []}
+        for clients in levels:
+            row = {"clients": clients}
+            for name, ps in (("healthz", ["/healthz"]), ("tryon", paths)):
+                lat, errors = asyncio.run(_load(server.port, ps, clients, seconds, auth))
+                a = np.array(lat) * 1000
+                row[name] = {"requests": len(a), "errors": errors, "p50_ms": float(np.percentile(a, 50)),
+                             "p99_ms": float(np.percentile(a, 99)), "rps": len(a) / seconds}
+            out["levels"].append(row)
+        out["goal"] = {"p50_ms": 10, "p99_ms": 30, "rps": 500}
+        return out
+
+
+def bench_examples(limit: int, repeats: int) -> dict:
+    """Choose the example avatars by measurement: garment accuracy (basis vs direct fit on
+    held-out avatars) for a grid of N (components) and c (std units), over the demo garments
+    and a spread of MakeHuman garments."""
+    model = load_body_model()
+    H = heldout_avatars(model)[: (limit or 20)]
+    W = model.project(H)
+    garments = bench_garments(model)
+    names = [n for n in garments if n.startswith("demo-") and n != "demo-skirt-10k"] + \
+        ["mh-male_casualsuit04", "mh-female_elegantsuit01", "mh-shoes01"]
+    directs = {n: [garments[n][0](X) for X in H] for n in names}
+    rows = []
+    for n_comp in (8, 12, 16, 24, 32, 48):
+        for c in (0.5, 1.0, 2.0):
+            ex = T.example_set(model, n=n_comp, c=c)
+            EX = T.example_vertices(model, ex)
+            errs = []
+            for name in names:
+                fit = garments[name][0]
+                g, B = T.G.build_basis(np.stack([fit(E) for E in EX]), ex)
+                for w, d in zip(W, directs[name]):
+                    errs.append(np.linalg.norm(T.G.synthesize(g, B, w) - d, axis=1))
+            e = np.concatenate(errs) * 1000
+            rows.append({"n": n_comp, "c": c, "examples": 1 + 2 * n_comp, "mean_mm": float(e.mean()),
+                         "p99_mm": float(np.percentile(e, 99))})
+    return {"suite": "examples", "avatars": len(H), "garments": names, "grid": rows,
+            "current": dict(T.EXAMPLES)}
+
+
+def format_examples(r: dict) -> str:
+    L = [f"garment accuracy vs example set ({r['avatars']} held-out avatars; {', '.join(r['garments'])})",
+         f"  {'N':>3}{'c':>6}{'examples':>10}{'mean mm':>10}{'p99 mm':>10}"]
+    for row in r["grid"]:
+        mark = "  <- current" if (row["n"], row["c"]) == (r["current"]["n"], r["current"]["c"]) else ""
+        L.append(f"  {row['n']:>3}{row['c']:>6.1f}{row['examples']:>10}{row['mean_mm']:>10.3f}{row['p99_mm']:>10.3f}{mark}")
+    return "\n".join(L)
+
+
+# -- clothes that move like clothes: pose stretch and layering ------------------------------------
+FIVE_BODIES = {
+    "160/55 woman": {"gender": "female", "height_cm": 160, "weight_kg": 55},
+    "185/80 man": {"gender": "male", "height_cm": 185, "weight_kg": 80},
+    "165/105 woman": {"gender": "female", "height_cm": 165, "weight_kg": 105},
+    "200/130 man": {"gender": "male", "height_cm": 200, "weight_kg": 130},
+    "150/45 man": {"gender": "male", "height_cm": 150, "weight_kg": 45},
+}
+STRETCH_PERCENTILE = 99.9
+
+
+def catalogue_bases(model, ex, EX) -> dict:
+    """The MakeHuman catalogue's garments (fit_to each example avatar) and the demo shells as
+    clothing bases: {name: (basis, category, layer)}."""
+    from service.model.catalogue import load_catalogue
+
+    out = {}
+    for n, g in D.make_demo_garments(model).items():
+        out[f"demo-{n}"] = (T.build_garment_basis(model, np.stack([g.fit(model, E) for E in EX]), g.faces, ex),
+                            "demo", None)
+    for it in load_catalogue().garments():
+        if it.fit.skinning != "transfer":
+            continue
+        out[it.id] = (T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex),
+                      it.category, it.layer)
+    return out
+
+
+def bench_pose_stretch(model, bases: dict) -> dict:
+    """99.9th-percentile edge stretch (posed / rest length) of every garment in the page's four
+    poses (adapted to each body) on the five bodies: nearest-vertex skin weights (before) vs the
+    inpainted transfer (after); beside it the avatar's own skin."""
+    from service.model import lbs as L
+    from service.model import poses as P
+
+    nb = model.n_body_vertices
+    per = {k: {"before": 1.0, "after": 1.0} for k in bases}
+    avatar = 1.0
+    t_adapt = []
+    for meas in FIVE_BODIES.values():
+        X = S.avatar_from_measurements(model, meas).vertices
+        body = T.customer_body(model, model.project(X))
+        t0 = time.perf_counter()
+        poses = P.adapted_poses(model, body.vertices)
+        t_adapt.append(time.perf_counter() - t0)
+        fits = {k: T.try_on(b, body)[0].astype(np.float64) for k, (b, _, _) in bases.items()}
+        for pose in poses.values():
+            posed = model.forward(pose=pose, vertices=body.vertices)
+            avatar = max(avatar, float(np.percentile(P.edge_stretch(body.vertices[:nb], posed.vertices[:nb],
+                                                                     model.body_faces), STRETCH_PERCENTILE)))
+            for k, (b, _, _) in bases.items():
+                v = fits[k]
+                near = b.binding[:, 0]
+                for which, (idx, w) in (("before", (model.lbs_indices[near], model.lbs_weights[near])),
+                                        ("after", (b.skin_idx, b.skin_w))):
+                    s = P.edge_stretch(v, L.skin(v, posed.transforms, idx, w), b.faces)
+                    per[k][which] = max(per[k][which], float(np.percentile(s, STRETCH_PERCENTILE)))
+    return {"bodies": list(FIVE_BODIES), "poses": 4, "percentile": STRETCH_PERCENTILE, "per_garment": per,
+            "avatar": avatar, "goal": 1.5, "adapt_poses_s_median": float(np.median(t_adapt)),
+            "worst_before": max(v["before"] for v in per.values()),
+            "worst_after": max(v["after"] for v in per.values()),
+            "median_after": float(np.median([v["after"] for v in per.values()]))}
+
+
+LAYER_PAIRS = [(b, t) for t in ("womens-tshirt", "pinstripe-blouse", "cropped-tee")
+               for b in ("womens-jeans", "pencil-skirt", "sports-trousers")] + \
+    [("mens-jeans", t) for t in ("mens-tshirt", "longsleeve-tee", "striped-shirt", "white-tshirt")] + \
+    [("striped-shirt", "casual-jacket"), ("white-tshirt", "casual-jacket")]
+
+
+def bench_layering(model, bases: dict, people: int, posed_people: int = 3) -> dict:
+    """Share of the body covered by two garments where the inner one is outside the outer one,
+    before and after ``service.model.layering`` (top/bottom pairs and jacket over shirt, on
+    held-out people; rest pose, and the page poses on the first ``posed_people``)."""
+    from service.model import layering as LY
+    from service.model import lbs as L
+    from service.model import poses as P
+    from service.model.geometry import vertex_normals
+
+    nb = model.n_body_vertices
+    H = heldout_avatars(model)[:people]
+    tot = {"rest": [0, 0, 0], "posed": [0, 0, 0]}  # both covered, inner outside before, after
+    per = {f"{i} under {o}": [0, 0, 0] for i, o in LAYER_PAIRS}
+    t_layer = []
+    for h, Xh in enumerate(H):
+        body = T.customer_body(model, model.project(Xh))
+        Bv = body.vertices[:nb].astype(np.float64)
+        Bn = body.normals.astype(np.float64)
+        poses = P.adapted_poses(model, body.vertices) if h < posed_people else {}
+        for inner, outer in LAYER_PAIRS:
+            bi, bo = bases[inner][0], bases[outer][0]
+            vi = T.try_on(bi, body, 0)[0].astype(np.float64)
+            vo = T.try_on(bo, body, 1)[0].astype(np.float64)
+            t0 = time.perf_counter()
+            vi2 = LY.push_inside(vi, bi.faces, vo, bo.faces, Bv, Bn)
+            t_layer.append(time.perf_counter() - t0)
+            states = [("rest", Bv, Bn, vi, vi2, vo)]
+            for name, pose in poses.items():
+                if name == "a-pose":
+                    continue
+                G = model.forward(pose=pose, vertices=body.vertices).transforms
+                PB = L.skin(Bv, G, model.lbs_indices[:nb], model.lbs_weights[:nb])
+                PN = vertex_normals(PB, model.body_faces).astype(np.float64)
+                states.append(("posed", PB, PN, L.skin(vi, G, bi.skin_idx, bi.skin_w),
+                               L.skin(vi2, G, bi.skin_idx, bi.skin_w), L.skin(vo, G, bo.skin_idx, bo.skin_w)))
+            for key, PB, PN, a, b, o in states:
+                both, out0 = LY.inner_outside_share(a, o, bo.faces, bi.faces, PB, PN, model.body_faces)
+                _, out1 = LY.inner_outside_share(b, o, bo.faces, bi.faces, PB, PN, model.body_faces)
+                for acc in (tot[key], per[f"{inner} under {outer}"] if key == "rest" else [0, 0, 0]):
+                    acc[0] += both
+                    acc[1] += out0
+                    acc[2] += out1
+    share = {k: {"both_covered": v[0], "before_pct": 100 * v[1] / max(v[0], 1), "after_pct": 100 * v[2] / max(v[0], 1)}
+             for k, v in tot.items()}
+    return {"people": len(H), "posed_people": min(posed_people, len(H)), "pairs": len(LAYER_PAIRS), **share,
+            "per_pair_rest": {k: {"both": v[0], "before_pct": 100 * v[1] / max(v[0], 1),
+                                  "after_pct": 100 * v[2] / max(v[0], 1)} for k, v in per.items()},
+            "push_inside_ms_median": 1000 * float(np.median(t_layer)), "goal_pct": 1.0}
+
+
+def bench_clothes_motion(limit: int) -> dict:
+    model = load_body_model()
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    bases = catalogue_bases(model, ex, EX)
+    return {"pose_stretch": bench_pose_stretch(model, bases),
+            "layering": bench_layering(model, bases, people=limit or 10)}
+
+
+def format_clothes_motion(r: dict) -> str:
+    s = r["pose_stretch"]
+    L = [f"\npose stretch: p{s['percentile']} edge length ratio in the 4 page poses (adapted per body) on "
+         f"{len(s['bodies'])} bodies, worst body and pose (goal <= {s['goal']}); the avatar's own skin "
+         f"{s['avatar']:.2f}; pose adaptation {s['adapt_poses_s_median']:.1f} s per body (median)",
+         f"  {'garment':<22}{'before (nearest vertex)':>24}{'after (inpainted)':>19}"]
+    for k, v in s["per_garment"].items():
+        L.append(f"  {k:<22}{v['before']:>24.2f}{v['after']:>19.2f}")
+    L.append(f"  worst {s['worst_before']:.2f} -> {s['worst_after']:.2f}; median after {s['median_after']:.2f}")
+    y = r["layering"]
+    L.append(f"\nlayering: body vertices covered by two garments where the inner one is outside the outer "
+             f"(goal <= {y['goal_pct']} %), {y['pairs']} pairs, {y['people']} held-out people "
+             f"(posed: the 3 page poses on {y['posed_people']}); push-inside {y['push_inside_ms_median']:.0f} ms median")
+    for k in ("rest", "posed"):
+        L.append(f"  {k:<6} {y[k]['both_covered']:>8} covered by both: {y[k]['before_pct']:6.2f} % -> "
+                 f"{y[k]['after_pct']:6.2f} %")
+    for k, v in y["per_pair_rest"].items():
+        L.append(f"    {k:<40}{v['both']:>8}{v['before_pct']:>8.2f} %{v['after_pct']:>8.2f} %")
+    return "\n".join(L)
