@@ -278,3 +278,24 @@ def test_scan_pose_records(ctx: Context, model: BodyModel) -> None:
     in_file = np.array([np.linalg.solve(T, np.r_[v, 1.0])[:3] for v in posed[::50]])  # cm, Z up
     expect = (in_file / 100.0) @ z_to_y.T  # metres, the file's +Z as +Y
     assert np.abs(V[::50] - expect).max() < 1e-9
+
+
+def test_job_progress_never_goes_back() -> None:
+    """Stages mapped into shares of a job report monotone progress (a stage restarting at zero,
+    or reporting a little less than the previous stage's last word, does not move it back)."""
+    from service.application.progress import MonotoneProgress
+    seen: list[tuple[float, str]] = []
+    progress = MonotoneProgress(lambda f, m: seen.append((f, m)))
+    progress(0.01, "first stage")
+    first = progress.scaled(0.0, 0.3, "avatar: ")
+    first(0.0, "start")          # 0.0 < 0.01: stays at 0.01, message passed on
+    first(0.5, "")               # 0.15
+    first(2.0, "too far")        # clipped to the stage's end, 0.3
+    second = progress.scaled(0.2, 0.6)
+    second(0.0, "second stage")  # 0.2 < 0.3: stays
+    second(1.0, "end")           # 0.8
+    progress(1.0, "done")
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions)
+    assert fractions == pytest.approx([0.01, 0.01, 0.15, 0.3, 0.3, 0.8, 1.0])
+    assert seen[1][1] == "avatar: start" and seen[2][1] == ""

@@ -4,7 +4,6 @@ their avatars."""
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +26,7 @@ from . import scenes
 from .editing import build_editor
 from .auth import ANONYMOUS, Credentials, may_open, new_token
 from .errors import Conflict, Invalid, NotFound
+from .progress import MonotoneProgress, Progress
 from .uploads import TemplateAvatar, read_body_upload
 
 if TYPE_CHECKING:
@@ -36,10 +36,9 @@ log = logging.getLogger("tryon.customers")
 
 FIT_JOB = "worker.jobs.fit_customer"  # the rq job, by dotted path (the service never imports worker)
 MISSING_JOB_GRACE_S = 60  # a fitting customer without its job for this long has failed
-FIT_SHARE = 0.95  # of a fitting job's progress; the rest: loading, measuring, storing
+FIT_START, FIT_SHARE = 0.02, 0.95  # a fitting job's progress: loading, then fit_body, then measuring, storing
 BODY_CACHE_SIZE = 64
 
-Progress = Callable[[float, str], None]
 
 
 def fit_job_id(cid: str) -> str:
@@ -276,22 +275,23 @@ class CustomerService:
             return {"status": "deleted", "customer_id": cid}
         if record.status in ("ready", "failed"):
             return _outcome(record)
+        progress = MonotoneProgress(progress)
         progress(0.0, "loading the scan")
         raw = self.repo.get_scan(cid)
         if raw is None:
             return self._fail(record, "the uploaded scan expired before it was fitted; upload it again", progress)
         scan = scan_from_npz_bytes(raw)
-        scaled = _ScaledProgress(progress)
-        scaled(0.0, "fitting the body model")
+        fitting = progress.scaled(FIT_START, FIT_SHARE)
+        fitting(0.0, "fitting the body model")
         try:
             fit = fit_body(self.model, scan.points, scan.normals, scan.faces, clothed=bool(record.clothed),
-                           progress=scaled)
+                           progress=lambda f, m: fitting(f, m or "fitting"))
         except FitError as exc:
             return self._fail(record, str(exc), progress)
-        progress(max(scaled.value, FIT_SHARE), "measuring the avatar")
+        progress(FIT_SHARE, "measuring the avatar")
         ready = self._fitted(record, fit)
         if scan.faces is not None:  # a mesh: kept for editing, with its warping graph checked
-            progress(max(scaled.value, FIT_SHARE), "building the warping graph for editing")
+            progress(FIT_SHARE, "building the warping graph for editing")
             T = np.asarray(fit.to_model, np.float64)
             arrays = {"vertices": (scan.points @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
                       "faces": np.asarray(scan.faces, np.int32)}
@@ -333,17 +333,3 @@ def _outcome(record: Customer) -> dict[str, Any]:
     if record.status == "failed":
         return {"status": "failed", "customer_id": record.id, "error": record.error}
     return {"status": "done", "customer_id": record.id, "residual_mm": record.residual_mm}
-
-
-class _ScaledProgress:
-    """``fit_body``'s progress callback -> the job's progress, monotone, scaled to the fit's share."""
-
-    def __init__(self, report: Progress, start: float = 0.02):
-        self.report = report
-        self.value = start
-
-    def __call__(self, fraction: float, message: str = "") -> None:
-        value = min(max(0.02 + FIT_SHARE * float(fraction), self.value), 0.99)
-        if value > self.value or message:
-            self.value = value
-            self.report(value, message or "fitting")

@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from collections.abc import Callable
 from typing import Any
 
 from service.model.autofit import fit_to_examples
@@ -23,6 +22,7 @@ from service.storage.records import new_id
 from . import scenes
 from .errors import Conflict, Forbidden, Invalid, NotFound
 from .examples import Examples
+from .progress import MonotoneProgress, Progress
 from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
                       read_garment_mesh, read_mhclo_layout, read_texture)
 
@@ -43,8 +43,6 @@ UPLOAD_METALLIC, UPLOAD_ROUGHNESS = 0.0, 0.85  # cloth: dielectric, rough
 BUILD_JOB = "worker.jobs.build_garment"  # the rq job, by dotted path
 # shares of a build job's progress
 BUILD_SHARES = {"avatar_fit": 0.3, "autofit": 0.6, "basis": 0.1}
-
-Progress = Callable[[float, str], None]
 
 
 def build_job_id(gid: str) -> str:
@@ -322,6 +320,7 @@ class GarmentService:
         if raw is None:
             return self._fail_build(record, "the uploaded garment expired before it was built; upload it again", progress)
         upload = DrapedGarment.from_bytes(raw)
+        progress = MonotoneProgress(progress)
         share = BUILD_SHARES
         garment, faces = upload.vertices, upload.faces
         if upload.avatar is not None:
@@ -329,7 +328,7 @@ class GarmentService:
             scan = upload.avatar
             try:
                 fit = fit_body(self.model, scan.points, scan.normals, scan.faces, clothed=False,
-                               progress=lambda f, m: progress(share["avatar_fit"] * f, f"avatar: {m}"))
+                               progress=progress.scaled(0.01, share["avatar_fit"] - 0.01, "avatar: "))
             except FitError as exc:
                 return self._fail_build(record, f"the avatar could not be fitted: {exc}", progress)
             T = np.asarray(fit.to_model, np.float64)
@@ -347,7 +346,7 @@ class GarmentService:
         progress(start, "carrying the garment to the example avatars")
         try:
             result = fit_to_examples(self.model, garment, faces, source_body=source,
-                                     progress=lambda f, m: progress(start + span * f, m))
+                                     progress=progress.scaled(start, span))
         except ValueError as exc:
             return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
         progress(1.0 - share["basis"], "building the clothing basis")
