@@ -70,6 +70,7 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
     assert out["heightInches"] == "70.9"  # 180 cm in inches
     # a slider: the form follows, the avatar grows
     assert out["formAfterSlider"] == "195"
+    assert out["sliderLabel"].startswith("195"), out["sliderLabel"]
     assert out["heightAfterSlider"] > out["avatar"]["height"] + 0.1
     # a pose preset rotates the bones (and survives reloading the scene with garments)
     assert out["boneBefore"] == [0, 0, 0, 1] and out["boneAfter"] != out["boneBefore"]

@@ -103,6 +103,7 @@ try {
   // a slider: height
   n = await loadsNow(page);
   await page.locator('#sl-height_cm').fill('195');
+  out.sliderLabel = await page.textContent('#out-height_cm');  // follows the drag, before the avatar loads
   await waitLoad(page, n);
   out.heightAfterSlider = await page.evaluate(() => window.__tryon.bboxHeight());
   out.formAfterSlider = await page.inputValue('#in-height_cm');

@@ -676,6 +676,7 @@ function buildForm() {
       sliders.append(row);
       sl.addEventListener('input', () => {
         state.values[a.name] = toApi(Number(sl.value), a.unit);
+        out.textContent = `${sl.value} ${displayUnit(a.unit)}`;  // the label follows the drag
         syncForm(); changed();
       });
     }
