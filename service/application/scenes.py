@@ -79,28 +79,38 @@ def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None =
                              compression=compression)
 
 
-def garment_mesh(basis: GarmentBasis, record: Garment, body: CustomerBody, layer: int) -> dict[str, Any]:
+def garment_mesh(basis: GarmentBasis, record: Garment, body: CustomerBody, layer: int,
+                 template: bool = True) -> dict[str, Any]:
     """The garment tried on ``body`` as a scene mesh (skinned with the basis' skinning); with
     the basis' render layout and material: UVs, textures (static bytes) and, for a normal
-    map, tangents."""
+    map, tangents. ``template``: see :func:`look_mesh`."""
     v, _moved = try_on(basis, body, layer=layer)
-    return look_mesh(basis, record, np.asarray(v, np.float32), basis.normals(v, body.weights))
+    return look_mesh(basis, record, np.asarray(v, np.float32), basis.normals(v, body.weights), template)
 
 
-def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray) -> dict[str, Any]:
-    """Garment vertices (M, 3) and normals (M, 3) as a skinned scene mesh: gathered into the
-    render layout (R render vertices: one fancy-index each) when the basis has one."""
+def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray,
+              template: bool = True) -> dict[str, Any]:
+    """Garment vertices (M, 3) and normals (M, 3) as a skinned scene mesh (for the body
+    model's skeleton): gathered into the render layout (R render vertices: one fancy-index
+    each) when the basis has one. With ``template``, the static arrays (faces, UVs, skinning)
+    come as the basis' :meth:`GarmentBasis.mesh_template` (built once per basis: the same GLB
+    bytes); without, as plain arrays (the reference path, for tests and benchmarks)."""
     mesh: dict[str, Any] = {"color": tuple(record.color or DEFAULT_GARMENT_COLOR), "name": record.name or "garment",
                             "double_sided": True}
     if basis.has_layout:
         idx = np.asarray(basis.render_vertex)
         rn = n[idx]
-        mesh.update(vertices=v[idx], faces=np.asarray(basis.render_faces), normals=rn, uv=np.asarray(basis.render_uv),
-                    tangents=basis.render_tangents(rn))
-        mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin()
+        mesh.update(vertices=v[idx], normals=rn, tangents=basis.render_tangents(rn))
+        if not template:
+            mesh.update(faces=np.asarray(basis.render_faces), uv=np.asarray(basis.render_uv))
+            mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin()
     else:
-        mesh.update(vertices=v, faces=np.asarray(basis.faces), normals=n,
-                    vertex_joints=np.asarray(basis.skin_idx), vertex_weights=np.asarray(basis.skin_w))
+        mesh.update(vertices=v, normals=n)
+        if not template:
+            mesh.update(faces=np.asarray(basis.faces), vertex_joints=np.asarray(basis.skin_idx),
+                        vertex_weights=np.asarray(basis.skin_w))
+    if template:
+        mesh["template"] = basis.mesh_template(len(BONES))
     if basis.material is not None and (basis.has_layout or _untextured(basis.material)):
         mesh["material"] = basis.material
     return mesh
@@ -111,9 +121,12 @@ def _untextured(material: Any) -> bool:
 
 
 def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
-               compression: str | None, with_avatar: bool = True, look: Look | None = None) -> bytes:
+               compression: str | None, with_avatar: bool = True, look: Look | None = None,
+               template: bool = True) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
-    skeleton; with the avatar as the first mesh when ``with_avatar``."""
+    skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
+    garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
+    reference path, the same bytes)."""
     meshes = avatar_meshes(model, body.vertices, body.normals, look) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
@@ -132,7 +145,7 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
             if not np.array_equal(v, worn[i]):
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
-    meshes += [look_mesh(basis, rec, v, n) for v, n, (rec, basis) in zip(worn, normals, garments)]
+    meshes += [look_mesh(basis, rec, v, n, template) for v, n, (rec, basis) in zip(worn, normals, garments)]
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
 
