@@ -270,15 +270,18 @@ class _Builder:
         self.encoded.append(None)
         return len(self.views) - 1
 
-    def finish(self, meshopt: bool) -> tuple[bytes, list[dict[str, Any]]]:
-        """(the BIN chunk's bytes, the ``buffers`` array); fills :attr:`buffer_views`."""
-        blob = bytearray()
+    def finish(self, meshopt: bool) -> tuple[list[bytes], int, list[dict[str, Any]]]:
+        """(the BIN chunk's pieces, their total length, the ``buffers`` array); fills
+        :attr:`buffer_views`. Pieces, not one buffer: the GLB is joined once (one copy)."""
+        parts: list[bytes] = []
+        size = 0
         fallback_len = 0
         self.buffer_views = []
         for (raw, count, target, mode, stride), known in zip(self.views, self.encoded):
-            while len(blob) % 4:
-                blob.append(0)
-            view: dict[str, Any] = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(raw)}
+            if size % 4:
+                parts.append(b"\0" * (-size % 4))
+                size += -size % 4
+            view: dict[str, Any] = {"buffer": 0, "byteOffset": size, "byteLength": len(raw)}
             if meshopt and mode is not None:
                 elem = len(raw) // count
                 enc = known if known is not None else _meshopt_encode((raw, count, target, mode, stride))
@@ -288,29 +291,32 @@ class _Builder:
                 view["extensions"] = {
                     "EXT_meshopt_compression": {
                         "buffer": 0,
-                        "byteOffset": len(blob),
+                        "byteOffset": size,
                         "byteLength": len(enc),
                         "byteStride": elem,
                         "count": int(count),
                         "mode": mode,
                     }
                 }
-                blob += enc
+                parts.append(enc)
+                size += len(enc)
             else:
-                blob += raw
+                parts.append(raw)
+                size += len(raw)
             if stride is not None:
                 view["byteStride"] = stride
             if target is not None:
                 view["target"] = target
             self.buffer_views.append(view)
-        while len(blob) % 4:
-            blob.append(0)
-        buffers: list[dict[str, Any]] = [{"byteLength": len(blob)}]
+        if size % 4:
+            parts.append(b"\0" * (-size % 4))
+            size += -size % 4
+        buffers: list[dict[str, Any]] = [{"byteLength": size}]
         if meshopt:
             buffers.append(
                 {"byteLength": max(fallback_len, 4), "extensions": {"EXT_meshopt_compression": {"fallback": True}}}
             )
-        return bytes(blob), buffers
+        return parts, size, buffers
 
 
 def _mo() -> Any:
@@ -712,7 +718,7 @@ def _build_glb(
     for img in images:  # after every accessor's view: images are never meshopt-encoded
         img["bufferView"] = b.add_bytes(img.pop("_data"))
 
-    blob, buffers = b.finish(meshopt=compression == "meshopt")
+    parts, blob_len, buffers = b.finish(meshopt=compression == "meshopt")
     doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": "tryon service.model.gltf"}}
     ext = {"quantize": ["KHR_mesh_quantization"], "meshopt": ["KHR_mesh_quantization", "EXT_meshopt_compression"]}
     if compression is not None:
@@ -739,11 +745,9 @@ def _build_glb(
 
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * (-len(js) % 4)
-    total = 12 + 8 + len(js) + 8 + len(blob)
-    out = bytearray(struct.pack("<III", GLB_MAGIC, GLB_VERSION, total))
-    out += struct.pack("<II", len(js), CHUNK_JSON) + js
-    out += struct.pack("<II", len(blob), CHUNK_BIN) + blob
-    return bytes(out)
+    total = 12 + 8 + len(js) + 8 + blob_len
+    return b"".join([struct.pack("<IIIII", GLB_MAGIC, GLB_VERSION, total, len(js), CHUNK_JSON), js,
+                     struct.pack("<II", blob_len, CHUNK_BIN), *parts])
 
 
 def mesh_to_glb(

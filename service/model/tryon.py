@@ -114,14 +114,15 @@ class GarmentBasis:
         if self._render_tangents is None:
             idx = np.asarray(self.render_vertex)
             g = np.asarray(self.g)[idx]
-            self._render_tangents = vertex_tangents(g, np.asarray(self.render_faces), np.asarray(self.render_uv),
-                                                    vertex_normals(g, np.asarray(self.render_faces)))
-        t0: np.ndarray = self._render_tangents  # type: ignore[assignment]
+            t0 = vertex_tangents(g, np.asarray(self.render_faces), np.asarray(self.render_uv),
+                                 vertex_normals(g, np.asarray(self.render_faces)))
+            self._render_tangents = (np.ascontiguousarray(t0[:, :3]), np.ascontiguousarray(t0[:, 3]))
+        t0, w = self._render_tangents  # type: ignore[misc]
         n = np.asarray(normals, np.float32)
-        t = t0[:, :3] - n * np.einsum("ij,ij->i", n, t0[:, :3])[:, None]
-        out = np.empty_like(t0)
+        t = t0 - n * np.einsum("ij,ij->i", n, t0)[:, None]
+        out = np.empty((len(w), 4), np.float32)
         out[:, :3] = t / np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)[:, None]
-        out[:, 3] = t0[:, 3]
+        out[:, 3] = w
         return out
 
     def mesh_template(self, n_joints: int) -> MeshTemplate:
