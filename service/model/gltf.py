@@ -13,7 +13,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
-from service.model.geometry import vertex_normals
+from service.model.geometry import row_dot, vertex_normals
 
 GLB_MAGIC = 0x46546C67  # b"glTF"
 GLB_VERSION = 2
@@ -56,7 +56,7 @@ class Skin(TypedDict):
 def _unit_float32(n: np.ndarray) -> np.ndarray:
     """Unit vectors (N, 3) rounded to float32 and re-normalised so |n| == 1 within float32 eps."""
     n64 = np.asarray(n, np.float32).astype(np.float64)  # the float32 rounding first
-    return (n64 / np.sqrt(np.einsum("ij,ij->i", n64, n64))[:, None]).astype(np.float32)
+    return (n64 / np.sqrt(row_dot(n64, n64))[:, None]).astype(np.float32)
 
 
 def vertex_tangents(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, normals: np.ndarray) -> np.ndarray:

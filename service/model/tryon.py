@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from service.model import garment as G
 from service.model.catalogue import Material, RenderLayout, Texture
-from service.model.geometry import face_incidence, vertex_normals
+from service.model.geometry import face_incidence, row_dot, vertex_normals
 from service.model.gltf import MeshTemplate, vertex_tangents
 from service.model.skin_weights import transfer_skin_weights
 
@@ -88,7 +88,7 @@ class GarmentBasis:
         multiply-adds) instead of recomputed from the mesh."""
         if weights is not None and self.gn is not None:
             n = G.synthesize(np.asarray(self.gn), np.asarray(self.Bn), weights)
-            return n / np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+            return n / np.sqrt(row_dot(n, n))[:, None]
         if self._incidence is None:
             self._incidence = face_incidence(np.asarray(self.faces), self.n_vertices)
         return vertex_normals(vertices, self.faces, self._incidence)
@@ -119,9 +119,9 @@ class GarmentBasis:
             self._render_tangents = (np.ascontiguousarray(t0[:, :3]), np.ascontiguousarray(t0[:, 3]))
         t0, w = self._render_tangents  # type: ignore[misc]
         n = np.asarray(normals, np.float32)
-        t = t0 - n * np.einsum("ij,ij->i", n, t0)[:, None]
+        t = t0 - n * row_dot(n, t0)[:, None]
         out = np.empty((len(w), 4), np.float32)
-        out[:, :3] = t / np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)[:, None]
+        out[:, :3] = t / np.maximum(np.sqrt(row_dot(t, t)), 1e-12)[:, None]
         out[:, 3] = w
         return out
 
