@@ -67,3 +67,34 @@ def test_template_is_built_once_per_basis(garments) -> None:
     t = basis.mesh_template(len(BONES))
     assert basis.mesh_template(len(BONES)) is t and t.n == len(basis.render_vertex) and t.uv is not None
     assert t.views("meshopt") is t.views("meshopt")
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_templated_avatar_glb_equals_the_reference(model, garments, compression: str | None,
+                                                   validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """The avatar's body and its look's items (eyes, eyebrows, hair, underwear) with templates:
+    the same bytes as without, bare and under a look; and an outfit under a look (the underwear
+    layered under the garments)."""
+    from service.application import look as looks
+
+    body = T.customer_body(model, model.population["weights"][8])
+    for lk in (None, looks.resolve("female"), looks.resolve("male", "none", False)):
+        fast = scenes.avatar_glb(model, body.vertices, compression, normals=body.normals, look=lk)
+        assert fast == scenes.avatar_glb(model, body.vertices, compression, normals=body.normals, look=lk,
+                                         template=False)
+    if compression == "quantize":  # layering under a look is slow (~0.5 s): one mode
+        lk = looks.resolve("female")
+        fast = scenes.outfit_glb(model, body, garments, compression, look=lk)
+        assert fast == scenes.outfit_glb(model, body, garments, compression, look=lk, template=False)
+    report = validate_glb(scenes.avatar_glb(model, body.vertices, compression, normals=body.normals,
+                                            look=looks.resolve("female")))
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, format_issues(report)
+
+
+def test_unskinned_avatar_mesh_without_template(model) -> None:
+    """``pose=scan`` avatars drop the skin arrays: the reference mesh (no template) still writes."""
+    mesh = scenes.avatar_mesh(model, model.mean, template=False)
+    mesh = {k: v for k, v in mesh.items() if k not in ("vertex_joints", "vertex_weights")}
+    assert "skins" not in read_glb(scenes.gltf.scene_to_glb([mesh]))["json"]
+    with pytest.raises(ValueError, match="joints"):  # a skinned template needs the skin
+        scenes.gltf.scene_to_glb([{**mesh, "template": scenes.avatar_mesh(model, model.mean)["template"]}])

@@ -18,6 +18,7 @@ import numpy as np
 
 from service.model.body import BodyModel
 from service.model.catalogue import Catalogue, CatalogueItem, Material, Skin, load_catalogue
+from service.model.gltf import MeshTemplate
 from service.model.look import PreparedItem, merge_meshes, prepare_item, visible_body_faces
 
 from service.storage.cache import VersionedLRU
@@ -144,18 +145,23 @@ def _visible_faces(model: BodyModel, base_layer: tuple[CatalogueItem, ...]) -> n
 _fitted = VersionedLRU(FITTED_CACHE_SIZE)
 
 
-def item_meshes(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray, look: Look) -> list[dict[str, Any]]:
+def item_meshes(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray, look: Look,
+                template: bool = True) -> list[dict[str, Any]]:
     """The look's scene meshes on an avatar (V, 3) with body normals (Vb, 3): eyes, eyebrows,
     hair (if any) and underwear (the base layer's items as one mesh, if any), each skinned and
     named; the avatar's own mesh is ``scenes.avatar_mesh``. Cached per process by (avatar
-    vertices' digest, look): a customer's avatar and outfits fit the look once."""
+    vertices' digest, look): a customer's avatar and outfits fit the look once. Each carries
+    its static arrays also as a ``template`` (:class:`service.model.gltf.MeshTemplate`, made
+    with the cache entry); ``template=False`` leaves it out (the reference path)."""
     X = np.ascontiguousarray(vertices, np.float32)
     key = hashlib.sha1(X.tobytes()).hexdigest() + "|" + look.key + f"|{id(model)}"
     hit = _fitted.get(key, None)
     if hit is None:
         hit = _fit_items(model, X, body_normals, look)
         _fitted.put(key, None, hit)
-    return [dict(m) for m in hit]
+    if template:
+        return [dict(m) for m in hit]
+    return [{k: v for k, v in m.items() if k != "template"} for m in hit]
 
 
 def _fit_items(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray, look: Look) -> list[dict[str, Any]]:
@@ -177,5 +183,9 @@ def _fit_items(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray,
         for v in mesh.values():
             if isinstance(v, np.ndarray):
                 v.setflags(write=False)
+        # static per (avatar, look) cache entry: faces, UVs, skinning checked and encoded once
+        mesh["template"] = MeshTemplate(mesh["faces"], len(mesh["vertices"]), uv=mesh.get("uv"),
+                                        vertex_joints=mesh["vertex_joints"], vertex_weights=mesh["vertex_weights"],
+                                        n_joints=len(model.bone_parents))
         out.append(mesh)
     return out

@@ -45,37 +45,62 @@ def skeleton(model: BodyModel, vertices: np.ndarray) -> dict[str, Any]:
             "joint_names": list(BONES)}
 
 
+# body mesh templates: (model, faces) -> (model, faces, template); the key objects are kept
+# alive with their entry (ids stay theirs) and checked by identity
+_body_templates: dict[tuple[int, int], tuple[BodyModel, np.ndarray, gltf.MeshTemplate]] = {}
+MAX_BODY_TEMPLATES = 32  # body models x base-layer choices (the looks' visible faces)
+
+
+def _body_template(model: BodyModel, faces: np.ndarray) -> gltf.MeshTemplate:
+    """The avatar body's static arrays (faces, cleaned skin weights) as a mesh template, once
+    per (body model, faces) per process."""
+    hit = _body_templates.get((id(model), id(faces)))
+    if hit is not None and hit[0] is model and hit[1] is faces:
+        return hit[2]
+    nb = model.n_body_vertices
+    tpl = gltf.MeshTemplate(faces, nb, vertex_joints=model.lbs_indices[:nb], vertex_weights=model.lbs_weights[:nb],
+                            n_joints=len(model.bone_parents))
+    if len(_body_templates) >= MAX_BODY_TEMPLATES:
+        _body_templates.pop(next(iter(_body_templates)))
+    _body_templates[(id(model), id(faces))] = (model, faces, tpl)
+    return tpl
+
+
 def avatar_mesh(model: BodyModel, vertices: np.ndarray, normals: np.ndarray | None = None,
-                look: Look | None = None) -> dict[str, Any]:
+                look: Look | None = None, template: bool = True) -> dict[str, Any]:
     """The customer-visible skinned body surface of an avatar (V, 3) as a scene mesh, named
     ``avatar``; under a ``look``, with its skin's material and without the faces hidden under
-    its base layer."""
+    its base layer. ``template``: its static arrays also as a mesh template (see
+    :func:`look_mesh`)."""
     nb = model.n_body_vertices
     mesh = {"vertices": model.body_vertices(vertices), "faces": model.body_faces, "normals": normals,
             "color": AVATAR_COLOR, "name": "avatar",
             "vertex_joints": model.lbs_indices[:nb], "vertex_weights": model.lbs_weights[:nb]}
     if look is not None:
         mesh.update(looks.body_fields(model, look))
+    if template:
+        mesh["template"] = _body_template(model, mesh["faces"])
     return mesh
 
 
 def avatar_meshes(model: BodyModel, vertices: np.ndarray, normals: np.ndarray | None = None,
-                  look: Look | None = None) -> list[dict[str, Any]]:
+                  look: Look | None = None, template: bool = True) -> list[dict[str, Any]]:
     """The avatar (V, 3) as scene meshes: the body (``avatar``), then, under a ``look``, its
     ``eyes``, ``eyebrows``, ``hair`` and ``underwear`` (each skinned with the body's skeleton)."""
-    body = avatar_mesh(model, vertices, normals, look)
+    body = avatar_mesh(model, vertices, normals, look, template)
     if look is None:
         return [body]
     if normals is None:
         normals = vertex_normals(model.body_vertices(np.asarray(vertices, np.float64)), model.body_faces)
-    return [body, *looks.item_meshes(model, vertices, normals, look)]
+    return [body, *looks.item_meshes(model, vertices, normals, look, template)]
 
 
 def avatar_glb(model: BodyModel, vertices: np.ndarray, compression: str | None = None,
-               normals: np.ndarray | None = None, look: Look | None = None) -> bytes:
+               normals: np.ndarray | None = None, look: Look | None = None, template: bool = True) -> bytes:
     """The skinned avatar (V, 3) as GLB bytes (``compression``: None, "quantize" or
-    "meshopt"): the body surface alone, or wearing ``look`` (see :func:`avatar_meshes`)."""
-    return gltf.scene_to_glb(avatar_meshes(model, vertices, normals, look), skin=skeleton(model, vertices),
+    "meshopt"): the body surface alone, or wearing ``look`` (see :func:`avatar_meshes`).
+    ``template=False``: the reference path (the same bytes)."""
+    return gltf.scene_to_glb(avatar_meshes(model, vertices, normals, look, template), skin=skeleton(model, vertices),
                              compression=compression)
 
 
@@ -127,7 +152,7 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
     reference path, the same bytes)."""
-    meshes = avatar_meshes(model, body.vertices, body.normals, look) if with_avatar else []
+    meshes = avatar_meshes(model, body.vertices, body.normals, look, template) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
     # the look's base layer is the innermost layer: a bra never shows through a blouse
