@@ -119,6 +119,23 @@ def prepared(model: BodyModel, item: CatalogueItem) -> PreparedItem:
     return _prepared(model, item)
 
 
+@functools.lru_cache(maxsize=32)
+def _group_template(model: BodyModel, items: tuple[CatalogueItem, ...], textured: bool) -> MeshTemplate:
+    """The static arrays of a look group's merged render mesh (what :meth:`PreparedItem.fit`
+    returns besides vertices and normals: faces, uv, skinning), checked and encoded once per
+    process and shared by every avatar wearing the group."""
+    parts = []
+    for item in items:
+        p = prepared(model, item)
+        v = p.layout.vertex
+        parts.append({"vertices": v, "faces": p.layout.faces, "uv": p.layout.uv, "vertex_joints": p.skin_idx[v],
+                      "vertex_weights": p.skin_w[v]})
+    m = merge_meshes(parts)
+    return MeshTemplate(m["faces"], len(m["vertices"]), uv=m["uv"] if textured else None,
+                        vertex_joints=m["vertex_joints"], vertex_weights=m["vertex_weights"],
+                        n_joints=len(model.bone_parents))
+
+
 def material_fields(material: Material) -> dict[str, Any]:
     """The scene-mesh fields of a catalogue material (``service.model.gltf`` mesh dict)."""
     return {"color": tuple(material.base_color_factor), "double_sided": material.double_sided,
@@ -183,9 +200,6 @@ def _fit_items(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray,
         for v in mesh.values():
             if isinstance(v, np.ndarray):
                 v.setflags(write=False)
-        # static per (avatar, look) cache entry: faces, UVs, skinning checked and encoded once
-        mesh["template"] = MeshTemplate(mesh["faces"], len(mesh["vertices"]), uv=mesh.get("uv"),
-                                        vertex_joints=mesh["vertex_joints"], vertex_weights=mesh["vertex_weights"],
-                                        n_joints=len(model.bone_parents))
+        mesh["template"] = _group_template(model, tuple(items), "uv" in mesh)
         out.append(mesh)
     return out
