@@ -25,6 +25,14 @@ def test_bench_needs_a_suite(capsys: pytest.CaptureFixture[str]) -> None:
     assert "usage: tryon bench <suite>" in capsys.readouterr().err
 
 
+def test_bench_only_is_a_tryon_option(capsys: pytest.CaptureFixture[str]) -> None:
+    from tests.bench.__main__ import main as bench_main
+
+    with pytest.raises(SystemExit) as exc:
+        bench_main(["body", "--only", "latency"])
+    assert exc.value.code == 2 and "--only is a tryon option" in capsys.readouterr().err
+
+
 def test_openapi_to_stdout(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["openapi", "--out", "-"]) == 0
     out = capsys.readouterr().out

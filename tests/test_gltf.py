@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.gltf import basis_to_glb, mesh_to_glb, read_glb, scene_to_glb, vertex_normals
+from service.model.gltf import MeshTemplate, basis_to_glb, mesh_to_glb, read_glb, scene_to_glb, vertex_normals
 from tests.conftest import format_issues
 
 
@@ -513,3 +513,73 @@ def test_textured_bad_inputs() -> None:
         scene_to_glb([{"vertices": g, "faces": faces, "uv": uv, "material": _material(gif, None)}])
     with pytest.raises(ValueError, match="alpha_mode"):
         scene_to_glb([{"vertices": g, "faces": faces, "uv": uv, "material": _material(color, None, "CLIP")}])
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh templates: the static part of a mesh (faces, UVs, skinning) checked and encoded once.
+
+def _template_scene(scale: float) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, Any]]:
+    """(the reference meshes, the same meshes with their static arrays as templates, the
+    skeleton): a skinned normal-mapped mesh, a skinned untextured one, an unskinned tiled one."""
+    color, normal = _textures()
+    g, faces, _ = _garment(40, 30, 1)
+    uv = _tube_uv(40, 30)
+    skin = _chain_skin(g - [0.0, 1.0, 0.0])
+    skeleton = {k: skin[k] for k in ("joints", "parents", "joint_names")}
+    vj, vw = skin["vertex_joints"], skin["vertex_weights"]
+    v = (g - [0.0, 1.0, 0.0]) * scale
+    per = [  # per-request arrays and fields
+        {"vertices": v, "material": _material(color, normal), "name": "shirt"},
+        {"vertices": v * 1.05, "normals": vertex_normals(v * 1.05, faces), "name": "plain", "color": (0.2, 0.3, 0.4, 1.0)},
+        {"vertices": g * 1.1, "material": _material(color, None, "MASK", 0.4), "name": "tiled"},
+    ]
+    static = [{"faces": faces, "uv": uv, "vertex_joints": vj, "vertex_weights": vw},
+              {"faces": faces, "vertex_joints": vj, "vertex_weights": vw},
+              {"faces": faces, "uv": uv * 3.0}]
+    ref = [{**p, **s} for p, s in zip(per, static)]
+    templates = [MeshTemplate(s["faces"], len(g), uv=s.get("uv"), vertex_joints=s.get("vertex_joints"),
+                              vertex_weights=s.get("vertex_weights"),
+                              n_joints=3 if "vertex_joints" in s else None) for s in static]
+    fast = [{**p, "template": t} for p, t in zip(per, templates)]
+    return ref, fast, skeleton
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_mesh_template_gives_the_same_bytes(compression: str | None,
+                                            validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """Templated meshes give byte for byte the GLB of the plain mesh dicts, in every mode, for
+    other vertices too (the template's views are cached per mode); the validator is clean."""
+    ref, fast, skeleton = _template_scene(1.0)
+    glb = scene_to_glb(fast, skin=skeleton, compression=compression)
+    assert glb == scene_to_glb(ref, skin=skeleton, compression=compression)
+    _assert_clean_textured(validate_glb(glb))
+    views = fast[0]["template"].views(compression)
+    assert fast[0]["template"].views(compression) is views  # once per mode
+    for m in fast + ref:  # another request: the same templates, other vertices
+        m["vertices"] = np.asarray(m["vertices"]) * 0.97 + 0.01
+    ref[1]["normals"] = fast[1]["normals"] = vertex_normals(ref[1]["vertices"], ref[1]["faces"])
+    again = scene_to_glb(fast, skin=skeleton, compression=compression)
+    assert again == scene_to_glb(ref, skin=skeleton, compression=compression) and again != glb
+    out = read_glb(again)
+    np.testing.assert_array_equal(_canon(out["indices"]), _canon(ref[0]["faces"]))
+
+
+def test_mesh_template_bad_inputs() -> None:
+    ref, fast, skeleton = _template_scene(1.0)
+    g, faces = ref[0]["vertices"], ref[0]["faces"]
+    with pytest.raises(ValueError, match="template has"):
+        scene_to_glb([{**fast[0], "vertices": g[:-1]}], skin=skeleton)
+    with pytest.raises(ValueError, match="joints"):
+        scene_to_glb([fast[0]], skin={"joints": np.zeros((1, 3)), "parents": np.array([-1]), "joint_names": ["r"]})
+    with pytest.raises(ValueError, match="morph"):
+        scene_to_glb([{**fast[2], "targets": np.zeros((1, len(g), 3))}])
+    with pytest.raises(ValueError, match="finite"):
+        scene_to_glb([{**fast[2], "vertices": np.where(np.arange(len(g))[:, None] == 5, np.inf, g)}])
+    with pytest.raises(ValueError, match="range"):
+        MeshTemplate(faces, len(g) - 5)
+    with pytest.raises(ValueError, match="uv"):
+        MeshTemplate(faces, len(g), uv=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="go together"):
+        MeshTemplate(faces, len(g), vertex_joints=ref[0]["vertex_joints"], vertex_weights=ref[0]["vertex_weights"])
+    with pytest.raises(ValueError, match="compression"):
+        fast[0]["template"].views("draco")

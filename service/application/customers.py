@@ -214,8 +214,8 @@ class CustomerService:
                                 *record.frame], compression)
             if scenes.etag_matches(etag, if_none_match):
                 return None, etag
-            mesh = scenes.avatar_mesh(self.model, V, vertex_normals(V, self.model.body_faces))
-            mesh = {k: v for k, v in mesh.items() if k not in ("vertex_joints", "vertex_weights")}
+            mesh = scenes.avatar_mesh(self.model, V, vertex_normals(V, self.model.body_faces), template=False)
+            mesh = {k: v for k, v in mesh.items() if k not in ("vertex_joints", "vertex_weights")}  # unskinned
             return gltf.scene_to_glb([mesh], compression=compression), etag
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         etag = scenes.etag(f"avatar|{look.key}", self.model.version, record.weights, compression)

@@ -18,6 +18,7 @@ import numpy as np
 
 from service.model.body import BodyModel
 from service.model.catalogue import Catalogue, CatalogueItem, Material, Skin, load_catalogue
+from service.model.gltf import MeshTemplate
 from service.model.look import PreparedItem, merge_meshes, prepare_item, visible_body_faces
 
 from service.storage.cache import VersionedLRU
@@ -118,6 +119,23 @@ def prepared(model: BodyModel, item: CatalogueItem) -> PreparedItem:
     return _prepared(model, item)
 
 
+@functools.lru_cache(maxsize=32)
+def _group_template(model: BodyModel, items: tuple[CatalogueItem, ...], textured: bool) -> MeshTemplate:
+    """The static arrays of a look group's merged render mesh (what :meth:`PreparedItem.fit`
+    returns besides vertices and normals: faces, uv, skinning), checked and encoded once per
+    process and shared by every avatar wearing the group."""
+    parts = []
+    for item in items:
+        p = prepared(model, item)
+        v = p.layout.vertex
+        parts.append({"vertices": v, "faces": p.layout.faces, "uv": p.layout.uv, "vertex_joints": p.skin_idx[v],
+                      "vertex_weights": p.skin_w[v]})
+    m = merge_meshes(parts)
+    return MeshTemplate(m["faces"], len(m["vertices"]), uv=m["uv"] if textured else None,
+                        vertex_joints=m["vertex_joints"], vertex_weights=m["vertex_weights"],
+                        n_joints=len(model.bone_parents))
+
+
 def material_fields(material: Material) -> dict[str, Any]:
     """The scene-mesh fields of a catalogue material (``service.model.gltf`` mesh dict)."""
     return {"color": tuple(material.base_color_factor), "double_sided": material.double_sided,
@@ -144,18 +162,23 @@ def _visible_faces(model: BodyModel, base_layer: tuple[CatalogueItem, ...]) -> n
 _fitted = VersionedLRU(FITTED_CACHE_SIZE)
 
 
-def item_meshes(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray, look: Look) -> list[dict[str, Any]]:
+def item_meshes(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray, look: Look,
+                template: bool = True) -> list[dict[str, Any]]:
     """The look's scene meshes on an avatar (V, 3) with body normals (Vb, 3): eyes, eyebrows,
     hair (if any) and underwear (the base layer's items as one mesh, if any), each skinned and
     named; the avatar's own mesh is ``scenes.avatar_mesh``. Cached per process by (avatar
-    vertices' digest, look): a customer's avatar and outfits fit the look once."""
+    vertices' digest, look): a customer's avatar and outfits fit the look once. Each carries
+    its static arrays also as a ``template`` (:class:`service.model.gltf.MeshTemplate`, made
+    with the cache entry); ``template=False`` leaves it out (the reference path)."""
     X = np.ascontiguousarray(vertices, np.float32)
     key = hashlib.sha1(X.tobytes()).hexdigest() + "|" + look.key + f"|{id(model)}"
     hit = _fitted.get(key, None)
     if hit is None:
         hit = _fit_items(model, X, body_normals, look)
         _fitted.put(key, None, hit)
-    return [dict(m) for m in hit]
+    if template:
+        return [dict(m) for m in hit]
+    return [{k: v for k, v in m.items() if k != "template"} for m in hit]
 
 
 def _fit_items(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray, look: Look) -> list[dict[str, Any]]:
@@ -177,5 +200,6 @@ def _fit_items(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray,
         for v in mesh.values():
             if isinstance(v, np.ndarray):
                 v.setflags(write=False)
+        mesh["template"] = _group_template(model, tuple(items), "uv" in mesh)
         out.append(mesh)
     return out

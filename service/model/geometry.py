@@ -26,6 +26,13 @@ def face_incidence(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
                          shape=(n_vertices, len(f)))
 
 
+def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products (N,) of (N, 3) arrays: the same values as
+    ``np.einsum("ij,ij->i", a, b)`` (same products, same left-to-right sum), ~3x faster on the
+    per-request path (einsum's 3-long inner loop is slow)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix | None = None) -> np.ndarray:
     """Smooth, area-weighted unit vertex normals (V, 3) float32 (|n| = 1 within float32 eps).
 

@@ -13,7 +13,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
-from service.model.geometry import vertex_normals
+from service.model.geometry import row_dot, vertex_normals
 
 GLB_MAGIC = 0x46546C67  # b"glTF"
 GLB_VERSION = 2
@@ -55,9 +55,8 @@ class Skin(TypedDict):
 
 def _unit_float32(n: np.ndarray) -> np.ndarray:
     """Unit vectors (N, 3) rounded to float32 and re-normalised so |n| == 1 within float32 eps."""
-    n32 = n.astype(np.float32)
-    norm = np.linalg.norm(n32.astype(np.float64), axis=1, keepdims=True)
-    return (n32 / norm).astype(np.float32)
+    n64 = np.asarray(n, np.float32).astype(np.float64)  # the float32 rounding first
+    return (n64 / np.sqrt(row_dot(n64, n64))[:, None]).astype(np.float32)
 
 
 def vertex_tangents(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -160,6 +159,13 @@ def _quantize_normals(n: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(n, np.float64) * 127.0), -127, 127).astype(np.int8)
 
 
+def _bounds(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Column minima and maxima ((ncomp,), (ncomp,)) of rows (count, ncomp), NaN propagating.
+    Through a transposed copy: numpy's axis-0 reduction over 3-wide rows is ~40x slower."""
+    t = np.ascontiguousarray(a.T)
+    return t.min(axis=1), t.max(axis=1)
+
+
 def _pad_rows(arr: np.ndarray) -> np.ndarray:
     """(count, ncomp) -> (count, k) with zero columns appended so each row is a multiple of 4
     bytes (glTF's vertex attribute alignment rule; KHR_mesh_quantization's SHORT/BYTE VEC3)."""
@@ -170,12 +176,65 @@ def _pad_rows(arr: np.ndarray) -> np.ndarray:
     return np.concatenate([arr, np.zeros((arr.shape[0], extra), arr.dtype)], axis=1)
 
 
+# One bufferView before layout: (raw bytes, element count, target, meshopt mode, byteStride).
+View = tuple[bytes, int, "int | None", "str | None", "int | None"]
+
+
+def _make_view(
+    data: np.ndarray,
+    component_type: int,
+    type_: str,
+    *,
+    target: int | None = None,
+    minmax: bool = False,
+    normalized: bool = False,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[View, dict[str, Any]]:
+    """``data`` ((count, ncomp) or (count,)) as a tightly packed view and its accessor (without
+    ``bufferView``). Vertex attribute rows that are not a multiple of 4 bytes are zero padded
+    (the view then gets a byteStride). ``minmax``: the accessor gets min/max, ``bounds`` when
+    given (the caller knows them: (ncomp,) each), else computed."""
+    arr = np.ascontiguousarray(data, dtype=_DTYPES[component_type])
+    count = arr.shape[0]
+    flat = arr.reshape(count, -1)
+    stride: int | None = None
+    stored = arr
+    if target == ARRAY_BUFFER and (flat.shape[1] * arr.dtype.itemsize) % 4:
+        stored = _pad_rows(flat)
+        stride = stored.shape[1] * arr.dtype.itemsize
+    mode = None
+    if target == ARRAY_BUFFER:
+        mode = "ATTRIBUTES"
+    elif target == ELEMENT_ARRAY_BUFFER and count % 3 == 0:
+        mode = "TRIANGLES"
+    acc: dict[str, Any] = {"componentType": component_type, "count": int(count), "type": type_}
+    if normalized:
+        acc["normalized"] = True
+    if minmax:
+        cast = float if component_type == FLOAT else int
+        lo, hi = bounds if bounds is not None else _bounds(flat)
+        acc["min"] = [cast(x) for x in lo]
+        acc["max"] = [cast(x) for x in hi]
+    return (np.ascontiguousarray(stored).tobytes(), count, target, mode, stride), acc
+
+
+def _meshopt_encode(view: View) -> bytes:
+    """The EXT_meshopt_compression bytes of a vertex-attribute or triangle-index view."""
+    raw, count, _target, mode, _stride = view
+    elem = len(raw) // count
+    if mode == "ATTRIBUTES":
+        return bytes(_mo().encode_gltf_buffer(np.frombuffer(raw, np.uint8).reshape(count, elem), mode))
+    idx = np.frombuffer(raw, np.uint16 if elem == 2 else np.uint32)
+    return bytes(_mo().encode_gltf_buffer(idx.astype(np.uint32), mode))
+
+
 class _Builder:
     """Accumulates the buffer views and accessors of one GLB; :meth:`finish` lays out the binary
     buffer, plain or with meshoptimizer-encoded views (EXT_meshopt_compression)."""
 
     def __init__(self) -> None:
-        self.views: list[tuple[bytes, int, int | None, str | None, int | None]] = []
+        self.views: list[View] = []
+        self.encoded: list[bytes | None] = []  # meshopt bytes known in advance (static views)
         self.buffer_views: list[dict[str, Any]] = []
         self.accessors: list[dict[str, Any]] = []
 
@@ -188,90 +247,76 @@ class _Builder:
         target: int | None = None,
         minmax: bool = False,
         normalized: bool = False,
+        bounds: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> int:
-        """Append ``data`` ((count, ncomp) or (count,)) as a tightly packed, 4-byte aligned view
-        plus one accessor; returns the accessor index. Vertex attribute rows that are not a
-        multiple of 4 bytes are zero padded (the view then gets a byteStride)."""
-        arr = np.ascontiguousarray(data, dtype=_DTYPES[component_type])
-        count = arr.shape[0]
-        flat = arr.reshape(count, -1)
-        stride: int | None = None
-        stored = arr
-        if target == ARRAY_BUFFER and (flat.shape[1] * arr.dtype.itemsize) % 4:
-            stored = _pad_rows(flat)
-            stride = stored.shape[1] * arr.dtype.itemsize
-        mode = None
-        if target == ARRAY_BUFFER:
-            mode = "ATTRIBUTES"
-        elif target == ELEMENT_ARRAY_BUFFER and count % 3 == 0:
-            mode = "TRIANGLES"
-        self.views.append((np.ascontiguousarray(stored).tobytes(), count, target, mode, stride))
-        acc: dict[str, Any] = {
-            "bufferView": len(self.views) - 1,
-            "componentType": component_type,
-            "count": int(count),
-            "type": type_,
-        }
-        if normalized:
-            acc["normalized"] = True
-        if minmax:
-            cast = float if component_type == FLOAT else int
-            acc["min"] = [cast(x) for x in flat.min(axis=0)]
-            acc["max"] = [cast(x) for x in flat.max(axis=0)]
-        self.accessors.append(acc)
+        """Append ``data`` as one view plus one accessor (see :func:`_make_view`); returns the
+        accessor index."""
+        view, acc = _make_view(data, component_type, type_, target=target, minmax=minmax, normalized=normalized,
+                               bounds=bounds)
+        return self.add_view(view, acc)
+
+    def add_view(self, view: View, acc: dict[str, Any], encoded: bytes | None = None) -> int:
+        """Append a view made by :func:`_make_view` (and, optionally, its meshopt bytes) plus
+        a copy of its accessor; returns the accessor index."""
+        self.views.append(view)
+        self.encoded.append(encoded)
+        self.accessors.append({"bufferView": len(self.views) - 1, **acc})
         return len(self.accessors) - 1
 
     def add_bytes(self, raw: bytes) -> int:
         """Append opaque bytes (an encoded image) as a bufferView with no target, never
         meshopt-encoded; returns the bufferView index."""
-        self.views.append((bytes(raw), len(raw), None, None, None))
+        self.views.append((raw, len(raw), None, None, None))
+        self.encoded.append(None)
         return len(self.views) - 1
 
-    def finish(self, meshopt: bool) -> tuple[bytes, list[dict[str, Any]]]:
-        """(the BIN chunk's bytes, the ``buffers`` array); fills :attr:`buffer_views`."""
-        blob = bytearray()
+    def finish(self, meshopt: bool) -> tuple[list[bytes], int, list[dict[str, Any]]]:
+        """(the BIN chunk's pieces, their total length, the ``buffers`` array); fills
+        :attr:`buffer_views`. Pieces, not one buffer: the GLB is joined once (one copy)."""
+        parts: list[bytes] = []
+        size = 0
         fallback_len = 0
         self.buffer_views = []
-        for raw, count, target, mode, stride in self.views:
-            while len(blob) % 4:
-                blob.append(0)
-            view: dict[str, Any] = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(raw)}
+        for (raw, count, target, mode, stride), known in zip(self.views, self.encoded):
+            if size % 4:
+                parts.append(b"\0" * (-size % 4))
+                size += -size % 4
+            view: dict[str, Any] = {"buffer": 0, "byteOffset": size, "byteLength": len(raw)}
             if meshopt and mode is not None:
                 elem = len(raw) // count
-                if mode == "ATTRIBUTES":
-                    enc = _mo().encode_gltf_buffer(np.frombuffer(raw, np.uint8).reshape(count, elem), mode)
-                else:
-                    idx = np.frombuffer(raw, np.uint16 if elem == 2 else np.uint32)
-                    enc = _mo().encode_gltf_buffer(idx.astype(np.uint32), mode)
+                enc = known if known is not None else _meshopt_encode((raw, count, target, mode, stride))
                 # The bufferView itself points into the (data-less) fallback buffer 1.
                 view = {"buffer": 1, "byteOffset": fallback_len, "byteLength": len(raw)}
                 fallback_len += len(raw) + (-len(raw) % 4)
                 view["extensions"] = {
                     "EXT_meshopt_compression": {
                         "buffer": 0,
-                        "byteOffset": len(blob),
+                        "byteOffset": size,
                         "byteLength": len(enc),
                         "byteStride": elem,
                         "count": int(count),
                         "mode": mode,
                     }
                 }
-                blob += enc
+                parts.append(enc)
+                size += len(enc)
             else:
-                blob += raw
+                parts.append(raw)
+                size += len(raw)
             if stride is not None:
                 view["byteStride"] = stride
             if target is not None:
                 view["target"] = target
             self.buffer_views.append(view)
-        while len(blob) % 4:
-            blob.append(0)
-        buffers: list[dict[str, Any]] = [{"byteLength": len(blob)}]
+        if size % 4:
+            parts.append(b"\0" * (-size % 4))
+            size += -size % 4
+        buffers: list[dict[str, Any]] = [{"byteLength": size}]
         if meshopt:
             buffers.append(
                 {"byteLength": max(fallback_len, 4), "extensions": {"EXT_meshopt_compression": {"fallback": True}}}
             )
-        return bytes(blob), buffers
+        return parts, size, buffers
 
 
 def _mo() -> Any:
@@ -318,21 +363,117 @@ def _check_material(mat: Any) -> None:
             raise ValueError(f"texture {tex.name!r}: mime type must be one of {IMAGE_MIMES}, got {tex.mime!r}")
 
 
-def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[str, Any]:
-    """Validated float32/int arrays of one mesh dict (see :func:`scene_to_glb`)."""
-    v = np.asarray(m["vertices"], dtype=np.float32)
-    f = np.asarray(m["faces"], dtype=np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
-        raise ValueError(f"vertices must be (N, 3) with N > 0, got {v.shape}")
+def _check_faces(faces: Any, n: int) -> np.ndarray:
+    f = np.asarray(faces, dtype=np.int64)
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
         raise ValueError(f"faces must be (F, 3) with F > 0, got {f.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices must be finite")
-    n = v.shape[0]
     if f.min() < 0 or f.max() >= n:
         raise ValueError(f"face indices out of range [0, {n})")
+    return f
+
+
+def _check_uv(uv: Any, n: int) -> np.ndarray:
+    t = np.asarray(uv, dtype=np.float32)
+    if t.shape != (n, 2) or not np.all(np.isfinite(t)):
+        raise ValueError(f"uv must be finite ({n}, 2), got {t.shape}")
+    return t
+
+
+class MeshTemplate:
+    """The static part of one scene mesh, checked and encoded once: its faces, TEXCOORD_0 and
+    cleaned JOINTS_0/WEIGHTS_0, and per compression mode their bufferViews, accessors and
+    meshoptimizer bytes. A garment's try-on changes only POSITION, NORMAL and TANGENT (and the
+    customer's skeleton): give the template as a mesh dict's ``template`` (see
+    :func:`scene_to_glb`) and the GLB is the same bytes without redoing the static work.
+
+    faces (F, 3) int into n_vertices vertices; uv (N, 2) or None; vertex_joints (N, 4) int and
+    vertex_weights (N, 4) float (cleaned like :func:`scene_to_glb` does) for a skin of
+    ``n_joints`` joints, or None. Immutable once built; the per-mode cache is filled on first
+    use (a race only computes the same entry twice)."""
+
+    def __init__(self, faces: np.ndarray, n_vertices: int, *, uv: np.ndarray | None = None,
+                 vertex_joints: np.ndarray | None = None, vertex_weights: np.ndarray | None = None,
+                 n_joints: int | None = None) -> None:
+        self.n = int(n_vertices)
+        if self.n <= 0:
+            raise ValueError("a mesh template needs vertices")
+        self.f = _check_faces(faces, self.n)
+        self.uv = None if uv is None else _check_uv(uv, self.n)
+        self.n_joints = n_joints
+        self.joints: np.ndarray | None = None
+        self.weights: np.ndarray | None = None
+        if vertex_joints is not None or vertex_weights is not None:
+            if vertex_joints is None or vertex_weights is None or n_joints is None:
+                raise ValueError("vertex_joints, vertex_weights and n_joints go together")
+            self.joints, self.weights = _clean_skin_weights(vertex_joints, vertex_weights, n_joints)
+            if self.joints.shape[0] != self.n:
+                raise ValueError(f"skin vertex arrays must have {self.n} rows, got {self.joints.shape[0]}")
+        self._views: dict[str | None, dict[str, tuple[View, dict[str, Any], bytes | None]]] = {}
+
+    def views(self, compression: str | None) -> dict[str, tuple[View, dict[str, Any], bytes | None]]:
+        """{"TEXCOORD_0"?, "JOINTS_0"?, "WEIGHTS_0"?, "indices": (view, accessor, meshopt bytes
+        or None)} for ``compression`` (computed once per mode)."""
+        hit = self._views.get(compression)
+        if hit is None:
+            _check_compression(compression)
+            made = _static_views(self.f, self.n, self.uv, self.joints, self.weights, self.n_joints,
+                                 compression in ("quantize", "meshopt"))
+            hit = {k: (view, acc, _meshopt_encode(view) if compression == "meshopt" else None)
+                   for k, (view, acc) in made.items()}
+            self._views[compression] = hit
+        return hit
+
+
+def _static_views(f: np.ndarray, n: int, uv: np.ndarray | None, joints: np.ndarray | None,
+                  weights: np.ndarray | None, n_joints: int | None,
+                  quant: bool) -> dict[str, tuple[View, dict[str, Any]]]:
+    """The views and accessors of a mesh's static attributes (TEXCOORD_0, JOINTS_0, WEIGHTS_0,
+    in that order) and indices: faces (F, 3) into n vertices, uv (n, 2), joints (n, 4) and
+    weights (n, 4) as cleaned by :func:`_clean_skin_weights`, for a skin of n_joints."""
+    out: dict[str, tuple[View, dict[str, Any]]] = {}
+    if uv is not None:
+        if quant and uv.min() >= 0.0 and uv.max() <= 1.0:  # normalized UNSIGNED_SHORT, step 1/65535
+            uq = np.round(uv.astype(np.float64) * 65535.0).astype(np.uint16)
+            out["TEXCOORD_0"] = _make_view(uq, UNSIGNED_SHORT, "VEC2", target=ARRAY_BUFFER, normalized=True)
+        else:  # FLOAT is valid in every mode (tiling UVs outside [0, 1] stay exact)
+            out["TEXCOORD_0"] = _make_view(uv, FLOAT, "VEC2", target=ARRAY_BUFFER)
+    if joints is not None:
+        jtype = UNSIGNED_BYTE if n_joints is not None and n_joints <= 256 else UNSIGNED_SHORT
+        if quant:
+            w8, j = _quantize_weights(weights, joints)  # type: ignore[arg-type]
+            out["JOINTS_0"] = _make_view(j, jtype, "VEC4", target=ARRAY_BUFFER)
+            out["WEIGHTS_0"] = _make_view(w8, UNSIGNED_BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
+        else:
+            out["JOINTS_0"] = _make_view(joints, jtype, "VEC4", target=ARRAY_BUFFER)
+            out["WEIGHTS_0"] = _make_view(weights, FLOAT, "VEC4", target=ARRAY_BUFFER)  # type: ignore[arg-type]
+    itype = UNSIGNED_SHORT if n < 65535 else UNSIGNED_INT
+    out["indices"] = _make_view(f.reshape(-1), itype, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
+    return out
+
+
+def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[str, Any]:
+    """Validated float32/int arrays of one mesh dict (see :func:`scene_to_glb`); with a
+    ``template`` (:class:`MeshTemplate`), only the per-request arrays are checked."""
+    v = np.asarray(m["vertices"], dtype=np.float32)
+    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
+        raise ValueError(f"vertices must be (N, 3) with N > 0, got {v.shape}")
+    n = v.shape[0]
+    # min/max propagate NaN and keep +/-inf: finite bounds <=> finite vertices (and the bounds
+    # are POSITION's accessor min/max and the quantization grid's extent)
+    vmin, vmax = _bounds(v)
+    if not (np.all(np.isfinite(vmin)) and np.all(np.isfinite(vmax))):
+        raise ValueError("vertices must be finite")
+    tpl: MeshTemplate | None = m.get("template")
+    if tpl is not None:
+        if tpl.n != n:
+            raise ValueError(f"the mesh template has {tpl.n} vertices, got {n}")
+        if tpl.joints is not None and tpl.n_joints != n_joints:
+            raise ValueError(f"the mesh template is skinned for {tpl.n_joints} joints, the skin has {n_joints}")
+        f = tpl.f
+    else:
+        f = _check_faces(m["faces"], n)
     normals = m.get("normals")
-    nrm = vertex_normals(v, f) if normals is None else _unit_float32(np.asarray(normals, np.float64))
+    nrm = vertex_normals(v, f) if normals is None else _unit_float32(np.asarray(normals))
     if nrm.shape != v.shape:
         raise ValueError(f"normals must be {v.shape}, got {nrm.shape}")
     color = tuple(float(c) for c in m.get("color", DEFAULT_COLOR))
@@ -342,6 +483,8 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
         raise ValueError(f"color must be RGBA, got {color}")
     out: dict[str, Any] = {
         "v": v,
+        "vmin": vmin,
+        "vmax": vmax,
         "f": f,
         "n": nrm,
         "color": color,
@@ -354,12 +497,12 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
         "uv": None,
         "tangents": None,
         "material": None,
+        "template": tpl,
     }
-    if m.get("uv") is not None:
-        uv = np.asarray(m["uv"], dtype=np.float32)
-        if uv.shape != (n, 2) or not np.all(np.isfinite(uv)):
-            raise ValueError(f"uv must be finite ({n}, 2), got {uv.shape}")
-        out["uv"] = uv
+    if tpl is not None:
+        out["uv"] = tpl.uv
+    elif m.get("uv") is not None:
+        out["uv"] = _check_uv(m["uv"], n)
     mat = m.get("material")
     if mat is not None:
         _check_material(mat)
@@ -370,14 +513,19 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
             raise ValueError(f"mesh {out['name']!r}: a textured material needs uv")
         if mat.normal_texture is not None:
             if m.get("tangents") is not None:
-                tg = np.asarray(m["tangents"], np.float64)
-                if tg.shape != (n, 4) or not np.all(np.isfinite(tg)):
+                tg = np.asarray(m["tangents"])
+                # one pass: the float64 sum of (unit-sized) entries is finite <=> all of them are
+                if tg.shape != (n, 4) or not np.isfinite(np.sum(tg, dtype=np.float64)):
                     raise ValueError(f"tangents must be finite ({n}, 4), got {tg.shape}")
-                out["tangents"] = np.concatenate(
-                    [_unit_float32(tg[:, :3]), np.where(tg[:, 3:] < 0, -1.0, 1.0).astype(np.float32)], axis=1)
+                tan = np.empty((n, 4), np.float32)
+                tan[:, :3] = _unit_float32(tg[:, :3])
+                tan[:, 3] = np.where(tg[:, 3] < 0, -1.0, 1.0)
+                out["tangents"] = tan
             else:
                 out["tangents"] = vertex_tangents(v, f, out["uv"], nrm)
     if m.get("targets") is not None:
+        if tpl is not None:
+            raise ValueError("a templated mesh has no morph targets")
         t = np.asarray(m["targets"], dtype=np.float32)
         if t.ndim != 3 or t.shape[1:] != v.shape:
             raise ValueError(f"targets must be (K, {n}, 3), got {t.shape}")
@@ -389,6 +537,9 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
             raise ValueError(f"target_names must have {t.shape[0]} entries, got {len(names)}")
         if t.shape[0] > 0:
             out["targets"], out["target_names"] = t, names
+    if tpl is not None:
+        out["joints"], out["weights"] = tpl.joints, tpl.weights
+        return out
     has_j = m.get("vertex_joints") is not None or m.get("vertex_weights") is not None
     if has_j:
         if n_joints is None:
@@ -405,8 +556,8 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
 def _quant_grid(meshes: list[dict[str, Any]]) -> tuple[float, np.ndarray]:
     """One uniform step ``s`` and centre ``t`` so that (v - t) / s and every morph delta / s fit
     in [-32767, 32767] for all ``meshes``. Uniform, so normals stay correct under the node scale."""
-    lo = np.min([m["v"].min(axis=0) for m in meshes], axis=0).astype(np.float64)
-    hi = np.max([m["v"].max(axis=0) for m in meshes], axis=0).astype(np.float64)
+    lo = np.min([m["vmin"] for m in meshes], axis=0).astype(np.float64)
+    hi = np.max([m["vmax"] for m in meshes], axis=0).astype(np.float64)
     t = (lo + hi) / 2.0
     s = float(np.max(hi - lo)) / (2 * 32767)
     for m in meshes:
@@ -452,14 +603,18 @@ def _build_glb(
         node: dict[str, Any] = {"name": m["name"], "mesh": mi}
         if quant:
             s, t = skin_grid if m["joints"] is not None else _quant_grid([m])  # type: ignore[misc]
-            q = np.clip(np.round((m["v"].astype(np.float64) - t) / s), -32767, 32767).astype(np.int16)
-            pos = b.add(q, SHORT, "VEC3", target=ARRAY_BUFFER, minmax=True)
+            def grid(x: np.ndarray) -> np.ndarray:
+                return np.clip(np.round((x.astype(np.float64) - t) / s), -32767, 32767).astype(np.int16)
+
+            # monotone per axis: the grid's bounds are those of the vertices' bounds
+            pos = b.add(grid(m["v"]), SHORT, "VEC3", target=ARRAY_BUFFER, minmax=True,
+                        bounds=(grid(m["vmin"]), grid(m["vmax"])))
             nrm = b.add(_quantize_normals(m["n"]), BYTE, "VEC3", target=ARRAY_BUFFER, normalized=True)
             if m["joints"] is None:  # a skinned node's transform is ignored: the skin dequantizes
                 node["translation"] = [float(x) for x in t]
                 node["scale"] = [s, s, s]
         else:
-            pos = b.add(m["v"], FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True)
+            pos = b.add(m["v"], FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True, bounds=(m["vmin"], m["vmax"]))
             nrm = b.add(m["n"], FLOAT, "VEC3", target=ARRAY_BUFFER)
         attributes: dict[str, int] = {"POSITION": pos, "NORMAL": nrm}
         if m["tangents"] is not None:
@@ -469,22 +624,16 @@ def _build_glb(
                 attributes["TANGENT"] = b.add(tq, BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
             else:
                 attributes["TANGENT"] = b.add(m["tangents"], FLOAT, "VEC4", target=ARRAY_BUFFER)
-        if m["uv"] is not None:
-            uv = m["uv"]
-            if quant and uv.min() >= 0.0 and uv.max() <= 1.0:  # normalized UNSIGNED_SHORT, step 1/65535
-                uq = np.round(uv.astype(np.float64) * 65535.0).astype(np.uint16)
-                attributes["TEXCOORD_0"] = b.add(uq, UNSIGNED_SHORT, "VEC2", target=ARRAY_BUFFER, normalized=True)
-            else:  # FLOAT is valid in every mode (tiling UVs outside [0, 1] stay exact)
-                attributes["TEXCOORD_0"] = b.add(uv, FLOAT, "VEC2", target=ARRAY_BUFFER)
+        # the static attributes and indices: once per template and mode, or made here
+        if m["template"] is not None:
+            static = m["template"].views(compression)
+        else:
+            static = {k: (view, acc, None) for k, (view, acc) in _static_views(
+                m["f"], m["v"].shape[0], m["uv"], m["joints"], m["weights"], n_j, quant).items()}
+        for key in ("TEXCOORD_0", "JOINTS_0", "WEIGHTS_0"):
+            if key in static:
+                attributes[key] = b.add_view(*static[key])
         if m["joints"] is not None:
-            jtype = UNSIGNED_BYTE if n_j is not None and n_j <= 256 else UNSIGNED_SHORT
-            if quant:
-                w8, j = _quantize_weights(m["weights"], m["joints"])
-                attributes["JOINTS_0"] = b.add(j, jtype, "VEC4", target=ARRAY_BUFFER)
-                attributes["WEIGHTS_0"] = b.add(w8, UNSIGNED_BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
-            else:
-                attributes["JOINTS_0"] = b.add(m["joints"], jtype, "VEC4", target=ARRAY_BUFFER)
-                attributes["WEIGHTS_0"] = b.add(m["weights"], FLOAT, "VEC4", target=ARRAY_BUFFER)
             node["skin"] = 0
         prim: dict[str, Any] = {"attributes": attributes}
         gmesh: dict[str, Any] = {"name": m["name"], "primitives": [prim]}
@@ -500,8 +649,7 @@ def _build_glb(
             prim["targets"] = targets
             gmesh["weights"] = [0.0] * len(targets)
             gmesh["extras"] = {"targetNames": list(m["target_names"])}
-        itype = UNSIGNED_SHORT if m["v"].shape[0] < 65535 else UNSIGNED_INT
-        prim["indices"] = b.add(m["f"].reshape(-1), itype, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
+        prim["indices"] = b.add_view(*static["indices"])
         prim["material"] = mi
         prim["mode"] = TRIANGLES
         mat: dict[str, Any] = {
@@ -570,7 +718,7 @@ def _build_glb(
     for img in images:  # after every accessor's view: images are never meshopt-encoded
         img["bufferView"] = b.add_bytes(img.pop("_data"))
 
-    blob, buffers = b.finish(meshopt=compression == "meshopt")
+    parts, blob_len, buffers = b.finish(meshopt=compression == "meshopt")
     doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": "tryon service.model.gltf"}}
     ext = {"quantize": ["KHR_mesh_quantization"], "meshopt": ["KHR_mesh_quantization", "EXT_meshopt_compression"]}
     if compression is not None:
@@ -597,11 +745,9 @@ def _build_glb(
 
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * (-len(js) % 4)
-    total = 12 + 8 + len(js) + 8 + len(blob)
-    out = bytearray(struct.pack("<III", GLB_MAGIC, GLB_VERSION, total))
-    out += struct.pack("<II", len(js), CHUNK_JSON) + js
-    out += struct.pack("<II", len(blob), CHUNK_BIN) + blob
-    return bytes(out)
+    total = 12 + 8 + len(js) + 8 + blob_len
+    return b"".join([struct.pack("<IIIII", GLB_MAGIC, GLB_VERSION, total, len(js), CHUNK_JSON), js,
+                     struct.pack("<II", blob_len, CHUNK_BIN), *parts])
 
 
 def mesh_to_glb(

@@ -24,8 +24,8 @@ from scipy.spatial import cKDTree
 
 from service.model import garment as G
 from service.model.catalogue import Material, RenderLayout, Texture
-from service.model.geometry import face_incidence, vertex_normals
-from service.model.gltf import vertex_tangents
+from service.model.geometry import face_incidence, row_dot, vertex_normals
+from service.model.gltf import MeshTemplate, vertex_tangents
 from service.model.skin_weights import transfer_skin_weights
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
@@ -70,6 +70,8 @@ class GarmentBasis:
     _incidence: object = None
     _render_skin: object = None
     _render_tangents: object = None
+    # per n_joints; init=False: dataclasses.replace (a new layout or material) starts empty
+    _templates: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n_vertices(self) -> int:
@@ -86,7 +88,7 @@ class GarmentBasis:
         multiply-adds) instead of recomputed from the mesh."""
         if weights is not None and self.gn is not None:
             n = G.synthesize(np.asarray(self.gn), np.asarray(self.Bn), weights)
-            return n / np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+            return n / np.sqrt(row_dot(n, n))[:, None]
         if self._incidence is None:
             self._incidence = face_incidence(np.asarray(self.faces), self.n_vertices)
         return vertex_normals(vertices, self.faces, self._incidence)
@@ -112,15 +114,32 @@ class GarmentBasis:
         if self._render_tangents is None:
             idx = np.asarray(self.render_vertex)
             g = np.asarray(self.g)[idx]
-            self._render_tangents = vertex_tangents(g, np.asarray(self.render_faces), np.asarray(self.render_uv),
-                                                    vertex_normals(g, np.asarray(self.render_faces)))
-        t0: np.ndarray = self._render_tangents  # type: ignore[assignment]
+            t0 = vertex_tangents(g, np.asarray(self.render_faces), np.asarray(self.render_uv),
+                                 vertex_normals(g, np.asarray(self.render_faces)))
+            self._render_tangents = (np.ascontiguousarray(t0[:, :3]), np.ascontiguousarray(t0[:, 3]))
+        t0, w = self._render_tangents  # type: ignore[misc]
         n = np.asarray(normals, np.float32)
-        t = t0[:, :3] - n * np.einsum("ij,ij->i", n, t0[:, :3])[:, None]
-        out = np.empty_like(t0)
-        out[:, :3] = t / np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)[:, None]
-        out[:, 3] = t0[:, 3]
+        t = t0 - n * row_dot(n, t0)[:, None]
+        out = np.empty((len(w), 4), np.float32)
+        out[:, :3] = t / np.maximum(np.sqrt(row_dot(t, t)), 1e-12)[:, None]
+        out[:, 3] = w
         return out
+
+    def mesh_template(self, n_joints: int) -> MeshTemplate:
+        """The static part of this garment's try-on GLB mesh for a skeleton of ``n_joints``:
+        faces, skinning and, with a render layout, its faces, UVs and gathered skinning, checked,
+        cleaned and encoded once per basis (and compression mode) instead of per request."""
+        hit = self._templates.get(n_joints)
+        if hit is None:
+            if self.has_layout:
+                j, w = self.render_skin()
+                hit = MeshTemplate(np.asarray(self.render_faces), len(self.render_vertex), uv=np.asarray(self.render_uv),
+                                   vertex_joints=j, vertex_weights=w, n_joints=n_joints)
+            else:
+                hit = MeshTemplate(np.asarray(self.faces), self.n_vertices, vertex_joints=np.asarray(self.skin_idx),
+                                   vertex_weights=np.asarray(self.skin_w), n_joints=n_joints)
+            self._templates[n_joints] = hit
+        return hit
 
     def save(self, directory: Path) -> None:
         """Write atomically: a temporary sibling directory renamed into place."""

@@ -45,10 +45,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-kill", action="store_true", help="fitting: skip the jobs-under-worker-kills part")
     ap.add_argument("--max-pose-deg", type=float, default=45.0,
                     help="fitting: largest random rotation per bone of the synthetic scans (default 45)")
+    ap.add_argument("--only", choices=["latency"], default=None,
+                    help="tryon: only the in-process try-on latency rows (template fast path vs reference)")
     args = ap.parse_args(argv)
     module, run_name, fmt_name, _ = SUITES[args.suite]
     mod = importlib.import_module(module)
     extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg} if args.suite == "fitting" else {}
+    if args.only is not None:
+        if args.suite != "tryon":
+            ap.error("--only is a tryon option")
+        extra = {"only": args.only}
     res = getattr(mod, run_name)(args.limit, args.repeats, **extra)
     print(json.dumps(res, indent=2) if args.json else getattr(mod, fmt_name)(res))
     return 0

@@ -56,12 +56,18 @@ def penetration_depths(garment: np.ndarray, body: np.ndarray, faces: np.ndarray,
     return depth
 
 
-def bench_tryon(limit: int, repeats: int) -> dict:
+def bench_tryon(limit: int, repeats: int, only: str | None = None) -> dict:
+    """The whole suite, or with ``only="latency"`` the in-process try-on latency rows alone
+    (sections 3, 4b and the template fast path beside the reference path)."""
+    if only is not None and only != "latency":
+        raise ValueError(f"--only: 'latency' or nothing, got {only!r}")
     model = load_body_model()
     nb = model.n_body_vertices
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
     garments = bench_garments(model)
+    if only == "latency":
+        return bench_latency(model, ex, EX, garments["demo-skirt-10k"], repeats)
     bases = {}
     for name, (fit, faces) in garments.items():
         fits = np.stack([fit(E) for E in EX])
@@ -171,6 +177,92 @@ def bench_tryon(limit: int, repeats: int) -> dict:
     return res
 
 
+def customers(model, n: int = 10) -> list:
+    """n held-out ANSUR customers' bodies (the same as the suite's first n penetration picks)."""
+    rng = np.random.default_rng(1)
+    held = read_ansur(heldout=True)
+    specs = {a.name: a for a in model.attributes}
+    held = [h for h in held if all(specs[k].min <= v <= specs[k].max for k, v in h["measurements"].items() if k != "gender")]
+    picks = rng.choice(len(held), size=200, replace=False)
+    return [T.customer_body(model, S.avatar_from_measurements(model, held[i]["measurements"]).weights)
+            for i in picks[:n]]
+
+
+def bench_latency(model, ex, EX, skirt, repeats: int) -> dict:
+    """``--only latency``: the try-on route's in-process work (``scenes.outfit_glb`` for one
+    garment: synthesis, push-out, normals, render layout, GLB bytes) for the 10k-vertex skirt
+    (untextured; textured: UV seams split, base colour + normal map) and the demo catalogue's
+    largest textured garment (the business suit), every compression mode: the template fast
+    path (the basis' static arrays encoded once) beside the reference path (everything per
+    request, the code before templates: the same bytes), interleaved in the same run. Wall-clock
+    medians, and medians of the thread's CPU time (``time.thread_time``: what a request costs
+    without the waits for a core that a shared, loaded machine adds)."""
+    import dataclasses
+
+    from service.application import scenes
+    from service.model.catalogue import load_catalogue
+    from service.records import Garment
+
+    fit, faces = skirt
+    plain = T.build_garment_basis(model, np.stack([fit(E) for E in EX]), faces, ex)
+    cat = load_catalogue()
+    lay = skirt_layout()
+    textured = dataclasses.replace(plain, render_vertex=lay.vertex.astype(np.int32), render_uv=lay.uv,
+                                   render_faces=lay.faces.astype(np.int32),
+                                   material=dataclasses.replace(cat.items["cropped-tee"].material),
+                                   _render_skin=None, _render_tangents=None)
+    suit = cat.items["business-suit"]
+    suit_basis = T.build_garment_basis(model, np.stack([suit.fit_to(E) for E in EX]), suit.faces, ex,
+                                       layout=suit.render_layout(), material=suit.material)
+    cases = {"skirt-10k": plain, "skirt-10k-textured": textured, "business-suit": suit_basis}
+    bodies = customers(model)
+    rec = Garment(id="bench", body_model=model.version, owner="bench", name="garment", source="demo",
+                  color=[0.5, 0.5, 0.5, 1.0], layer=0)
+    out: dict = {"suite": "tryon", "only": "latency", "repeats": repeats,
+                 "garments": {k: {"vertices": b.n_vertices,
+                                  "render_vertices": int(len(b.render_vertex)) if b.has_layout else b.n_vertices}
+                              for k, b in cases.items()},
+                 "modes": {}, "goal_ms": 2.0}
+    for name, basis in cases.items():
+        for mode in (None, "quantize", "meshopt"):
+            def once(i: int, template: bool) -> bytes:
+                return scenes.outfit_glb(model, bodies[i % len(bodies)], [(rec, basis)], mode, with_avatar=False,
+                                         template=template)
+
+            for i in range(len(bodies)):  # warm: nearest-vertex bindings, render skin, template
+                assert once(i, True) == once(i, False)
+            ts: dict = {"reference": [], "template": []}
+            cpu: dict = {"reference": [], "template": []}
+            for i in range(repeats):  # interleaved: both see the same machine load
+                for key in ts:
+                    t0, c0 = time.perf_counter(), time.thread_time()
+                    once(i, key == "template")
+                    ts[key].append(time.perf_counter() - t0)
+                    cpu[key].append(time.thread_time() - c0)
+            ref, fast = (1000.0 * float(np.median(ts[k])) for k in ("reference", "template"))
+            cref, cfast = (1000.0 * float(np.median(cpu[k])) for k in ("reference", "template"))
+            out["modes"].setdefault(name, {})[mode or "plain"] = {
+                "reference_ms": ref, "template_ms": fast, "speedup": ref / fast,
+                "reference_cpu_ms": cref, "template_cpu_ms": cfast, "cpu_speedup": cref / cfast,
+                "glb_bytes": len(once(0, True))}
+    return out
+
+
+def format_latency(r: dict) -> str:
+    L = [f"try-on route in process (scenes.outfit_glb, one garment, 10 customers), median ms of {r['repeats']}, "
+         f"reference path (everything per request) vs template (static arrays once per basis), interleaved in the "
+         f"same run; wall clock and the thread's CPU time; goal <= {r['goal_ms']} ms for 10k vertices",
+         f"  {'garment':<20}{'vertices':>9}{'render':>8}  {'mode':<9}{'wall ref':>9}{'templ':>8}{'x':>6}"
+         f"{'cpu ref':>9}{'templ':>8}{'x':>6}{'bytes':>9}"]
+    for name, modes in r["modes"].items():
+        g = r["garments"][name]
+        for mode, v in modes.items():
+            L.append(f"  {name:<20}{g['vertices']:>9}{g['render_vertices']:>8}  {mode:<9}{v['reference_ms']:>9.3f}"
+                     f"{v['template_ms']:>8.3f}{v['speedup']:>6.2f}{v['reference_cpu_ms']:>9.3f}"
+                     f"{v['template_cpu_ms']:>8.3f}{v['cpu_speedup']:>6.2f}{v['glb_bytes']:>9}")
+    return "\n".join(L)
+
+
 def skirt_layout(rings: int = 64, angles: int = 160):
     """A render layout of the demo skirt grid (``D.skirt_faces``): u around (a seam where the
     rings close: one extra uv column), v down the rings."""
@@ -250,6 +342,8 @@ def format_textures(x: dict) -> list[str]:
 
 
 def format_tryon(r: dict) -> str:
+    if r.get("only") == "latency":
+        return format_latency(r)
     L = [f"examples: N = {r['examples']['n']} components, c = {r['examples']['c']} "
          f"({r['examples']['count']} example avatars); {len(r['garments'])} garments"]
     a = r["accuracy_mm"]
