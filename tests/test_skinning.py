@@ -41,7 +41,7 @@ def grid(nx: int, ny: int, z: float = 0.0, size: float = 1.0) -> tuple[np.ndarra
 
 def reference_transfer(G, GF, B, BF, idx, w, J, max_distance, max_angle_deg, k):
     """Slow and obvious: closest point over every body triangle in a loop, a dense solve of the
-    constrained Dirichlet problem (KKT), top-k by sorting each row."""
+    constrained Dirichlet problem (KKT, edges weighted 1 / length^2), top-k by sorting each row."""
     Wb = np.zeros((len(B), J))
     for i in range(len(B)):
         for j, x in zip(idx[i], w[i]):
@@ -66,11 +66,12 @@ def reference_transfer(G, GF, B, BF, idx, w, J, max_distance, max_angle_deg, k):
     rel &= ~SW.weight_jumps(G, GF, W, rel)
     M = len(G)
     Lap = np.zeros((M, M))
-    for a, b in mesh_edges(GF):
-        Lap[a, a] += 1
-        Lap[b, b] += 1
-        Lap[a, b] -= 1
-        Lap[b, a] -= 1
+    for a, b in mesh_edges(GF):  # the Dirichlet energy sum ((w_a - w_b) / l_ab)^2
+        c = 1.0 / np.sum((G[a] - G[b]) ** 2)
+        Lap[a, a] += c
+        Lap[b, b] += c
+        Lap[a, b] -= c
+        Lap[b, a] -= c
     kn = np.flatnonzero(rel)
     C = np.zeros((len(kn), M))
     C[np.arange(len(kn)), kn] = 1
@@ -120,6 +121,62 @@ def test_top_k_and_inpaint_constraints() -> None:
     X[4] = 1
     out = SW.inpaint(X, np.array([1, 0, 0, 0, 1], bool), Lap)
     assert np.allclose(out[:, 0], [0, 0.25, 0.5, 0.75, 1], atol=1e-6)
+
+
+def tube(radius: float, x0: float, x1: float, n_around: int, n_along: int) -> tuple[np.ndarray, np.ndarray]:
+    """A cylinder around the x axis (no caps)."""
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    x = np.linspace(x0, x1, n_along)
+    V = np.stack([np.repeat(x, n_around), np.tile(radius * np.cos(a), n_along), np.tile(radius * np.sin(a), n_along)], 1)
+    idx = np.arange(n_along * n_around).reshape(n_along, n_around)
+    nxt = np.roll(idx, -1, axis=1)
+    F = np.concatenate([np.stack([idx[:-1].ravel(), nxt[:-1].ravel(), nxt[1:].ravel()], 1),
+                        np.stack([idx[:-1].ravel(), nxt[1:].ravel(), idx[1:].ravel()], 1)])
+    return V, F
+
+
+def elbow_bend(degrees: float, elbow: float) -> np.ndarray:
+    """Bone transforms (2, 4, 4): bone 0 (upper arm) still, bone 1 (forearm) turned about z at x = elbow."""
+    R = L.axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(degrees)]))
+    T = np.tile(np.eye(4), (2, 1, 1))
+    T[1, :3, :3] = R
+    T[1, :3, 3] = np.array([elbow, 0, 0]) - R @ np.array([elbow, 0, 0])
+    return T
+
+
+def test_sleeve_on_a_two_bone_arm_stretches_less_than_nearest_vertex() -> None:
+    # an arm: a coarse tube (2 cm rings) whose weights step from bone 0 to bone 1 at the elbow;
+    # a sleeve: a fine tube (5 mm rings) 1 cm off it (every vertex reliable); elbow bent 60 degrees
+    from scipy.spatial import cKDTree
+
+    B, BF = tube(0.05, 0.0, 0.6, 24, 31)
+    step = (B[:, 0] > 0.3).astype(np.float64)
+    idx, Wb = np.tile([0, 1], (len(B), 1)), np.stack([1 - step, step], 1)
+    G, GF = tube(0.06, 0.02, 0.58, 48, 113)
+    T = elbow_bend(60.0, 0.3)[None]
+    e = mesh_edges(GF)
+    p = lambda i, w: np.percentile(SW.pose_stretch(G, e, T, i, w), 99.9)  # noqa: E731
+    near = cKDTree(B).query(G)[1]
+    assert p(idx[near], Wb[near]) > 5.0  # the nearest vertex copies the step: the sleeve tears
+    assert np.percentile(SW.pose_stretch(B, mesh_edges(BF), T, idx, Wb), 99.9) > 3.0  # so does the arm
+    i0, w0 = SW.transfer_skin_weights(G, GF, B, BF, idx, Wb, 2)  # jump released, inpainted
+    assert p(i0, w0) < 2.0
+    i1, w1 = SW.transfer_skin_weights(G, GF, B, BF, idx, Wb, 2, test_transforms=T)  # + released where it stretches
+    assert p(i1, w1) < 1.5 and p(i1, w1) < p(i0, w0)
+    assert np.allclose(w1.sum(1), 1, atol=1e-6)
+    # far from the elbow the sleeve still follows its bone
+    assert (i1[G[:, 0] < 0.1, 0] == 0).all() and (i1[G[:, 0] > 0.5, 0] == 1).all()
+    assert (w1[G[:, 0] < 0.1, 0] > 0.99).all() and (w1[G[:, 0] > 0.5, 0] > 0.99).all()
+
+
+def test_metric_laplacian_is_the_squared_gradient_energy() -> None:
+    V, F = grid(4, 3, size=0.2)
+    V[:, 0] *= np.linspace(0.5, 1.5, len(V))  # uneven edges
+    W = np.random.default_rng(0).random((len(V), 2))
+    e = mesh_edges(F)
+    want = sum(np.sum((W[a] - W[b]) ** 2) / np.sum((V[a] - V[b]) ** 2) for a, b in e)
+    Lap = SW.metric_laplacian(V, F)
+    assert np.isclose(np.trace(W.T @ (Lap @ W)), want)
 
 
 @pytest.fixture(scope="module")

@@ -114,6 +114,14 @@ def preset_poses(model, vertices: np.ndarray, path: str | Path | None = None) ->
             for name, p in spec["poses"].items()}
 
 
+def preset_transforms(model, vertices: np.ndarray, path: str | Path | None = None) -> np.ndarray:
+    """Bone transforms (P, 17, 4, 4) of the page's presets (not adapted) on the avatar
+    ``vertices`` (V, 3), in ``presets()`` order: the test poses of garment skin weights
+    (``service.model.skin_weights.release_stretched``)."""
+    X = np.asarray(vertices, np.float64)
+    return np.stack([model.forward(pose=p, vertices=X).transforms for p in preset_poses(model, X, path).values()])
+
+
 # -- collision check: arm vertices inside the torso or thighs -------------------------------------
 @functools.lru_cache(maxsize=4)
 def _labels(model) -> dict:

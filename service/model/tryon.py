@@ -24,8 +24,9 @@ from scipy.spatial import cKDTree
 
 from service.model import garment as G
 from service.model.catalogue import Material, RenderLayout, Texture
-from service.model.geometry import face_incidence, row_dot, vertex_normals
+from service.model.geometry import face_incidence, mesh_edges, row_dot, vertex_normals
 from service.model.gltf import MeshTemplate, vertex_tangents
+from service.model.poses import preset_transforms
 from service.model.skin_weights import transfer_skin_weights
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
@@ -221,8 +222,14 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
     nb = model.n_body_vertices
     body0 = model.mean[:nb]
     binding = G.bind_to_body(g, body0)
+    # skin weights: tested in the page's poses on the mean body, each edge at its shortest over
+    # the example fits (a heavy body squeezes the armpit and crotch)
+    e = mesh_edges(faces)
+    shortest = np.linalg.norm(fits[:, e[:, 0]] - fits[:, e[:, 1]], axis=2).min(axis=0)
     skin_idx, skin_w = transfer_skin_weights(g, faces, body0, model.body_faces, model.lbs_indices[:nb],
-                                             model.lbs_weights[:nb], len(model.bone_parents))
+                                             model.lbs_weights[:nb], len(model.bone_parents),
+                                             test_transforms=preset_transforms(model, model.mean),
+                                             rest_lengths=shortest)
     meta = dict(meta or {})
     meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
                  "examples_c": examples.c})
@@ -233,7 +240,7 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
         if look["render_vertex"].min() < 0 or look["render_vertex"].max() >= g.shape[0]:
             raise ValueError("the render layout refers to a vertex out of range")
     h = hashlib.sha256()
-    for a in (g, B, np.asarray(faces, np.int32), *look.values()):
+    for a in (g, B, np.asarray(faces, np.int32), skin_idx, skin_w, *look.values()):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(material_digest(material))
     meta["etag"] = h.hexdigest()[:32]

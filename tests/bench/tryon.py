@@ -519,37 +519,67 @@ def catalogue_bases(model, ex, EX) -> dict:
 def bench_pose_stretch(model, bases: dict) -> dict:
     """99.9th-percentile edge stretch (posed / rest length) of every garment in the page's four
     poses (adapted to each body) on the five bodies: nearest-vertex skin weights (before) vs the
-    inpainted transfer (after); beside it the avatar's own skin."""
+    inpainted transfer (after); beside it the avatar's own skin, the garment's stretch relative
+    to the body's under it (each edge's ratio over the largest edge ratio of the body triangles
+    closest to its two ends), and how well the garment follows the body: the p95 change of each
+    garment vertex's distance to the body surface, posed vs rest (mm)."""
     from service.model import lbs as L
     from service.model import poses as P
+    from service.model.geometry import closest_points_on_mesh, mesh_edges
 
     nb = model.n_body_vertices
-    per = {k: {"before": 1.0, "after": 1.0} for k in bases}
+    Fb = model.body_faces
+    per = {k: {"before": 1.0, "after": 1.0, "after_relative": 1.0, "gap_change_mm_before": 0.0,
+               "gap_change_mm_after": 0.0, "worst": ""} for k in bases}
     avatar = 1.0
     t_adapt = []
-    for meas in FIVE_BODIES.values():
+    for bname, meas in FIVE_BODIES.items():
         X = S.avatar_from_measurements(model, meas).vertices
         body = T.customer_body(model, model.project(X))
+        rest = body.vertices[:nb].astype(np.float64)
         t0 = time.perf_counter()
         poses = P.adapted_poses(model, body.vertices)
         t_adapt.append(time.perf_counter() - t0)
         fits = {k: T.try_on(b, body)[0].astype(np.float64) for k, (b, _, _) in bases.items()}
-        for pose in poses.values():
+        under = {k: closest_points_on_mesh(v, rest, Fb) for k, v in fits.items()}
+        for pname, pose in poses.items():
             posed = model.forward(pose=pose, vertices=body.vertices)
-            avatar = max(avatar, float(np.percentile(P.edge_stretch(body.vertices[:nb], posed.vertices[:nb],
-                                                                     model.body_faces), STRETCH_PERCENTILE)))
+            pb = posed.vertices[:nb]
+            avatar = max(avatar, float(np.percentile(P.edge_stretch(rest, pb, Fb), STRETCH_PERCENTILE)))
+            face_stretch = np.max([np.linalg.norm(pb[Fb[:, a]] - pb[Fb[:, c]], axis=1) /
+                                   np.linalg.norm(rest[Fb[:, a]] - rest[Fb[:, c]], axis=1)
+                                   for a, c in ((0, 1), (1, 2), (2, 0))], axis=0)
             for k, (b, _, _) in bases.items():
                 v = fits[k]
+                face, q, _ = under[k]
+                gap = np.linalg.norm(v - q, axis=1)
+                e = mesh_edges(b.faces)
+                ok = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1) > 1e-9
+                body_s = np.maximum(face_stretch[face[e[ok, 0]]], face_stretch[face[e[ok, 1]]])
                 near = b.binding[:, 0]
                 for which, (idx, w) in (("before", (model.lbs_indices[near], model.lbs_weights[near])),
                                         ("after", (b.skin_idx, b.skin_w))):
-                    s = P.edge_stretch(v, L.skin(v, posed.transforms, idx, w), b.faces)
-                    per[k][which] = max(per[k][which], float(np.percentile(s, STRETCH_PERCENTILE)))
+                    pv = L.skin(v, posed.transforms, idx, w)
+                    s = P.edge_stretch(v, pv, b.faces)
+                    p = float(np.percentile(s, STRETCH_PERCENTILE))
+                    if which == "after":
+                        if p > per[k]["after"]:
+                            per[k]["worst"] = f"{bname}, {pname}"
+                        per[k]["after_relative"] = max(per[k]["after_relative"],
+                                                       float(np.percentile(s / body_s, STRETCH_PERCENTILE)))
+                    per[k][which] = max(per[k][which], p)
+                    _, qp, _ = closest_points_on_mesh(pv, pb, Fb)
+                    dg = 1000 * float(np.percentile(np.abs(np.linalg.norm(pv - qp, axis=1) - gap), 95))
+                    per[k][f"gap_change_mm_{which}"] = max(per[k][f"gap_change_mm_{which}"], dg)
+    garments = {k: v for k, v in per.items() if bases[k][1] != "shoes"}
     return {"bodies": list(FIVE_BODIES), "poses": 4, "percentile": STRETCH_PERCENTILE, "per_garment": per,
             "avatar": avatar, "goal": 1.5, "adapt_poses_s_median": float(np.median(t_adapt)),
             "worst_before": max(v["before"] for v in per.values()),
             "worst_after": max(v["after"] for v in per.values()),
-            "median_after": float(np.median([v["after"] for v in per.values()]))}
+            "median_after": float(np.median([v["after"] for v in garments.values()])),
+            "median_after_relative": float(np.median([v["after_relative"] for v in garments.values()])),
+            "median_gap_change_mm_before": float(np.median([v["gap_change_mm_before"] for v in garments.values()])),
+            "median_gap_change_mm_after": float(np.median([v["gap_change_mm_after"] for v in garments.values()]))}
 
 
 LAYER_PAIRS = [(b, t) for t in ("womens-tshirt", "pinstripe-blouse", "cropped-tee")
@@ -617,19 +647,42 @@ def bench_clothes_motion(limit: int) -> dict:
             "layering": bench_layering(model, bases, people=limit or 10)}
 
 
-def format_clothes_motion(r: dict) -> str:
-    s = r["pose_stretch"]
+def pose_stretch_catalogue() -> dict:
+    """Only the pose-stretch rows of :func:`bench_clothes_motion` (the catalogue's bases built
+    as at service start)."""
+    model = load_body_model()
+    ex = T.example_set(model)
+    t0 = time.perf_counter()
+    bases = catalogue_bases(model, ex, T.example_vertices(model, ex))
+    t_build = time.perf_counter() - t0
+    r = bench_pose_stretch(model, bases)
+    r["build_bases_s"] = t_build
+    return r
+
+
+def format_pose_stretch(s: dict) -> str:
     L = [f"\npose stretch: p{s['percentile']} edge length ratio in the 4 page poses (adapted per body) on "
          f"{len(s['bodies'])} bodies, worst body and pose (goal <= {s['goal']}); the avatar's own skin "
          f"{s['avatar']:.2f}; pose adaptation {s['adapt_poses_s_median']:.1f} s per body (median)",
-         f"  {'garment':<22}{'before (nearest vertex)':>24}{'after (inpainted)':>19}"]
+         f"  {'garment':<22}{'before (nearest vertex)':>24}{'after (inpainted)':>19}{'after / body':>14}"
+         f"{'gap change p95 mm':>20}  worst body, pose"]
     for k, v in s["per_garment"].items():
-        L.append(f"  {k:<22}{v['before']:>24.2f}{v['after']:>19.2f}")
-    L.append(f"  worst {s['worst_before']:.2f} -> {s['worst_after']:.2f}; median after {s['median_after']:.2f}")
+        L.append(f"  {k:<22}{v['before']:>24.2f}{v['after']:>19.2f}{v['after_relative']:>14.2f}"
+                 f"{v['gap_change_mm_before']:>11.1f} -> {v['gap_change_mm_after']:<5.1f}  {v['worst']}")
+    L.append(f"  worst {s['worst_before']:.2f} -> {s['worst_after']:.2f}; median garment (no shoes) after "
+             f"{s['median_after']:.2f}, relative to the body under it {s['median_after_relative']:.2f}; gap change "
+             f"median {s['median_gap_change_mm_before']:.1f} -> {s['median_gap_change_mm_after']:.1f} mm")
+    if "build_bases_s" in s:
+        L.append(f"  building the {len(s['per_garment'])} bases (fits + skin weights): {s['build_bases_s']:.1f} s")
+    return "\n".join(L)
+
+
+def format_clothes_motion(r: dict) -> str:
     y = r["layering"]
-    L.append(f"\nlayering: body vertices covered by two garments where the inner one is outside the outer "
-             f"(goal <= {y['goal_pct']} %), {y['pairs']} pairs, {y['people']} held-out people "
-             f"(posed: the 3 page poses on {y['posed_people']}); push-inside {y['push_inside_ms_median']:.0f} ms median")
+    L = [format_pose_stretch(r["pose_stretch"]),
+         f"\nlayering: body vertices covered by two garments where the inner one is outside the outer "
+         f"(goal <= {y['goal_pct']} %), {y['pairs']} pairs, {y['people']} held-out people "
+         f"(posed: the 3 page poses on {y['posed_people']}); push-inside {y['push_inside_ms_median']:.0f} ms median"]
     for k in ("rest", "posed"):
         L.append(f"  {k:<6} {y[k]['both_covered']:>8} covered by both: {y[k]['before_pct']:6.2f} % -> "
                  f"{y[k]['after_pct']:6.2f} %")
