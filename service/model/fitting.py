@@ -18,7 +18,9 @@ Stages:
    skeleton from the pelvis outwards (``BONE_LEVELS``) and then the main shape components, so
    limbs are pulled into the scan's pose; limbs caught in a local minimum are re-tried at
    discrete turns (``_limb_search``). The same ICP then refines pose and all shape components
-   on more points.
+   on more points, damped lightly (``refine_levenberg``) so that it follows the valley along
+   which shape and posture trade (a longer bone bent more) to the scan's minimum: the rest-pose
+   body does not absorb posture (issue 12).
 2. Alg. 1: repeat { correspondences template -> scan (nearest point, rejected when normals differ
    by more than 30 degrees); repeat { update T (Eq. 2), update theta (Eq. 3), update beta (Eq. 4) }
    until 20 iterations or T moves < 1 mm } until 10 iterations or T moves < 5 mm.
