@@ -20,9 +20,9 @@
    * wall time per fit (median, p90), unit and up axis detected, failures (exceptions are
      counted, never raised), refusals by the person check (false rejections), whole scans
      flagged ``partial``;
-   * the rest-pose stature error (median |error| and worst), and body error and stature again
-     for the same scan fitted without the pose prior (``BEFORE_PARAMS``: no joint limits,
-     bone smoothness 0.1): before.
+   * the rest-pose stature error (median |error| and worst), and body error, stature and time
+     again for the same scan fitted as before issue 12's shape/posture decoupling
+     (``BEFORE_PARAMS``: the refinement damped like the coarse stage, Levenberg 1e-3): before.
 
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
    two people apart and touching) with the check off (before) and on; CesiumMan; single-view
@@ -69,10 +69,11 @@ GOALS = {"clothed_body_mm": 5.0, "unclothed_body_mm": 2.0, "seconds": 10.0}
 
 # -- ground truth and errors ------------------------------------------------------------------
 def BEFORE_PARAMS():
-    """The fit before issue 12's pose prior: no joint limits, bone smoothness 0.1."""
+    """The fit before issue 12's shape/posture decoupling: the refinement's Levenberg damping
+    as the coarse stage's (1e-3), which crawls along the shape-posture valley."""
     from service.model.fitting import FitParams
 
-    return FitParams(joint_limit_weight=0.0, bone_smoothness=0.1, coarse_bone_smoothness=0.1)
+    return FitParams(refine_levenberg=FitParams().levenberg)
 
 
 def posed(model, weights: np.ndarray, rotvecs: np.ndarray, translation: np.ndarray):
@@ -172,10 +173,14 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             except Exception as exc:  # noqa: BLE001 - a benchmark counts failures, never crashes
                 failures[name].append({"avatar": person["index"], "error": f"{type(exc).__name__}: {exc}"[:300]})
                 continue
-            try:  # the same scan without the pose prior (BEFORE_PARAMS): "before", same run
-                prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed,
-                                                      params=BEFORE_PARAMS()), surface)
-                row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"]}
+            try:  # the same scan fitted as before (BEFORE_PARAMS): "before", same run
+                t1 = time.perf_counter()
+                prev_fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed,
+                                    params=BEFORE_PARAMS())
+                prev_seconds = time.perf_counter() - t1
+                prev = evaluate(model, scan, prev_fit, surface)
+                row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"],
+                                 "seconds": prev_seconds}
             except Exception as exc:  # noqa: BLE001
                 row["before"] = {"error": f"{type(exc).__name__}: {exc}"[:200]}
             row.update({"avatar": person["index"], "gender": person["gender"], "seconds": seconds,
@@ -208,9 +213,11 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             "stature_abs_err_cm": _stats([abs(x["stature_err_cm"]) for x in r]),
             "stature_worst_cm": max((abs(x["stature_err_cm"]) for x in r), default=None),
             "flagged_partial": sum(x["partial"] for x in r),
-            "before_no_joint_limits": {
+            "before": {
+                "params": "FitParams(refine_levenberg=1e-3)",
                 "fits": sum("p2s_mm" in x["before"] for x in r),
                 "body_p2s_mm": _stats([x["before"]["p2s_mm"] for x in r if "p2s_mm" in x["before"]]),
+                "seconds": _stats([x["before"]["seconds"] for x in r if "p2s_mm" in x["before"]]),
                 "stature_abs_err_cm": _stats([abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]]),
                 "stature_worst_cm": max((abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]),
                                         default=None)},
@@ -413,12 +420,12 @@ def format_result(r: dict) -> str:
     row("rest-pose stature |error| median cm", [_f(c["stature_abs_err_cm"]["median"]) for c in conds.values()],
         "goal: <= 0.5")
     row("  worst cm", [_f(c["stature_worst_cm"]) for c in conds.values()], "goal: <= 1")
-    row("before (no pose prior): p2s median mm", [_f(c["before_no_joint_limits"]["body_p2s_mm"]["median"])
-                                                     for c in conds.values()])
-    row("  p90 mm", [_f(c["before_no_joint_limits"]["body_p2s_mm"]["p90"]) for c in conds.values()])
-    row("  stature |error| median cm", [_f(c["before_no_joint_limits"]["stature_abs_err_cm"]["median"])
-                                        for c in conds.values()])
-    row("  worst cm", [_f(c["before_no_joint_limits"]["stature_worst_cm"]) for c in conds.values()])
+    row("before (damping 1e-3): p2s median mm", [_f(c["before"]["body_p2s_mm"]["median"])
+                                                          for c in conds.values()])
+    row("  p90 mm", [_f(c["before"]["body_p2s_mm"]["p90"]) for c in conds.values()])
+    row("  stature |error| median cm", [_f(c["before"]["stature_abs_err_cm"]["median"]) for c in conds.values()])
+    row("  worst cm", [_f(c["before"]["stature_worst_cm"]) for c in conds.values()])
+    row("  time per fit, median s", [_f(c["before"]["seconds"]["median"]) for c in conds.values()])
     row("refused (not a person / outside population)", [str(c["refused_as_not_person"]) for c in conds.values()],
         "goal: 0 (false rejections)")
     row("flagged partial (whole scans)", [str(c["flagged_partial"]) for c in conds.values()], "goal: 0")
