@@ -21,7 +21,7 @@ from . import look as looks
 from .look import Look
 
 AVATAR_COLOR = (0.8, 0.7, 0.62, 1.0)
-SCENE_VERSION = 3  # bump when the GLB assembly changes: every scene ETag changes with it
+SCENE_VERSION = 4  # bump when the GLB assembly changes: every scene ETag changes with it
 
 
 def etag(kind: str, body_model: str, weights: list[float] | None, compression: str | None,
@@ -87,9 +87,11 @@ def garment_mesh(basis: GarmentBasis, record: Garment, body: CustomerBody, layer
     return look_mesh(basis, record, np.asarray(v, np.float32), basis.normals(v, body.weights))
 
 
-def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray) -> dict[str, Any]:
+def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray,
+              skin: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
     """Garment vertices (M, 3) and normals (M, 3) as a skinned scene mesh: gathered into the
-    render layout (R render vertices: one fancy-index each) when the basis has one."""
+    render layout (R render vertices: one fancy-index each) when the basis has one; skinned
+    with ``skin`` (joints (M, 4), weights (M, 4)) instead of the basis' own when given."""
     mesh: dict[str, Any] = {"color": tuple(record.color or DEFAULT_GARMENT_COLOR), "name": record.name or "garment",
                             "double_sided": True}
     if basis.has_layout:
@@ -97,10 +99,12 @@ def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray
         rn = n[idx]
         mesh.update(vertices=v[idx], faces=np.asarray(basis.render_faces), normals=rn, uv=np.asarray(basis.render_uv),
                     tangents=basis.render_tangents(rn))
-        mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin()
+        mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin() if skin is None else \
+            (skin[0][idx], skin[1][idx])
     else:
-        mesh.update(vertices=v, faces=np.asarray(basis.faces), normals=n,
-                    vertex_joints=np.asarray(basis.skin_idx), vertex_weights=np.asarray(basis.skin_w))
+        j, w = (basis.skin_idx, basis.skin_w) if skin is None else skin
+        mesh.update(vertices=v, faces=np.asarray(basis.faces), normals=n, vertex_joints=np.asarray(j),
+                    vertex_weights=np.asarray(w))
     if basis.material is not None and (basis.has_layout or _untextured(basis.material)):
         mesh["material"] = basis.material
     return mesh
@@ -121,18 +125,26 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     under = next((m for m in meshes if m.get("name") == "underwear"), None) if worn else None
     layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \
         + [(v, basis.faces) for v, (_, basis) in zip(worn, garments)]
+    skins: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(garments)
     if len(layers) > 1:  # inner layers pushed back inside the outer ones (service.model.layering),
-        nb = model.n_body_vertices  # garments on their welded vertices, before any split at UV seams
-        layered = layer_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64))
+        nb = model.n_body_vertices  # garments on their welded vertices, before any split at UV seams;
+        # each inner layer skinned like the layer over it where covered, so it stays inside when posed
+        layer_skins = ([(under["vertex_joints"], under["vertex_weights"])] if under is not None else []) \
+            + [(basis.skin_idx, basis.skin_w) for _, basis in garments]
+        layered, new_skins = layer_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64),
+                                          skins=layer_skins, n_joints=len(BONES))
+        assert new_skins is not None
         if under is not None:
             v = layered.pop(0).astype(np.float32)
+            under["vertex_joints"], under["vertex_weights"] = new_skins.pop(0)
             if not np.array_equal(v, under["vertices"]):
                 under["vertices"], under["normals"] = v, vertex_normals(v, under["faces"]).astype(np.float32)
+        skins = list(new_skins)
         for i, (v, (_, basis)) in enumerate(zip(layered, garments)):
             if not np.array_equal(v, worn[i]):
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
-    meshes += [look_mesh(basis, rec, v, n) for v, n, (rec, basis) in zip(worn, normals, garments)]
+    meshes += [look_mesh(basis, rec, v, n, sk) for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
 
