@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh, vertex_normals
+from service.model.geometry import closest_points_on_mesh, vertex_faces, vertex_normals
 from service.model.nonrigid import factor_spd
 from service.model.skin_weights import dense_weights, top_k, uniform_laplacian
 
@@ -55,9 +55,10 @@ def outward_normals(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, b
 
 def violations(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, outer_normals: np.ndarray,
                outer_boundary: np.ndarray, body: np.ndarray, body_normals: np.ndarray, body_tree: cKDTree,
-               gap: float = GAP) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               gap: float = GAP, outer_index: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For each inner vertex (M, 3): the needed inward displacement (M, 3), covered (M,) bool,
     and its closest point on the outer garment as (face (M,), barycentric weights (M, 3)).
+    ``outer_index``: (k-d tree over the outer vertices, ``geometry.vertex_faces``) to reuse.
 
     Where the closest point is inside the outer surface, the vertex is covered within
     ``COVER_DISTANCE`` and must lie ``gap`` below it along the outer normal. Where it is on the
@@ -75,11 +76,12 @@ def violations(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, ou
     # only vertices that can be within COVER_DISTANCE of the outer surface (its closest point is
     # at most one edge from its nearest vertex): the exact closest points are the costly part
     edge = np.linalg.norm(outer[F] - outer[np.roll(F, 1, axis=1)], axis=2).max()
-    d1, _ = cKDTree(outer).query(X, distance_upper_bound=COVER_DISTANCE + edge)
+    tree, vf = outer_index if outer_index is not None else (cKDTree(outer), vertex_faces(F, len(outer)))
+    d1, _ = tree.query(X, distance_upper_bound=COVER_DISTANCE + edge)
     near = np.flatnonzero(np.isfinite(d1))
     if len(near) == 0:
         return D, covered, face, bary
-    f_n, q, b_n = closest_points_on_mesh(X[near], outer, F)
+    f_n, q, b_n = closest_points_on_mesh(X[near], outer, F, tree=tree, vert_faces=vf)
     face[near], bary[near] = f_n, b_n
     D_n, cov_n = _violations(X[near], q, f_n, b_n, F, outer_normals, outer_boundary, body, body_normals, body_tree,
                              gap)
@@ -135,9 +137,11 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
     tree = body_tree if body_tree is not None else cKDTree(B)
     on = outward_normals(O, outer_faces, B, body_normals, tree)
     ob = boundary_vertices(outer_faces, len(O))
+    index = (cKDTree(O), vertex_faces(np.asarray(outer_faces, np.int64), len(O)))
     L = None
     for _ in range(passes):
-        D0, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap)
+        # the last pass's cover is returned (measured before its move: close enough for skin weights)
+        D0, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap, index)
         c = (np.einsum("ij,ij->i", D0, D0) > 0).astype(np.float64)
         if not c.any():
             return X, covered, face, bary
@@ -147,7 +151,6 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
         # the smoothed field never undershoots the targets: keep whichever goes deeper inward
         X += np.where(c[:, None] > 0, np.where((np.einsum("ij,ij->i", D, D0) >= np.einsum("ij,ij->i", D0, D0))[:, None],
                                                 D, D0), D)
-    _, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap)
     return X, covered, face, bary
 
 
