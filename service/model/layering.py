@@ -30,6 +30,7 @@ BOUNDARY_MARGIN = 1e-3  # barycentric weight: closest points this near a boundar
 SMOOTH = 2.0  # weight of the displacement's smoothness (uniform Laplacian) against the targets
 EPS = 0.1  # pull of free vertices' displacement to 0: the falloff spans ~sqrt(SMOOTH / EPS) ~ 4.5 edges
 PASSES = 3
+RIM_SAMPLES = True  # also check the inner garment from the body vertices along the outer garment's rims
 RIM_CONE = np.pi / 4  # a rim covers the body vertices it is over within this angle of their normal
 
 
@@ -138,10 +139,15 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
     on = outward_normals(O, outer_faces, B, body_normals, tree)
     ob = boundary_vertices(outer_faces, len(O))
     index = (cKDTree(O), vertex_faces(np.asarray(outer_faces, np.int64), len(O)))
+    band = rim_band(O, outer_faces, ob, B, body_normals) if RIM_SAMPLES else None
     L = None
     for _ in range(passes):
         # the last pass's cover is returned (measured before its move: close enough for skin weights)
         D0, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap, index)
+        if band is not None:
+            Dr = rim_violations(X, inner_faces, band, B, body_normals, gap)
+            deeper = np.einsum("ij,ij->i", Dr, Dr) > np.einsum("ij,ij->i", D0, D0)
+            D0[deeper] = Dr[deeper]
         c = (np.einsum("ij,ij->i", D0, D0) > 0).astype(np.float64)
         if not c.any():
             return X, covered, face, bary
@@ -152,6 +158,52 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
         X += np.where(c[:, None] > 0, np.where((np.einsum("ij,ij->i", D, D0) >= np.einsum("ij,ij->i", D0, D0))[:, None],
                                                 D, D0), D)
     return X, covered, face, bary
+
+
+def rim_band(outer: np.ndarray, outer_faces: np.ndarray, outer_boundary: np.ndarray, body: np.ndarray,
+             body_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The body vertices near the outer garment's boundary that it covers (the "over" test of
+    :func:`inner_outside_share`) and the outer garment's height over each: (body ids (K,),
+    heights (K,)), or None. Along a rim the outer surface ends between the inner garment's
+    sparse vertices, so the inner garment is also checked from these body vertices."""
+    if not outer_boundary.any():
+        return None
+    rim = np.asarray(outer, np.float64)[outer_boundary]
+    d, _ = cKDTree(rim).query(body, distance_upper_bound=COVER_DISTANCE)
+    k = np.flatnonzero(np.isfinite(d))
+    if len(k) == 0:
+        return None
+    _, q, _ = closest_points_on_mesh(body[k], outer, np.asarray(outer_faces, np.int64))
+    u = q - body[k]
+    du = np.linalg.norm(u, axis=1)
+    ho = np.einsum("ij,ij->i", u, body_normals[k])
+    over = (du < COVER_DISTANCE) & (ho > np.cos(RIM_CONE) * du)
+    return (k[over], ho[over]) if over.any() else None
+
+
+def rim_violations(inner: np.ndarray, inner_faces: np.ndarray, band: tuple[np.ndarray, np.ndarray],
+                   body: np.ndarray, body_normals: np.ndarray, gap: float = GAP) -> np.ndarray:
+    """Inward displacements (M, 3) of the inner garment's vertices from the :func:`rim_band`:
+    where the inner surface over a band body vertex (its closest point, within the cone) is above
+    the outer garment's height there less the gap, the three vertices of its face move down along
+    that body normal by the excess (the largest excess wins)."""
+    k, ho = band
+    F = np.asarray(inner_faces, np.int64)
+    f, q, _ = closest_points_on_mesh(body[k], inner, F)
+    u = q - body[k]
+    du = np.linalg.norm(u, axis=1)
+    nb = body_normals[k]
+    hi = np.einsum("ij,ij->i", u, nb)
+    g = np.minimum(gap, 0.5 * ho)
+    bad = (du < COVER_DISTANCE) & (hi > np.cos(RIM_CONE) * du) & (hi > ho - g)
+    D = np.zeros_like(np.asarray(inner, np.float64))
+    if not bad.any():
+        return D
+    ex = (hi - ho + g)[bad]
+    order = np.argsort(ex)  # ascending: the largest excess written last
+    vid = F[f[bad][order]].ravel()
+    D[vid] = -np.repeat(ex[order, None] * nb[bad][order], 3, axis=0)
+    return D
 
 
 def covered_skin(inner_faces: np.ndarray, inner_skin: tuple[np.ndarray, np.ndarray], outer_faces: np.ndarray,
