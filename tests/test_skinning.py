@@ -266,6 +266,66 @@ def test_push_inside_only_where_covered() -> None:
     assert outside0 > 0
 
 
+@pytest.fixture(scope="module")
+def shirt_and_jacket(model):
+    """The catalogue's striped shirt (layer 2) and casual jacket (layer 3) as clothing bases with
+    their records, inner first."""
+    from service.model.catalogue import load_catalogue
+    from service.records import Garment
+
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    cat = load_catalogue()
+    out = []
+    for gid in ("striped-shirt", "casual-jacket"):
+        it = cat.items[gid]
+        basis = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex)
+        out.append((Garment(id=gid, body_model=model.version, owner="test", name=gid, source="demo",
+                            color=[0.5, 0.5, 0.5, 1.0], layer=it.layer), basis))
+    return out
+
+
+@pytest.mark.slow
+def test_outfit_keeps_the_shirt_inside_the_jacket(model, shirt_and_jacket) -> None:
+    """``outfit.glb`` on a held-out body, shirt under open jacket: of the body vertices covered
+    by both, few have the shirt outside the jacket, in the rest pose and once the GLB's meshes
+    are skinned (their own joints and weights, as the browser does) into the page's walking and
+    hands-on-hips poses (the covered points followed through the pose: ``layering.posed_outside``).
+    Held-out body 3, shirt outside by more than 2 mm: rest 64 -> 3 of ~2,200; walking 249 ->
+    33, hands on hips 120 -> 28, before -> after the rim checks (``layering.violations``,
+    ``layering.rim_violations``) and skinning the shirt like the jacket where covered
+    (``layering.covered_skin``)."""
+    from service.application import scenes
+    from service.model.gltf import read_glb
+    from tests.bench.common import heldout_avatars
+
+    nb = model.n_body_vertices
+    body = T.customer_body(model, model.project(heldout_avatars(model)[3]))
+    meshes = {m["name"]: m for m in read_glb(scenes.outfit_glb(model, body, shirt_and_jacket, None))["meshes"]}
+    shirt, jacket = meshes["striped-shirt"], meshes["casual-jacket"]
+    Bv, Bn = body.vertices[:nb].astype(np.float64), body.normals.astype(np.float64)
+    pairs = LY.layered_pairs(shirt["positions"], shirt["indices"], jacket["positions"], jacket["indices"], Bv, Bn)
+    both = len(pairs[0])
+    assert both > 1000  # the jacket covers the shirt's body and sleeves
+    rest = LY.posed_outside(pairs, shirt["positions"], shirt["indices"], jacket["positions"], jacket["indices"],
+                            Bv, Bn, tolerance=OUTSIDE_TOLERANCE)
+    poses = P.preset_poses(model, body.vertices)
+    posed = []
+    for name in ("walking", "hands-on-hips"):
+        G = model.forward(pose=poses[name], vertices=body.vertices).transforms
+        PB = L.skin(Bv, G, model.lbs_indices[:nb], model.lbs_weights[:nb])
+        PN = vertex_normals(PB, model.body_faces).astype(np.float64)
+        s, j = (L.skin(m["positions"], G, m["joints"], m["weights"]) for m in (shirt, jacket))
+        posed.append(LY.posed_outside(pairs, s, shirt["indices"], j, jacket["indices"], PB, PN,
+                                      tolerance=OUTSIDE_TOLERANCE))
+    print(f"shirt outside the jacket by > {OUTSIDE_TOLERANCE * 1000:.0f} mm: rest {rest} of {both}, posed {posed}")
+    assert rest <= 0.01 * both, rest  # 0.029 * both before
+    assert max(posed) <= 0.03 * both, posed  # 0.11 * both before (goal 1 %: not met yet, see README)
+
+
+OUTSIDE_TOLERANCE = 0.002  # metres: the shirt showing through the jacket by more than this
+
+
 # -- the route -----------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:

@@ -21,7 +21,7 @@ from . import look as looks
 from .look import Look
 
 AVATAR_COLOR = (0.8, 0.7, 0.62, 1.0)
-SCENE_VERSION = 3  # bump when the GLB assembly changes: every scene ETag changes with it
+SCENE_VERSION = 4  # bump when the GLB assembly changes: every scene ETag changes with it
 
 
 def etag(kind: str, body_model: str, weights: list[float] | None, compression: str | None,
@@ -114,27 +114,30 @@ def garment_mesh(basis: GarmentBasis, record: Garment, body: CustomerBody, layer
 
 
 def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray,
-              template: bool = True) -> dict[str, Any]:
+              template: bool = True, skin: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
     """Garment vertices (M, 3) and normals (M, 3) as a skinned scene mesh (for the body
     model's skeleton): gathered into the render layout (R render vertices: one fancy-index
     each) when the basis has one. With ``template``, the static arrays (faces, UVs, skinning)
     come as the basis' :meth:`GarmentBasis.mesh_template` (built once per basis: the same GLB
-    bytes); without, as plain arrays (the reference path, for tests and benchmarks)."""
+    bytes); without, as plain arrays (the reference path, for tests and benchmarks). ``skin``
+    (joints (M, 4), weights (M, 4)): skinned with these instead of the basis' own (an outfit's
+    inner garment skinned like the garment over it), as plain arrays."""
     mesh: dict[str, Any] = {"color": tuple(record.color or DEFAULT_GARMENT_COLOR), "name": record.name or "garment",
                             "double_sided": True}
     if basis.has_layout:
         idx = np.asarray(basis.render_vertex)
         rn = np.take(n, idx, axis=0)  # np.take: ~4x faster than n[idx] on 3-wide rows
         mesh.update(vertices=np.take(v, idx, axis=0), normals=rn, tangents=basis.render_tangents(rn))
-        if not template:
+        if not template or skin is not None:
             mesh.update(faces=np.asarray(basis.render_faces), uv=np.asarray(basis.render_uv))
-            mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin()
+            mesh["vertex_joints"], mesh["vertex_weights"] = basis.render_skin() if skin is None else \
+                (np.take(skin[0], idx, axis=0), np.take(skin[1], idx, axis=0))
     else:
         mesh.update(vertices=v, normals=n)
-        if not template:
-            mesh.update(faces=np.asarray(basis.faces), vertex_joints=np.asarray(basis.skin_idx),
-                        vertex_weights=np.asarray(basis.skin_w))
-    if template:
+        if not template or skin is not None:
+            j, w = (basis.skin_idx, basis.skin_w) if skin is None else skin
+            mesh.update(faces=np.asarray(basis.faces), vertex_joints=np.asarray(j), vertex_weights=np.asarray(w))
+    if template and skin is None:
         mesh["template"] = basis.mesh_template(len(BONES))
     if basis.material is not None and (basis.has_layout or _untextured(basis.material)):
         mesh["material"] = basis.material
@@ -159,18 +162,27 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     under = next((m for m in meshes if m.get("name") == "underwear"), None) if worn else None
     layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \
         + [(v, basis.faces) for v, (_, basis) in zip(worn, garments)]
+    skins: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(garments)
     if len(layers) > 1:  # inner layers pushed back inside the outer ones (service.model.layering),
-        nb = model.n_body_vertices  # garments on their welded vertices, before any split at UV seams
-        layered = layer_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64))
+        nb = model.n_body_vertices  # garments on their welded vertices, before any split at UV seams;
+        # each inner layer skinned like the layer over it where covered, so it stays inside when posed
+        layer_skins = ([(under["vertex_joints"], under["vertex_weights"])] if under is not None else []) \
+            + [(basis.skin_idx, basis.skin_w) for _, basis in garments]
+        layered, new_skins = layer_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64),
+                                          skins=layer_skins, n_joints=len(BONES))
+        assert new_skins is not None
         if under is not None:
             v = layered.pop(0).astype(np.float32)
+            under["vertex_joints"], under["vertex_weights"] = new_skins.pop(0)
+            under.pop("template", None)  # its template holds the look's own skin weights
             if not np.array_equal(v, under["vertices"]):
                 under["vertices"], under["normals"] = v, vertex_normals(v, under["faces"]).astype(np.float32)
+        skins = list(new_skins)
         for i, (v, (_, basis)) in enumerate(zip(layered, garments)):
             if not np.array_equal(v, worn[i]):
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
-    meshes += [look_mesh(basis, rec, v, n, template) for v, n, (rec, basis) in zip(worn, normals, garments)]
+    meshes += [look_mesh(basis, rec, v, n, template, sk) for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
 

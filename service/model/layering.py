@@ -20,9 +20,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh, vertex_normals
+from service.model.geometry import closest_points_on_mesh, vertex_faces, vertex_normals
 from service.model.nonrigid import factor_spd
-from service.model.skin_weights import uniform_laplacian
+from service.model.skin_weights import dense_weights, top_k, uniform_laplacian
 
 GAP = 0.0025  # metres left between an inner garment and the outer one over it
 COVER_DISTANCE = 0.05  # metres: farther than this from the outer garment is not covered by it
@@ -30,6 +30,8 @@ BOUNDARY_MARGIN = 1e-3  # barycentric weight: closest points this near a boundar
 SMOOTH = 2.0  # weight of the displacement's smoothness (uniform Laplacian) against the targets
 EPS = 0.1  # pull of free vertices' displacement to 0: the falloff spans ~sqrt(SMOOTH / EPS) ~ 4.5 edges
 PASSES = 3
+RIM_SAMPLES = True  # also check the inner garment from the body vertices along the outer garment's rims
+RIM_CONE = np.pi / 4  # a rim covers the body vertices it is over within this angle of their normal
 
 
 def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
@@ -42,25 +44,58 @@ def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def outward_normals(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, body_normals: np.ndarray) -> np.ndarray:
+def outward_normals(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
+                    body_tree: cKDTree | None = None) -> np.ndarray:
     """Unit vertex normals (M, 3) of a garment flipped, per vertex, to point away from the body."""
     n = vertex_normals(vertices, faces).astype(np.float64)
-    _, nn = cKDTree(body).query(vertices)
+    _, nn = (body_tree if body_tree is not None else cKDTree(body)).query(vertices)
     flip = np.einsum("ij,ij->i", n, body_normals[nn]) < 0
     n[flip] *= -1
     return n
 
 
 def violations(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, outer_normals: np.ndarray,
-               outer_boundary: np.ndarray, gap: float = GAP) -> tuple[np.ndarray, np.ndarray]:
-    """For each inner vertex: (needed inward displacement (M, 3), covered (M,) bool). The
-    displacement is nonzero where the vertex is covered and above -gap along the outer normal."""
+               outer_boundary: np.ndarray, body: np.ndarray, body_normals: np.ndarray, body_tree: cKDTree,
+               gap: float = GAP, outer_index: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For each inner vertex (M, 3): the needed inward displacement (M, 3), covered (M,) bool,
+    and its closest point on the outer garment as (face (M,), barycentric weights (M, 3)).
+    ``outer_index``: (k-d tree over the outer vertices, ``geometry.vertex_faces``) to reuse.
+
+    Where the closest point is inside the outer surface, the vertex is covered within
+    ``COVER_DISTANCE`` and must lie ``gap`` below it along the outer normal. Where it is on the
+    outer garment's boundary (a hem, cuff, collar or lapel), the vertex is covered when that rim,
+    seen from the body vertex under the inner vertex, lies within ``RIM_CONE`` of the body normal
+    (the same "over" test as the layering figure, :func:`inner_outside_share`): the inner
+    garment's height over that body vertex must stay below the rim's height, so a sleeve or a
+    waistband does not bulge out past the edge of the garment over it."""
     F = np.asarray(outer_faces, np.int64)
-    face, q, bary = closest_points_on_mesh(inner, outer, F)
+    X = np.asarray(inner, np.float64)
+    M = len(X)
+    D = np.zeros_like(X)
+    covered = np.zeros(M, bool)
+    face, bary = np.zeros(M, np.int64), np.zeros((M, 3))
+    # only vertices that can be within COVER_DISTANCE of the outer surface (its closest point is
+    # at most one edge from its nearest vertex): the exact closest points are the costly part
+    edge = np.linalg.norm(outer[F] - outer[np.roll(F, 1, axis=1)], axis=2).max()
+    tree, vf = outer_index if outer_index is not None else (cKDTree(outer), vertex_faces(F, len(outer)))
+    d1, _ = tree.query(X, distance_upper_bound=COVER_DISTANCE + edge)
+    near = np.flatnonzero(np.isfinite(d1))
+    if len(near) == 0:
+        return D, covered, face, bary
+    f_n, q, b_n = closest_points_on_mesh(X[near], outer, F, tree=tree, vert_faces=vf)
+    face[near], bary[near] = f_n, b_n
+    D_n, cov_n = _violations(X[near], q, f_n, b_n, F, outer_normals, outer_boundary, body, body_normals, body_tree,
+                             gap)
+    D[near], covered[near] = D_n, cov_n
+    return D, covered, face, bary
+
+
+def _violations(inner, q, face, bary, F, outer_normals, outer_boundary, body, body_normals, body_tree, gap):
+    """:func:`violations` on vertices (P, 3) with their closest outer points (P, 3) given."""
     n = np.einsum("mk,mkj->mj", bary, outer_normals[F[face]])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     s = np.einsum("ij,ij->i", inner - q, n)  # > 0: outside the outer garment
-    # the closest point on a boundary edge (or a boundary vertex's corner) is not covering
+    # the closest point on a boundary edge (or a boundary vertex's corner) is on the rim
     edge_bound = np.stack([outer_boundary[F[face][:, 1]] & outer_boundary[F[face][:, 2]],
                            outer_boundary[F[face][:, 2]] & outer_boundary[F[face][:, 0]],
                            outer_boundary[F[face][:, 0]] & outer_boundary[F[face][:, 1]]], axis=1)
@@ -70,41 +105,153 @@ def violations(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, ou
     need = covered & (s > -gap)
     D = np.zeros_like(inner)
     D[need] = -(s[need] + gap)[:, None] * n[need]
+    rim = np.flatnonzero(at_boundary)
+    if len(rim):
+        _, b = body_tree.query(inner[rim])
+        nb = body_normals[b]
+        u = q[rim] - body[b]
+        ho = np.einsum("ij,ij->i", u, nb)  # the rim's height over the body vertex
+        du = np.linalg.norm(u, axis=1)
+        over = (du < COVER_DISTANCE) & (ho > np.cos(RIM_CONE) * du)
+        hi = np.einsum("ij,ij->i", inner[rim] - body[b], nb)
+        g = np.minimum(gap, 0.5 * ho)  # a rim closer to the skin than 2 gaps: halfway down
+        bad = over & (hi > ho - g)
+        covered[rim[over]] = True
+        D[rim[bad]] = -(hi[bad] - ho[bad] + g[bad])[:, None] * nb[bad]
     return D, covered
 
 
 def push_inside(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray,
-                body: np.ndarray, body_normals: np.ndarray, gap: float = GAP,
-                passes: int = PASSES) -> np.ndarray:
+                body: np.ndarray, body_normals: np.ndarray, gap: float = GAP, passes: int = PASSES,
+                body_tree: cKDTree | None = None) -> np.ndarray:
     """The inner garment (M, 3) with the parts outside the outer garment moved inside it,
     smoothly (see module docstring). Returns (M, 3) float64."""
+    return _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap, passes, body_tree)[0]
+
+
+def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap=GAP, passes=PASSES, body_tree=None):
+    """:func:`push_inside`, also returning the final cover: covered (M,) bool and the closest
+    outer points as (face (M,), barycentric (M, 3))."""
     X = np.asarray(inner, np.float64).copy()
     O = np.asarray(outer, np.float64)
-    on = outward_normals(O, outer_faces, body, body_normals)
+    B = np.asarray(body, np.float64)
+    tree = body_tree if body_tree is not None else cKDTree(B)
+    on = outward_normals(O, outer_faces, B, body_normals, tree)
     ob = boundary_vertices(outer_faces, len(O))
-    L = uniform_laplacian(inner_faces, len(X))
+    index = (cKDTree(O), vertex_faces(np.asarray(outer_faces, np.int64), len(O)))
+    band = rim_band(O, outer_faces, ob, B, body_normals) if RIM_SAMPLES else None
+    L = None
     for _ in range(passes):
-        D0, _ = violations(X, O, outer_faces, on, ob, gap)
+        # the last pass's cover is returned (measured before its move: close enough for skin weights)
+        D0, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap, index)
+        if band is not None:
+            Dr = rim_violations(X, inner_faces, band, B, body_normals, gap)
+            deeper = np.einsum("ij,ij->i", Dr, Dr) > np.einsum("ij,ij->i", D0, D0)
+            D0[deeper] = Dr[deeper]
         c = (np.einsum("ij,ij->i", D0, D0) > 0).astype(np.float64)
         if not c.any():
-            break
+            return X, covered, face, bary
+        L = uniform_laplacian(inner_faces, len(X)) if L is None else L
         A = sp.diags(c + EPS) + SMOOTH * L
         D = factor_spd(A).solve(c[:, None] * D0)
         # the smoothed field never undershoots the targets: keep whichever goes deeper inward
         X += np.where(c[:, None] > 0, np.where((np.einsum("ij,ij->i", D, D0) >= np.einsum("ij,ij->i", D0, D0))[:, None],
                                                 D, D0), D)
-    return X
+    return X, covered, face, bary
+
+
+def rim_band(outer: np.ndarray, outer_faces: np.ndarray, outer_boundary: np.ndarray, body: np.ndarray,
+             body_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The body vertices near the outer garment's boundary that it covers (the "over" test of
+    :func:`inner_outside_share`) and the outer garment's height over each: (body ids (K,),
+    heights (K,)), or None. Along a rim the outer surface ends between the inner garment's
+    sparse vertices, so the inner garment is also checked from these body vertices."""
+    if not outer_boundary.any():
+        return None
+    rim = np.asarray(outer, np.float64)[outer_boundary]
+    d, _ = cKDTree(rim).query(body, distance_upper_bound=COVER_DISTANCE)
+    k = np.flatnonzero(np.isfinite(d))
+    if len(k) == 0:
+        return None
+    _, q, _ = closest_points_on_mesh(body[k], outer, np.asarray(outer_faces, np.int64))
+    u = q - body[k]
+    du = np.linalg.norm(u, axis=1)
+    ho = np.einsum("ij,ij->i", u, body_normals[k])
+    over = (du < COVER_DISTANCE) & (ho > np.cos(RIM_CONE) * du)
+    return (k[over], ho[over]) if over.any() else None
+
+
+def rim_violations(inner: np.ndarray, inner_faces: np.ndarray, band: tuple[np.ndarray, np.ndarray],
+                   body: np.ndarray, body_normals: np.ndarray, gap: float = GAP) -> np.ndarray:
+    """Inward displacements (M, 3) of the inner garment's vertices from the :func:`rim_band`:
+    where the inner surface over a band body vertex (its closest point, within the cone) is above
+    the outer garment's height there less the gap, the three vertices of its face move down along
+    that body normal by the excess (the largest excess wins)."""
+    k, ho = band
+    F = np.asarray(inner_faces, np.int64)
+    f, q, _ = closest_points_on_mesh(body[k], inner, F)
+    u = q - body[k]
+    du = np.linalg.norm(u, axis=1)
+    nb = body_normals[k]
+    hi = np.einsum("ij,ij->i", u, nb)
+    g = np.minimum(gap, 0.5 * ho)
+    bad = (du < COVER_DISTANCE) & (hi > np.cos(RIM_CONE) * du) & (hi > ho - g)
+    D = np.zeros_like(np.asarray(inner, np.float64))
+    if not bad.any():
+        return D
+    ex = (hi - ho + g)[bad]
+    order = np.argsort(ex)  # ascending: the largest excess written last
+    vid = F[f[bad][order]].ravel()
+    D[vid] = -np.repeat(ex[order, None] * nb[bad][order], 3, axis=0)
+    return D
+
+
+def covered_skin(inner_faces: np.ndarray, inner_skin: tuple[np.ndarray, np.ndarray], outer_faces: np.ndarray,
+                 outer_skin: tuple[np.ndarray, np.ndarray], covered: np.ndarray, face: np.ndarray,
+                 bary: np.ndarray, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
+    """Skin weights of an inner garment (M vertices) that follow the outer garment where it
+    covers them: on ``covered`` vertices, the outer garment's weights at their closest outer
+    points (faces (M,), barycentric (M, 3)); elsewhere the inner garment's own weights plus a
+    correction that fades out over the inner mesh (the screened Laplacian of the module
+    docstring applied to the weight difference, exact on covered vertices). Under linear blend
+    skinning an inner vertex and the outer point over it then move with one blended transform,
+    so the inner garment stays inside the outer one in any pose. Skins are (indices (n, 4),
+    weights (n, 4)); returns the inner garment's (M, 4) int32 and (M, 4) float32."""
+    Wi = dense_weights(inner_skin[0], inner_skin[1], n_joints)
+    if not covered.any():
+        return top_k(Wi)
+    Wo = dense_weights(outer_skin[0], outer_skin[1], n_joints)
+    F = np.asarray(outer_faces, np.int64)
+    Wq = np.einsum("mk,mkj->mj", bary, Wo[F[face]])
+    c = covered.astype(np.float64)
+    D0 = c[:, None] * (Wq - Wi)
+    A = sp.diags(c + EPS) + SMOOTH * uniform_laplacian(inner_faces, len(Wi))
+    D = factor_spd(A).solve(D0)
+    D[covered] = D0[covered]
+    return top_k(Wi + D)
 
 
 def layer_outfit(garments: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray, body_normals: np.ndarray,
-                 gap: float = GAP) -> list[np.ndarray]:
+                 gap: float = GAP, skins: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                 n_joints: int = 0) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]] | None]:
     """Garments [(vertices (M_i, 3), faces)] in layer order (inner first) on a body: each one
-    pushed inside every garment over it (outermost first). Returns the new vertices."""
+    pushed inside every garment over it (outermost first), from the outermost pair inwards so
+    that every garment is pushed inside the final shape of those over it. With ``skins``
+    [(indices (M_i, 4), weights (M_i, 4))] (``n_joints`` joints), each inner garment's skin
+    also follows the garments over it where they cover it (:func:`covered_skin`; the next
+    layer out last, whose own skin already follows the ones over it). Returns (the new
+    vertices, the new skins or None)."""
     out = [np.asarray(v, np.float64) for v, _ in garments]
-    for i in range(len(garments)):
+    sk = [(np.asarray(i), np.asarray(w)) for i, w in skins] if skins is not None else None
+    B = np.asarray(body, np.float64)
+    tree = cKDTree(B)
+    for i in range(len(garments) - 2, -1, -1):
         for j in range(len(garments) - 1, i, -1):
-            out[i] = push_inside(out[i], garments[i][1], out[j], garments[j][1], body, body_normals, gap)
-    return out
+            out[i], covered, face, bary = _push_inside(out[i], garments[i][1], out[j], garments[j][1], B, body_normals,
+                                                       gap, PASSES, tree)
+            if sk is not None:
+                sk[i] = covered_skin(garments[i][1], sk[i], garments[j][1], sk[j], covered, face, bary, n_joints)
+    return out, sk
 
 
 def inner_outside_share(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, inner_faces: np.ndarray,
@@ -128,3 +275,40 @@ def inner_outside_share(inner: np.ndarray, outer: np.ndarray, outer_faces: np.nd
     co, ao = over(np.asarray(outer, np.float64), outer_faces)
     both = ci & co
     return int(both.sum()), int((both & (ai > ao + tolerance)).sum())
+
+
+def layered_pairs(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray,
+                  body: np.ndarray, body_normals: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
+    """The body vertices covered by both garments (the test of :func:`inner_outside_share`) and,
+    over each, the inner and the outer garment's closest points as (face (K,), barycentric
+    (K, 3)) -- fixed surface points to follow through a pose. Returns (body vertex ids (K,),
+    inner points, outer points)."""
+    B = np.asarray(body, np.float64)
+
+    def over(G, F):
+        f, q, bc = closest_points_on_mesh(B, np.asarray(G, np.float64), F)
+        d = q - B
+        dist = np.linalg.norm(d, axis=1)
+        return (dist < COVER_DISTANCE) & (np.einsum("ij,ij->i", d, body_normals) > np.cos(np.pi / 4) * dist), f, bc
+
+    ci, fi, bi = over(inner, inner_faces)
+    co, fo, bo = over(outer, outer_faces)
+    k = np.flatnonzero(ci & co)
+    return k, (fi[k], bi[k]), (fo[k], bo[k])
+
+
+def posed_outside(pairs: tuple[np.ndarray, tuple, tuple], inner: np.ndarray, inner_faces: np.ndarray,
+                  outer: np.ndarray, outer_faces: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
+                  tolerance: float = 0.0) -> int:
+    """The posed layering figure: of the rest pose's :func:`layered_pairs`, how many have the
+    inner garment's point outside the outer garment's point (higher along the body normal, by
+    more than ``tolerance``) once garments (M_i, 3) and body (V, 3) with normals are posed.
+    Following fixed points, not re-matching closest points, keeps a hand resting on a hip (over
+    both garments, covering neither) out of the figure."""
+    k, (fi, bi), (fo, bo) = pairs
+    if len(k) == 0:
+        return 0
+    pi = np.einsum("kj,kji->ki", bi, np.asarray(inner, np.float64)[np.asarray(inner_faces)[fi]])
+    po = np.einsum("kj,kji->ki", bo, np.asarray(outer, np.float64)[np.asarray(outer_faces)[fo]])
+    n = np.asarray(body_normals, np.float64)[k]
+    return int((np.einsum("ij,ij->i", pi - po, n) > tolerance).sum())
