@@ -74,7 +74,8 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
 def closest_point_on_triangles(p, a, b, c):
     """Closest points on triangles (..., 3) to points p (Ericson, Real-Time Collision
-    Detection 5.1.5), vectorised."""
+    Detection 5.1.5), vectorised: the Voronoi region of each point picks its coordinates
+    (v, w) along ab and ac, then one ``a + v ab + w ac`` (b, c and bc from their end points)."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
     bp = p - b
@@ -86,22 +87,24 @@ def closest_point_on_triangles(p, a, b, c):
     vc = d1 * d4 - d3 * d2
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = 1.0 / (va + vb + vc)
-        v = vb * denom
+        v = vb * denom  # interior
         w = vc * denom
-        res = a + ab * v[..., None] + ac * w[..., None]  # interior
         t_ab = d1 / (d1 - d3)
         t_ac = d2 / (d2 - d6)
         t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    cases = [
-        ((d1 <= 0) & (d2 <= 0), a),
-        ((d3 >= 0) & (d4 <= d3), b),
-        ((d6 >= 0) & (d5 <= d6), c),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + ab * t_ab[..., None]),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + ac * t_ac[..., None]),
-        ((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), b + (c - b) * t_bc[..., None]),
-    ]
-    for cond, val in reversed(cases):
-        res = np.where(cond[..., None], val, res)
+    # the Voronoi region, the first that holds winning: 1 a, 2 b, 3 c, 4 ab, 5 ac, 6 bc, 0 inside
+    region = np.select([(d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (d6 >= 0) & (d5 <= d6),
+                        (vc <= 0) & (d1 >= 0) & (d3 <= 0), (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+                        (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)], [1, 2, 3, 4, 5, 6], 0)
+    v = np.where(region == 4, t_ab, np.where((region == 1) | (region == 5), 0.0, v))
+    w = np.where(region == 5, t_ac, np.where((region == 1) | (region == 4), 0.0, w))
+    res = a + ab * v[..., None] + ac * w[..., None]  # inside, vertex a, edges ab and ac
+    # vertices b, c and edge bc from their own end points (the same values as Ericson's)
+    res = np.where((region == 2)[..., None], b, res)
+    res = np.where((region == 3)[..., None], c, res)
+    bc = region == 6
+    if bc.any():
+        res = np.where(bc[..., None], b + (c - b) * t_bc[..., None], res)
     return res
 
 
@@ -130,9 +133,7 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     tree = tree if tree is not None else cKDTree(V)
     vert_faces = vert_faces if vert_faces is not None else vertex_faces(F, len(V))
     _, nn = tree.query(p, k=k)
-    cand = vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1)
-    valid = cand >= 0
-    cand = np.where(valid, cand, cand.max(axis=1, keepdims=True))
+    cand, valid = _unique_rows(vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1))
     tri = V[F[cand]]  # (P, C, 3, 3)
     q = closest_point_on_triangles(p[:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
     d = np.where(valid, np.einsum("pci,pci->pc", q - p[:, None], q - p[:, None]), np.inf)
@@ -141,6 +142,26 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     face = cand[r, j]
     t = tri[r, j]
     return face, q[r, j], barycentric(q[r, j], t[:, 0], t[:, 1], t[:, 2])
+
+
+def _unique_rows(cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate face ids (P, C) int, -1 padded, with repeats (a face is around up to 3 of the
+    nearest vertices): each row's distinct ids in order of first appearance, packed to the left,
+    (P, C') with C' the most any row has, and valid (P, C') bool; invalid slots repeat the row's
+    first id (harmless to evaluate). The first-appearance order keeps ``argmin``'s choice among
+    equally near faces; dropping the repeats saves evaluating ~2.5x the triangles."""
+    P, C = cand.shape
+    order = np.argsort(cand, axis=1, kind="stable")
+    srt = np.take_along_axis(cand, order, axis=1)
+    first = np.ones_like(srt, bool)
+    first[:, 1:] = srt[:, 1:] != srt[:, :-1]
+    keep = np.zeros_like(first)
+    np.put_along_axis(keep, order, first & (srt >= 0), axis=1)
+    pack = np.argsort(~keep, axis=1, kind="stable")[:, :max(int(keep.sum(axis=1).max()), 1)]
+    c = np.take_along_axis(cand, pack, axis=1)
+    valid = np.take_along_axis(keep, pack, axis=1)
+    head = np.where(valid[:, :1], c[:, :1], 0)  # a row with no face at all: face 0, never valid
+    return np.where(valid, c, head), valid
 
 
 def vertex_faces(faces: np.ndarray, n: int) -> np.ndarray:

@@ -30,6 +30,7 @@ BOUNDARY_MARGIN = 1e-3  # barycentric weight: closest points this near a boundar
 SMOOTH = 2.0  # weight of the displacement's smoothness (uniform Laplacian) against the targets
 EPS = 0.1  # pull of free vertices' displacement to 0: the falloff spans ~sqrt(SMOOTH / EPS) ~ 4.5 edges
 PASSES = 3
+RECHECK_MOVE = 1e-6  # metres: a vertex moved less than this by a pass is not checked again
 RIM_SAMPLES = True  # also check the inner garment from the body vertices along the outer garment's rims
 RIM_CONE = np.pi / 4  # a rim covers the body vertices it is over within this angle of their normal
 
@@ -129,21 +130,30 @@ def push_inside(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, o
     return _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap, passes, body_tree)[0]
 
 
-def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap=GAP, passes=PASSES, body_tree=None):
+def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap=GAP, passes=PASSES, body_tree=None,
+                 inner_laplacian=None, outer_boundary=None):
     """:func:`push_inside`, also returning the final cover: covered (M,) bool and the closest
-    outer points as (face (M,), barycentric (M, 3))."""
+    outer points as (face (M,), barycentric (M, 3)). ``inner_laplacian`` (the inner mesh's
+    uniform Laplacian) and ``outer_boundary`` (:func:`boundary_vertices` of the outer mesh):
+    given when already known (they depend on the faces only)."""
     X = np.asarray(inner, np.float64).copy()
     O = np.asarray(outer, np.float64)
     B = np.asarray(body, np.float64)
     tree = body_tree if body_tree is not None else cKDTree(B)
     on = outward_normals(O, outer_faces, B, body_normals, tree)
-    ob = boundary_vertices(outer_faces, len(O))
+    ob = outer_boundary if outer_boundary is not None else boundary_vertices(outer_faces, len(O))
     index = (cKDTree(O), vertex_faces(np.asarray(outer_faces, np.int64), len(O)))
     band = rim_band(O, outer_faces, ob, B, body_normals) if RIM_SAMPLES else None
-    L = None
+    L = inner_laplacian
+    recheck = None  # after the first pass only the vertices that moved can have changed
     for _ in range(passes):
         # the last pass's cover is returned (measured before its move: close enough for skin weights)
-        D0, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap, index)
+        if recheck is None:
+            D0, covered, face, bary = violations(X, O, outer_faces, on, ob, B, body_normals, tree, gap, index)
+        else:
+            D0 = np.zeros_like(X)
+            D0[recheck], covered[recheck], face[recheck], bary[recheck] = violations(
+                X[recheck], O, outer_faces, on, ob, B, body_normals, tree, gap, index)
         if band is not None:
             Dr = rim_violations(X, inner_faces, band, B, body_normals, gap)
             deeper = np.einsum("ij,ij->i", Dr, Dr) > np.einsum("ij,ij->i", D0, D0)
@@ -155,8 +165,10 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
         A = sp.diags(c + EPS) + SMOOTH * L
         D = factor_spd(A).solve(c[:, None] * D0)
         # the smoothed field never undershoots the targets: keep whichever goes deeper inward
-        X += np.where(c[:, None] > 0, np.where((np.einsum("ij,ij->i", D, D0) >= np.einsum("ij,ij->i", D0, D0))[:, None],
-                                                D, D0), D)
+        move = np.where(c[:, None] > 0, np.where((np.einsum("ij,ij->i", D, D0) >= np.einsum("ij,ij->i", D0, D0))[:, None],
+                                                 D, D0), D)
+        X += move
+        recheck = np.flatnonzero(np.einsum("ij,ij->i", move, move) > RECHECK_MOVE ** 2)
     return X, covered, face, bary
 
 
@@ -208,7 +220,8 @@ def rim_violations(inner: np.ndarray, inner_faces: np.ndarray, band: tuple[np.nd
 
 def covered_skin(inner_faces: np.ndarray, inner_skin: tuple[np.ndarray, np.ndarray], outer_faces: np.ndarray,
                  outer_skin: tuple[np.ndarray, np.ndarray], covered: np.ndarray, face: np.ndarray,
-                 bary: np.ndarray, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
+                 bary: np.ndarray, n_joints: int, inner_laplacian: sp.spmatrix | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Skin weights of an inner garment (M vertices) that follow the outer garment where it
     covers them: on ``covered`` vertices, the outer garment's weights at their closest outer
     points (faces (M,), barycentric (M, 3)); elsewhere the inner garment's own weights plus a
@@ -225,7 +238,8 @@ def covered_skin(inner_faces: np.ndarray, inner_skin: tuple[np.ndarray, np.ndarr
     Wq = np.einsum("mk,mkj->mj", bary, Wo[F[face]])
     c = covered.astype(np.float64)
     D0 = c[:, None] * (Wq - Wi)
-    A = sp.diags(c + EPS) + SMOOTH * uniform_laplacian(inner_faces, len(Wi))
+    L = inner_laplacian if inner_laplacian is not None else uniform_laplacian(inner_faces, len(Wi))
+    A = sp.diags(c + EPS) + SMOOTH * L
     D = factor_spd(A).solve(D0)
     D[covered] = D0[covered]
     return top_k(Wi + D)
@@ -245,12 +259,16 @@ def layer_outfit(garments: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
     sk = [(np.asarray(i), np.asarray(w)) for i, w in skins] if skins is not None else None
     B = np.asarray(body, np.float64)
     tree = cKDTree(B)
+    # what depends on a garment's faces only, once per outfit: inner Laplacians, outer rims
+    lap = [uniform_laplacian(f, len(v)) for v, f in garments[:-1]]
+    rims = [None] + [boundary_vertices(f, len(v)) for v, f in garments[1:]]
     for i in range(len(garments) - 2, -1, -1):
         for j in range(len(garments) - 1, i, -1):
             out[i], covered, face, bary = _push_inside(out[i], garments[i][1], out[j], garments[j][1], B, body_normals,
-                                                       gap, PASSES, tree)
+                                                       gap, PASSES, tree, lap[i], rims[j])
             if sk is not None:
-                sk[i] = covered_skin(garments[i][1], sk[i], garments[j][1], sk[j], covered, face, bary, n_joints)
+                sk[i] = covered_skin(garments[i][1], sk[i], garments[j][1], sk[j], covered, face, bary, n_joints,
+                                     lap[i])
     return out, sk
 
 
