@@ -45,10 +45,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-kill", action="store_true", help="fitting: skip the jobs-under-worker-kills part")
     ap.add_argument("--max-pose-deg", type=float, default=45.0,
                     help="fitting: largest random rotation per bone of the synthetic scans (default 45)")
+    ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
+    ap.add_argument("--before", choices=("pose_prior", "scan_cleanup", "none"), default=None,
+                    help="fitting: what every condition's 'before' refit leaves out (default: per condition)")
+    ap.add_argument("--conditions", default=None,
+                    help="fitting: comma-separated scan conditions to run (default all; see tests/bench/fitting.py)")
     args = ap.parse_args(argv)
     module, run_name, fmt_name, _ = SUITES[args.suite]
     mod = importlib.import_module(module)
-    extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg} if args.suite == "fitting" else {}
+    extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg,
+             "conditions": args.conditions, "person_check": not args.no_person_check,
+             "before": args.before} if args.suite == "fitting" else {}
     res = getattr(mod, run_name)(args.limit, args.repeats, **extra)
     print(json.dumps(res, indent=2) if args.json else getattr(mod, fmt_name)(res))
     return 0
