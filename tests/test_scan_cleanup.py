@@ -11,14 +11,21 @@ from service.model import scan_cleanup as SC
 from tests.bench import synthetic_scans as SS
 
 
+_BODIES: dict = {}
+
+
 def _body_points(model, n=8000, seed=0):
-    """Points (n, 3) on a posed held-out body standing on y = 0 (metres, Y up) and the body."""
+    """Points (n, 3) on a posed held-out body standing on y = 0 (metres, Y up) and the scan
+    (made once per module)."""
     from tests.bench.common import heldout_people
 
-    person = heldout_people(model, 1)[0]
-    scan = SS.make_scan(model, np.random.default_rng(seed), person["weights"], person["gender"], clothed=False,
-                        point_cloud=True, n_points=n, noise_mm=2.0, max_pose_deg=20, unit="m", up="+y")
-    return scan.points_in_model_frame(), scan
+    if (n, seed) not in _BODIES:
+        person = heldout_people(model, 1)[0]
+        scan = SS.make_scan(model, np.random.default_rng(seed), person["weights"], person["gender"], clothed=False,
+                            point_cloud=True, n_points=n, noise_mm=2.0, max_pose_deg=20, unit="m", up="+y")
+        _BODIES[(n, seed)] = (scan.points_in_model_frame(), scan)
+    P, scan = _BODIES[(n, seed)]
+    return P.copy(), scan
 
 
 def _floor(rng, n=6000, radius=0.5, noise=0.002, tilt_deg=0.0, centre=(0.0, 0.0)):
@@ -127,3 +134,25 @@ def test_fit_scan_with_floor_and_cut_head(model):
     height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]
     assert abs(height - scan.measurements["height_cm"]) < 3.0, height - scan.measurements["height_cm"]
     assert not fit.partial
+
+
+def test_synthetic_degradations(model):
+    """The bench's scanner conditions (tests/bench/synthetic_scans.py): a cut head top drops only
+    points above the cut; holes drop points; a floor adds points on y = 0 (model frame), with
+    faces for a mesh; the truth is untouched."""
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 1)[0]
+    scan = SS.make_scan(model, np.random.default_rng(5), person["weights"], person["gender"], clothed=False,
+                        point_cloud=False, n_points=4000, max_pose_deg=10)
+    top = scan.true_posed[:, 1].max()
+    cut = SS.cut_head_top(scan, 0.04)
+    P = scan.points_in_model_frame()
+    assert len(cut.points) == (P[:, 1] <= top - 0.04).sum() < len(scan.points)
+    assert cut.faces.max() < len(cut.points) and np.array_equal(cut.true_posed, scan.true_posed)
+    holed = SS.with_holes(scan, np.random.default_rng(6))
+    assert len(holed.points) < len(scan.points) - 50
+    floored = SS.with_floor(scan, np.random.default_rng(7), "scanner")
+    F = floored.points_in_model_frame()[len(scan.points):]
+    assert len(F) > 5000 and np.abs(F[:, 1]).max() < 0.05 and floored.faces.max() == len(floored.points) - 1
+    assert not floored.point_is_body[len(scan.points):].any()
