@@ -109,6 +109,17 @@ def test_correspondences_over_a_hole_are_rejected():
     r = np.abs(T[:, 0])
     assert hole[r < 0.02].all()  # over the middle of the hole: the rim is 3-5 cm aside
     assert not hole[r > 0.06].any()  # over the surface
+    # with the local spacing (the tree): the same on this even sampling; a coarse patch of the
+    # surface (8 cm apart, as a mesh's large flat triangles) is no hole
+    local = SC.over_hole(T, S[j], np.tile([0.0, 1.0, 0.0], (len(T), 1)), spacing, tree)
+    assert local[r < 0.02].all() and not local[r > 0.06].any()
+    coarse = np.column_stack([np.repeat([-0.08, 0.0, 0.08], 3), np.zeros(9), np.tile([-0.08, 0.0, 0.08], 3)])
+    S2 = np.concatenate([S[np.abs(S[:, 0]) > 0.2], coarse])
+    tree2 = cKDTree(S2)
+    T2 = np.array([[0.03, 0.004, 0.03], [-0.04, 0.004, 0.04]])
+    _, j2 = tree2.query(T2)
+    n2 = np.tile([0.0, 1.0, 0.0], (2, 1))
+    assert SC.over_hole(T2, S2[j2], n2, spacing).all() and not SC.over_hole(T2, S2[j2], n2, spacing, tree2).any()
 
 
 @pytest.mark.slow

@@ -654,7 +654,7 @@ def _correspondences(T: np.ndarray, rig: _Rig, tree: cKDTree, points: np.ndarray
     if clothed:  # Alg. 1's alternation would carry T, then the body, out to loose clothes
         ok &= signed >= -params.alg1_inside_tol
     if params.scan_cleanup:  # holes, a cut head top (issue 12)
-        ok &= ~SC.over_hole(T, c, nc, SC.point_spacing(tree, points))
+        ok &= ~SC.over_hole(T, c, nc, SC.point_spacing(tree, points), tree)
     return c, nc, ok.astype(np.float64)
 
 

@@ -219,12 +219,22 @@ def point_spacing(tree: cKDTree, points: np.ndarray, rng: np.random.Generator | 
     return float(np.median(d[:, 1]))
 
 
-def over_hole(T: np.ndarray, c: np.ndarray, nc: np.ndarray, spacing: float) -> np.ndarray:
+LOCAL_SPACING_K = 4  # the local spacing at a scan point: distance to its (k-1)-th neighbour
+
+
+def over_hole(T: np.ndarray, c: np.ndarray, nc: np.ndarray, spacing: float,
+              tree: cKDTree | None = None) -> np.ndarray:
     """(V,) bool: template vertices T (V, 3) whose nearest scan point c (V, 3) (normal nc) lies
     off to the side rather than below or above them: the tangential offset
-    |(T - c) - ((T - c) . nc) nc| exceeds ``max(HOLE_MIN_M, HOLE_SPACINGS * spacing)``. On a
-    surface sampled ``spacing`` apart the nearest point is at most about a spacing aside; over a
-    hole (or a cut head top) it is on the rim, farther. Such correspondences are rejected."""
+    |(T - c) - ((T - c) . nc) nc| exceeds ``max(HOLE_MIN_M, HOLE_SPACINGS * s)``, s the scan's
+    ``spacing`` or, given the scan's ``tree``, the larger local spacing around c (meshes with
+    large triangles: their vertices are far apart where the surface is flat). On a surface
+    sampled s apart the nearest point is at most about s aside; over a hole (or a cut head top)
+    it is on the rim, farther. Such correspondences are rejected."""
     r = T - c
     tang = r - np.einsum("ij,ij->i", r, nc)[:, None] * nc
-    return np.linalg.norm(tang, axis=1) > max(HOLE_MIN_M, HOLE_SPACINGS * spacing)
+    s = np.full(len(T), float(spacing))
+    if tree is not None:
+        d, _ = tree.query(c, k=LOCAL_SPACING_K)
+        s = np.maximum(s, d[:, -1])
+    return np.linalg.norm(tang, axis=1) > np.maximum(HOLE_MIN_M, HOLE_SPACINGS * s)
