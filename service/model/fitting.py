@@ -45,6 +45,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from service.model import person_check as PC
+from service.model import scan_cleanup as SC
 from service.model.frames import UnitError, detect_unit, orient_outward, up_candidates
 from service.model.geometry import estimate_normals, face_incidence, vertex_normals
 from service.model.lbs import axis_angle_to_matrix, global_transforms, matrix_to_axis_angle
@@ -145,6 +146,7 @@ class FitParams:
     refine_levenberg: float = 1e-6
     run_alg1: bool = True
     person_check: bool = True  # service.model.person_check before and after the fit
+    scan_cleanup: bool = True  # issue 12: floor and stray clusters dropped, no pull into holes (scan_cleanup)
     # the pose prior: weight of the joint-limit penalty (JOINT_LIMITS_DEG) in the coarse ICP and
     # in Eq. 3, per squared radian outside a limit (0: no limits)
     joint_limit_weight: float = 10.0
@@ -659,6 +661,8 @@ def _correspondences(T: np.ndarray, rig: _Rig, tree: cKDTree, points: np.ndarray
     signed = np.einsum("ij,ij->i", T - c, nc)
     if clothed:  # Alg. 1's alternation would carry T, then the body, out to loose clothes
         ok &= signed >= -params.alg1_inside_tol
+    if params.scan_cleanup:  # holes, a cut head top (issue 12)
+        ok &= ~SC.over_hole(T, c, nc, SC.point_spacing(tree, points), tree)
     return c, nc, ok.astype(np.float64)
 
 
@@ -685,6 +689,8 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
                     raise FitError(NOT_A_PERSON + reason) from None
         raise
     pts_m = pts * scale
+    if params.scan_cleanup:  # floor, stray clusters (issue 12)
+        pts_m, normals, faces, cleaning = SC.clean_scan(pts_m, normals, faces)
     if params.person_check:
         check_person_before(pts_m)
     if normals is None:
@@ -793,6 +799,6 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
         partial=PC.is_partial(coverage), coverage=coverage,
         outer_iterations=outer, inner_iterations=inner_total, seconds=time.perf_counter() - t_start,
         stats={"init_seconds": t_init, "refine_seconds": t_refine, "solver": backend, "accepted_fraction": float(accepted.mean()),
-               "person_check": checks,
+               "person_check": checks, "cleaning": cleaning.stats if params.scan_cleanup else None,
                "screen_costs_mm": [round(1000 * x, 1) for x in sorted(screen_costs)[:4]]},
     )

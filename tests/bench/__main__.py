@@ -47,10 +47,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="fitting: largest random rotation per bone of the synthetic scans (default 45)")
     ap.add_argument("--only", choices=["latency"], default=None,
                     help="tryon: only the in-process try-on latency rows (template fast path vs reference)")
+    ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
+    ap.add_argument("--before", choices=("refine_damping", "pose_prior", "scan_cleanup", "none"), default=None,
+                    help="fitting: what every condition's 'before' refit leaves out (default: per condition)")
+    ap.add_argument("--conditions", default=None,
+                    help="fitting: comma-separated scan conditions to run (default all; see tests/bench/fitting.py)")
     args = ap.parse_args(argv)
     module, run_name, fmt_name, _ = SUITES[args.suite]
     mod = importlib.import_module(module)
-    extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg} if args.suite == "fitting" else {}
+    extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg,
+             "conditions": args.conditions, "person_check": not args.no_person_check,
+             "before": args.before} if args.suite == "fitting" else {}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")

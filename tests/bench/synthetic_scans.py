@@ -178,6 +178,21 @@ def _garment_path(clothes_dir: Path, stem: str) -> Path:
     return hits[0]
 
 
+def _garment_source(clothes_dir: Path, name: str, n_base: int) -> tuple[mhclo.Binding, np.ndarray]:
+    """(binding, faces) of a garment: a ``.mhclo`` stem under ``clothes_dir``, else an item id of
+    the compiled catalogue (``service.model.catalogue``: e.g. ``pencil-skirt``, the lower part
+    of a MakeHuman suit, or ``hair-bob02``)."""
+    hits = sorted(Path(clothes_dir).glob(f"*/{name}.mhclo")) if Path(clothes_dir).is_dir() else []
+    if hits:
+        return _load_garment(str(hits[0]), n_base)
+    from service.model.catalogue import load_catalogue
+
+    items = load_catalogue().items
+    if name not in items:
+        raise FileNotFoundError(f"no garment {name!r} under {clothes_dir} nor in the catalogue")
+    return items[name].binding, np.asarray(items[name].faces, np.int64)
+
+
 def _choose_garments(rng: np.random.Generator, names: list[str], gender: str) -> list[str]:
     """One suit (the body's gender when available) and maybe shoes or a hat. Always draws the
     same number of random values."""
@@ -365,7 +380,7 @@ def dress(model, X: np.ndarray, transforms: np.ndarray, translation: np.ndarray,
     body_tree = cKDTree(X[:nb])
     out = []
     for name in names:
-        binding, gfaces = _load_garment(str(_garment_path(clothes_dir, name)), X.shape[0])
+        binding, gfaces = _garment_source(clothes_dir, name, X.shape[0])
         g = binding.fit(X)
         g, _ = G_.push_out(g, X[:nb], body_n, body_tree.query(g)[1][:, None],
                            G_.laplacian_smoother(gfaces, len(g)))
@@ -603,3 +618,125 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
     keep = (scan.normals @ R.T) @ facing > min_cos
     return replace(scan, points=scan.points[keep], normals=scan.normals[keep],
                    point_is_body=None if scan.point_is_body is None else scan.point_is_body[keep])
+
+
+# -- what real scanners add and lose (issue 12) ------------------------------------------------
+DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor")
+
+
+def _model_points(scan: SyntheticScan) -> np.ndarray:
+    return scan.points_in_model_frame()
+
+
+def _from_model(scan: SyntheticScan, P: np.ndarray) -> np.ndarray:
+    inv = np.linalg.inv(scan.to_model)
+    return P @ inv[:3, :3].T + inv[:3, 3]
+
+
+def _model_rotation(scan: SyntheticScan) -> np.ndarray:
+    """The rotation part (3, 3) of ``to_model`` (scan axes -> model axes)."""
+    A = scan.to_model[:3, :3]
+    return A / np.cbrt(np.linalg.det(A))
+
+
+def keep_points(scan: SyntheticScan, keep: np.ndarray) -> SyntheticScan:
+    """The scan with only the points ``keep`` (P,) bool; a mesh keeps the faces whose three
+    vertices stay. The truth is the scan's."""
+    from dataclasses import replace
+
+    keep = np.asarray(keep, bool)
+    faces = None
+    if scan.faces is not None:
+        remap = np.cumsum(keep) - 1
+        F = scan.faces[keep[scan.faces].all(1)]
+        faces = remap[F]
+    return replace(scan, points=scan.points[keep], faces=faces,
+                   normals=None if scan.normals is None else scan.normals[keep],
+                   point_is_body=None if scan.point_is_body is None else scan.point_is_body[keep])
+
+
+def with_holes(scan: SyntheticScan, rng: np.random.Generator, n_holes: int = 8,
+               radius_m: tuple[float, float] = (0.04, 0.09)) -> SyntheticScan:
+    """Surface patches missing (occlusions, dark or shiny cloth): ``n_holes`` balls of a radius
+    uniform in ``radius_m`` around random scan points above knee height (0.45 m; the feet are
+    left to the floor conditions); every point inside is dropped."""
+    P = _model_points(scan)
+    cand = np.flatnonzero(P[:, 1] > P[:, 1].min() + 0.45)
+    centres = P[rng.choice(cand, size=n_holes, replace=False)]
+    radii = rng.uniform(*radius_m, size=n_holes)
+    d = np.linalg.norm(P[:, None, :] - centres[None], axis=2)
+    return keep_points(scan, ~(d < radii).any(1))
+
+
+def cut_head_top(scan: SyntheticScan, depth_m: float = 0.04) -> SyntheticScan:
+    """The top of the head cut off, as by a scanner whose field of view ends below it: every
+    point above the horizontal plane (model frame) ``depth_m`` below the true body's highest
+    vertex is dropped."""
+    top = float(scan.true_posed[:, 1].max())
+    P = _model_points(scan)
+    return keep_points(scan, P[:, 1] <= top - depth_m)
+
+
+def _floor_grid(centre: np.ndarray, half: float, spacing: float, rng: np.random.Generator,
+                disc: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Floor points (N, 3) on y = 0 around ``centre`` (x, z) jittered on a grid, and their
+    Delaunay triangles (T, 3) in the xz plane."""
+    from scipy.spatial import Delaunay
+
+    g = np.arange(-half, half + 1e-9, spacing)
+    x, z = np.meshgrid(g, g)
+    xz = np.stack([x.ravel(), z.ravel()], 1) + rng.uniform(-0.3, 0.3, size=(x.size, 2)) * spacing
+    if disc:
+        xz = xz[np.linalg.norm(xz, axis=1) <= half]
+    tri = Delaunay(xz).simplices.astype(np.int64)
+    P = np.column_stack([xz[:, 0] + centre[0], np.zeros(len(xz)), xz[:, 1] + centre[1]])
+    return P, tri
+
+
+def with_floor(scan: SyntheticScan, rng: np.random.Generator, kind: str = "disc") -> SyntheticScan:
+    """Floor points under the feet (on the true floor, y = 0 in the model frame): ``disc``, a
+    dense disc (radius 0.45 m, 6 mm spacing: about as many points as the body) as a turntable
+    scanner leaves it; ``scanner``, a 1.4 m square of the room's floor at 15 mm spacing with
+    4 mm of noise across the floor, tilted by up to 1.5 degrees (a scanner's level) and up to
+    1 cm below or above the soles. Meshes get the floor's triangles (not joined to the feet);
+    point clouds its points with normals +Y (model frame)."""
+    from dataclasses import replace
+
+    feet = scan.true_posed[:, 1] < 0.1
+    c = scan.true_posed[feet][:, [0, 2]].mean(0)
+    if kind == "disc":
+        P, tri = _floor_grid(c, 0.45, 0.006, rng, disc=True)
+        P[:, 1] += rng.normal(scale=0.001, size=len(P))
+    elif kind == "scanner":
+        P, tri = _floor_grid(c, 0.7, 0.015, rng, disc=False)
+        a = rng.uniform(0, 2 * np.pi)
+        tilt = np.radians(rng.uniform(0.0, 1.5))
+        slope = np.tan(tilt) * np.array([np.cos(a), np.sin(a)])
+        P[:, 1] = (P[:, [0, 2]] - c) @ slope + rng.uniform(-0.01, 0.01) + rng.normal(scale=0.004, size=len(P))
+    else:
+        raise ValueError(f"unknown floor {kind!r}; expected 'disc' or 'scanner'")
+    n0 = len(scan.points)
+    pts = np.concatenate([scan.points, _from_model(scan, P)])
+    normals = None
+    if scan.normals is not None:
+        up = np.array([0.0, 1.0, 0.0]) @ _model_rotation(scan)  # model +Y in scan axes
+        normals = np.concatenate([scan.normals, np.tile(up, (len(P), 1))])
+    faces = None if scan.faces is None else np.concatenate([scan.faces, tri + n0])
+    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(P), bool)])
+    return replace(scan, points=pts, normals=normals, faces=faces, point_is_body=is_body)
+
+
+def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.random.Generator) -> SyntheticScan:
+    """Apply the named degradations (``DEGRADATIONS``) in order."""
+    for k in kinds:
+        if k == "holes":
+            scan = with_holes(scan, rng)
+        elif k == "cut_head":
+            scan = cut_head_top(scan)
+        elif k == "floor_disc":
+            scan = with_floor(scan, rng, "disc")
+        elif k == "scanner_floor":
+            scan = with_floor(scan, rng, "scanner")
+        else:
+            raise ValueError(f"unknown degradation {k!r}; expected one of {DEGRADATIONS}")
+    return scan

@@ -1,0 +1,169 @@
+"""Cleaning real scanner output before the body fit (service/model/scan_cleanup.py, issue 12):
+the floor is found and dropped while the feet stay, isolated clusters go while parts of the body
+split off by a hole stay, correspondences over holes are rejected; one whole fit of a scan with
+floor points and a cut head top (slow)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.model import scan_cleanup as SC
+from tests.bench import synthetic_scans as SS
+
+
+_BODIES: dict = {}
+
+
+def _body_points(model, n=8000, seed=0):
+    """Points (n, 3) on a posed held-out body standing on y = 0 (metres, Y up) and the scan
+    (made once per module)."""
+    from tests.bench.common import heldout_people
+
+    if (n, seed) not in _BODIES:
+        person = heldout_people(model, 1)[0]
+        scan = SS.make_scan(model, np.random.default_rng(seed), person["weights"], person["gender"], clothed=False,
+                            point_cloud=True, n_points=n, noise_mm=2.0, max_pose_deg=20, unit="m", up="+y")
+        _BODIES[(n, seed)] = (scan.points_in_model_frame(), scan)
+    P, scan = _BODIES[(n, seed)]
+    return P.copy(), scan
+
+
+def _floor(rng, n=6000, radius=0.5, noise=0.002, tilt_deg=0.0, centre=(0.0, 0.0)):
+    r = radius * np.sqrt(rng.uniform(size=n))
+    a = rng.uniform(0, 2 * np.pi, size=n)
+    x, z = centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)
+    y = np.tan(np.radians(tilt_deg)) * (x - centre[0]) + rng.normal(scale=noise, size=n)
+    return np.column_stack([x, y, z])
+
+
+def test_floor_is_dropped_and_the_feet_kept(model):
+    P, scan = _body_points(model)
+    rng = np.random.default_rng(1)
+    feet = P[:, 1] < 0.1
+    floor = _floor(rng, tilt_deg=1.0, noise=0.003, centre=P[feet][:, [0, 2]].mean(0))
+    # in millimetres with Z up, as a scanner might write it: the cleaning works in metres
+    R = SS.up_rotation("+z")
+    allp = np.concatenate([P, floor]) @ R.T
+    kept_pts, _, _, cl = SC.clean_scan(allp)
+    assert cl.floor is not None and abs(cl.floor[0] @ (R @ [0.0, 1.0, 0.0])) > 0.99
+    body_kept, floor_kept = cl.kept[: len(P)], cl.kept[len(P):]
+    assert floor_kept.mean() < 0.002, floor_kept.sum()  # the floor goes
+    assert body_kept[P[:, 1] > 0.03].all()  # the feet above the soles stay, and everything else
+    assert body_kept[feet].mean() > 0.8
+    assert len(kept_pts) == cl.kept.sum() == cl.stats["points_out"]
+
+
+def test_no_floor_on_a_bare_body_nor_on_a_box(model):
+    P, _ = _body_points(model)
+    assert SC.find_floor(P) is None  # the soles of two feet are no floor
+    kept, _, _, cl = SC.clean_scan(P)
+    assert cl.kept.all() and len(kept) == len(P)
+    box, _, _, _ = SS.non_person_scan(model, "box", np.random.default_rng(2), unit="m", up="+y")
+    assert SC.find_floor(box) is None  # its bottom face is too small to be a floor
+
+
+def test_isolated_cluster_dropped_split_off_part_kept(model):
+    P, _ = _body_points(model)
+    rng = np.random.default_rng(3)
+    top = P[:, 1].max()
+    blob = P[np.argmax(P[:, 1])] + [0.6, -0.3, 0.0] + rng.normal(scale=0.01, size=(30, 3))  # 60 cm off the body
+    # a hand-sized piece split off the body by a 4 cm gap (a hole across the wrist): stays
+    hand = P[np.argmax(P[:, 0])] + [0.04, 0.0, 0.0] + rng.normal(scale=0.015, size=(40, 3))
+    allp = np.concatenate([P, blob, hand])
+    _, _, _, cl = SC.clean_scan(allp)
+    assert not cl.kept[len(P): len(P) + 30].any()
+    assert cl.kept[: len(P)].all() and cl.kept[len(P) + 30:].all()
+    assert cl.stats["stray_points"] == 30 and top > 1.0
+
+
+def test_faces_and_normals_follow_the_kept_points(model):
+    P, _ = _body_points(model, n=3000)
+    rng = np.random.default_rng(4)
+    floor = _floor(rng, n=3000, centre=P[P[:, 1] < 0.1][:, [0, 2]].mean(0))
+    allp = np.concatenate([P, floor])
+    normals = np.zeros_like(allp)
+    normals[:, 0] = np.arange(len(allp))  # a label per point
+    F = np.array([[0, 1, 2], [3, 4, 5], [len(P), len(P) + 1, len(P) + 2], [2, len(P) + 3, 4]])
+    pts, nrm, faces, cl = SC.clean_scan(allp, normals, F)
+    assert np.array_equal(nrm[:, 0], np.flatnonzero(cl.kept))
+    kept_faces = F[cl.kept[F].all(1)]
+    assert len(faces) == len(kept_faces) >= 2  # the floor's face and the face joined to it go
+    assert np.array_equal(pts[faces], allp[kept_faces])
+
+
+def test_correspondences_over_a_hole_are_rejected():
+    """A flat sampled surface (1 cm spacing) with a 10 cm hole: the template vertices above the
+    surface match points just below them; those above the hole match the rim, off to the side."""
+    g = np.arange(-0.3, 0.3, 0.01)
+    x, z = np.meshgrid(g, g)
+    S = np.column_stack([x.ravel(), np.zeros(x.size), z.ravel()])
+    S = S[np.linalg.norm(S[:, [0, 2]], axis=1) > 0.05]
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(S)
+    spacing = SC.point_spacing(tree, S)
+    assert 0.009 < spacing < 0.011
+    T = np.column_stack([np.linspace(-0.2, 0.2, 41), np.full(41, 0.004), np.zeros(41)])
+    _, j = tree.query(T)
+    hole = SC.over_hole(T, S[j], np.tile([0.0, 1.0, 0.0], (len(T), 1)), spacing)
+    r = np.abs(T[:, 0])
+    assert hole[r < 0.02].all()  # over the middle of the hole: the rim is 3-5 cm aside
+    assert not hole[r > 0.06].any()  # over the surface
+    # with the local spacing (the tree): the same on this even sampling; a coarse patch of the
+    # surface (8 cm apart, as a mesh's large flat triangles) is no hole
+    local = SC.over_hole(T, S[j], np.tile([0.0, 1.0, 0.0], (len(T), 1)), spacing, tree)
+    assert local[r < 0.02].all() and not local[r > 0.06].any()
+    coarse = np.column_stack([np.repeat([-0.08, 0.0, 0.08], 3), np.zeros(9), np.tile([-0.08, 0.0, 0.08], 3)])
+    S2 = np.concatenate([S[np.abs(S[:, 0]) > 0.2], coarse])
+    tree2 = cKDTree(S2)
+    T2 = np.array([[0.03, 0.004, 0.03], [-0.04, 0.004, 0.04]])
+    _, j2 = tree2.query(T2)
+    n2 = np.tile([0.0, 1.0, 0.0], (2, 1))
+    assert SC.over_hole(T2, S2[j2], n2, spacing).all() and not SC.over_hole(T2, S2[j2], n2, spacing, tree2).any()
+
+
+@pytest.mark.slow
+def test_fit_scan_with_floor_and_cut_head(model):
+    """An unclothed re-meshed scan in mm with Z up, the top 4 cm of the head cut off and a
+    scanner's noisy tilted floor under it: the floor is dropped, the body and its stature are
+    recovered (the head top from the model), as well as without the cleaning or better."""
+    from service.model import fitting as F
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 1)[0]
+    scan = SS.make_scan(model, np.random.default_rng(11), person["weights"], person["gender"], clothed=False,
+                        point_cloud=False, n_points=8000, max_pose_deg=15, unit="mm", up="+z")
+    scan = SS.with_floor(SS.cut_head_top(scan, 0.04), np.random.default_rng(12), "scanner")
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
+    assert (fit.unit, fit.up) == ("mm", "+z")
+    assert fit.stats["cleaning"]["floor_points"] > 0.9 * (len(scan.points) - (scan.point_is_body.sum()))
+    C = scan.to_model @ np.linalg.inv(fit.to_model)
+    nb = model.n_body_vertices
+    V = fit.posed_vertices[:nb] @ C[:3, :3].T + C[:3, 3]
+    v2v_mm = 1000 * float(np.linalg.norm(V - scan.true_posed[:nb], axis=1).mean())
+    assert v2v_mm < 8.0, v2v_mm
+    height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]
+    assert abs(height - scan.measurements["height_cm"]) < 3.0, height - scan.measurements["height_cm"]
+    assert not fit.partial
+
+
+def test_synthetic_degradations(model):
+    """The bench's scanner conditions (tests/bench/synthetic_scans.py): a cut head top drops only
+    points above the cut; holes drop points; a floor adds points on y = 0 (model frame), with
+    faces for a mesh; the truth is untouched."""
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 1)[0]
+    scan = SS.make_scan(model, np.random.default_rng(5), person["weights"], person["gender"], clothed=False,
+                        point_cloud=False, n_points=4000, max_pose_deg=10)
+    top = scan.true_posed[:, 1].max()
+    cut = SS.cut_head_top(scan, 0.04)
+    P = scan.points_in_model_frame()
+    assert len(cut.points) == (P[:, 1] <= top - 0.04).sum() < len(scan.points)
+    assert cut.faces.max() < len(cut.points) and np.array_equal(cut.true_posed, scan.true_posed)
+    holed = SS.with_holes(scan, np.random.default_rng(6))
+    assert len(holed.points) < len(scan.points) - 50
+    floored = SS.with_floor(scan, np.random.default_rng(7), "scanner")
+    F = floored.points_in_model_frame()[len(scan.points):]
+    assert len(F) > 5000 and np.abs(F[:, 1]).max() < 0.05 and floored.faces.max() == len(floored.points) - 1
+    assert not floored.point_is_body[len(scan.points):].any()
