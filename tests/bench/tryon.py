@@ -245,6 +245,41 @@ def bench_latency(model, ex, EX, skirt, repeats: int) -> dict:
                 "reference_ms": ref, "template_ms": fast, "speedup": ref / fast,
                 "reference_cpu_ms": cref, "template_cpu_ms": cfast, "cpu_speedup": cref / cfast,
                 "glb_bytes": len(once(0, True))}
+    out["outfit"] = bench_outfit_latency(model, ex, EX, bodies, min(repeats, 12))
+    return out
+
+
+OUTFIT = ("striped-shirt", "casual-jacket")  # a shirt under an open jacket: the layering's hardest pair
+
+
+def bench_outfit_latency(model, ex, EX, bodies, repeats: int) -> dict:
+    """``outfit.glb`` in process (``scenes.outfit_glb``: the avatar, two catalogue garments
+    layered -- the shirt pushed inside the jacket and skinned like it where covered -- and, with
+    the default look, the underwear pushed inside both), on ``repeats`` customers; median wall
+    and thread CPU ms, bare (no look) and with the look."""
+    from service.application import look as looks
+    from service.application import scenes
+    from service.model.catalogue import load_catalogue
+    from service.records import Garment
+
+    cat = load_catalogue()
+    worn = []
+    for gid in OUTFIT:
+        it = cat.items[gid]
+        basis = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex,
+                                      layout=it.render_layout(), material=it.material)
+        worn.append((Garment(id=gid, body_model=model.version, owner="bench", name=gid, source="demo",
+                             color=[0.5, 0.5, 0.5, 1.0], layer=it.layer or 0), basis))
+    worn.sort(key=lambda g: g[0].layer)
+    out: dict = {"garments": list(OUTFIT), "customers": repeats}
+    for label, lk in (("bare", None), ("look", looks.resolve("female"))):
+        wall, cpu = [], []
+        for i in range(repeats):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            scenes.outfit_glb(model, bodies[i % len(bodies)], worn, None, look=lk)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.thread_time() - c0)
+        out[label] = {"wall_ms": 1000.0 * float(np.median(wall)), "cpu_ms": 1000.0 * float(np.median(cpu))}
     return out
 
 
@@ -260,6 +295,11 @@ def format_latency(r: dict) -> str:
             L.append(f"  {name:<20}{g['vertices']:>9}{g['render_vertices']:>8}  {mode:<9}{v['reference_ms']:>9.3f}"
                      f"{v['template_ms']:>8.3f}{v['speedup']:>6.2f}{v['reference_cpu_ms']:>9.3f}"
                      f"{v['template_cpu_ms']:>8.3f}{v['cpu_speedup']:>6.2f}{v['glb_bytes']:>9}")
+    o = r.get("outfit")
+    if o:
+        L.append(f"outfit.glb in process ({' under '.join(o['garments'])} with the avatar, layered), median of "
+                 f"{o['customers']} customers: bare {o['bare']['wall_ms']:.0f} ms wall / {o['bare']['cpu_ms']:.0f} ms CPU; "
+                 f"with the default look (underwear layered too) {o['look']['wall_ms']:.0f} / {o['look']['cpu_ms']:.0f} ms")
     return "\n".join(L)
 
 
