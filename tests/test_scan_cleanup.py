@@ -147,6 +147,28 @@ def test_fit_scan_with_floor_and_cut_head(model):
     assert not fit.partial
 
 
+@pytest.mark.slow
+def test_fit_scan_on_a_room_floor(model):
+    """A point cloud in centimetres standing on a 3.2 m square of the room's floor (wider than a
+    person): the fit tells the unit after dropping the floor and recovers the body."""
+    from service.model import fitting as F
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 2)[1]
+    scan = SS.make_scan(model, np.random.default_rng(21), person["weights"], person["gender"], clothed=False,
+                        point_cloud=True, n_points=8000, max_pose_deg=15, unit="cm", up="+y")
+    scan = SS.with_floor(scan, np.random.default_rng(22), "room")
+    fit = F.fit_body(model, scan.points, scan.normals, None, clothed=False)
+    assert (fit.unit, fit.up) == ("cm", "+y") and fit.stats["cleaning"]["wide_floor"]
+    C = scan.to_model @ np.linalg.inv(fit.to_model)
+    nb = model.n_body_vertices
+    V = fit.posed_vertices[:nb] @ C[:3, :3].T + C[:3, 3]
+    v2v_mm = 1000 * float(np.linalg.norm(V - scan.true_posed[:nb], axis=1).mean())
+    assert v2v_mm < 5.0, v2v_mm
+    height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]
+    assert abs(height - scan.measurements["height_cm"]) < 1.0, height - scan.measurements["height_cm"]
+
+
 def test_synthetic_degradations(model):
     """The bench's scanner conditions (tests/bench/synthetic_scans.py): a cut head top drops only
     points above the cut; holes drop points; a floor adds points on y = 0 (model frame), with
@@ -167,3 +189,29 @@ def test_synthetic_degradations(model):
     F = floored.points_in_model_frame()[len(scan.points):]
     assert len(F) > 5000 and np.abs(F[:, 1]).max() < 0.05 and floored.faces.max() == len(floored.points) - 1
     assert not floored.point_is_body[len(scan.points):].any()
+    room = SS.with_floor(scan, np.random.default_rng(8), "room").points_in_model_frame()[len(scan.points):]
+    assert np.ptp(room[:, [0, 2]], axis=0).min() > 3.0 and np.abs(room[:, 1]).max() < 0.05
+
+
+def test_room_floor_wider_than_a_person_is_found_before_the_unit(model):
+    """A scan in centimetres with Z up whose floor (a 3.2 m square of the room) is wider than any
+    person is tall: the extent alone cannot tell the unit; ``clean_wide_scan`` finds the floor
+    (the least principal axis is its normal), drops it and tells the unit from what is left."""
+    from service.model.frames import UnitError, detect_unit
+
+    P, scan = _body_points(model)
+    rng = np.random.default_rng(3)
+    feet = P[:, 1] < 0.1
+    floor = _floor(rng, n=16000, radius=1.6, noise=0.004, tilt_deg=1.0, centre=P[feet][:, [0, 2]].mean(0))
+    R = SS.up_rotation("+z")
+    allp = 100.0 * np.concatenate([P, floor]) @ R.T
+    with pytest.raises(UnitError):
+        detect_unit(allp)
+    out = SC.clean_wide_scan(allp)
+    assert out is not None
+    unit, scale, kept, _, _, cl = out
+    assert (unit, scale) == ("cm", 0.01) and cl.stats["wide_floor"]
+    assert abs(cl.floor[0] @ (R @ [0.0, 1.0, 0.0])) > 0.99
+    assert cl.kept[len(P):].mean() < 0.002  # the floor goes
+    assert cl.kept[: len(P)][P[:, 1] > 0.03].all()  # the body stays
+    assert SC.clean_wide_scan(100.0 * P @ R.T) is None  # no floor: nothing to clean, no unit made up

@@ -679,18 +679,25 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 100 or not np.all(np.isfinite(pts)):
         raise FitError("the scan needs at least 100 finite 3D points")
+    wide = None
     try:
         unit, scale = detect_scan_unit(pts)
     except FitError:
-        if params.person_check:  # too large for one person: perhaps several, side by side
+        # wider than a person: a room's floor around them (issue 12), or several people
+        wide = SC.clean_wide_scan(pts, normals, faces) if params.scan_cleanup else None
+        if wide is None and params.person_check:  # perhaps several people, side by side
             for s_unit in (1.0, 0.01, 0.001):
                 reason = PC.separate_bodies(pts * s_unit)
                 if reason:
                     raise FitError(NOT_A_PERSON + reason) from None
-        raise
-    pts_m = pts * scale
-    if params.scan_cleanup:  # floor, stray clusters (issue 12)
-        pts_m, normals, faces, cleaning = SC.clean_scan(pts_m, normals, faces)
+        if wide is None:
+            raise
+    if wide is not None:
+        unit, scale, pts_m, normals, faces, cleaning = wide
+    else:
+        pts_m = pts * scale
+        if params.scan_cleanup:  # floor, stray clusters (issue 12)
+            pts_m, normals, faces, cleaning = SC.clean_scan(pts_m, normals, faces)
     if params.person_check:
         check_person_before(pts_m)
     if normals is None:

@@ -92,15 +92,17 @@ def _tls_plane(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     return n, -float(n @ c), float(s[2] / np.sqrt(max(len(points), 1)))
 
 
-def find_floor(points: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, float, float] | None:
+def find_floor(points: np.ndarray, rng: np.random.Generator | None = None,
+               axis: np.ndarray | None = None) -> tuple[np.ndarray, float, float] | None:
     """The floor under a scanned person (module docstring, step 1): (unit normal (3,) towards
     the person, offset d with n . p + d = 0, noise rms in metres), or None when the scan has no
-    floor. points (P, 3) metres."""
+    floor. points (P, 3) metres; ``axis`` (3,): the scan's height axis if known (default: its
+    principal axis, which a person standing on a floor narrower than their height has)."""
     P = np.asarray(points, np.float64)
     if len(P) < 50:
         return None
     rng = rng or np.random.default_rng(0)
-    axis = _principal_axis(P)
+    axis = _principal_axis(P) if axis is None else np.asarray(axis, np.float64) / np.linalg.norm(axis)
     h = P @ axis
     lo, hi = h.min(), h.max()
     span = hi - lo
@@ -175,14 +177,15 @@ def isolated_clusters(points: np.ndarray) -> np.ndarray:
 
 
 def clean_scan(points: np.ndarray, normals: np.ndarray | None = None, faces: np.ndarray | None = None,
-               rng: np.random.Generator | None = None):
+               rng: np.random.Generator | None = None, axis: np.ndarray | None = None):
     """Drop the floor and isolated clusters from a scan (module docstring). points (P, 3)
-    metres, normals (P, 3) or None, faces (F, 3) or None. Returns (points (P', 3), normals or
+    metres, normals (P, 3) or None, faces (F, 3) or None, ``axis`` the height axis for
+    :func:`find_floor` (default: the principal axis). Returns (points (P', 3), normals or
     None, faces (F', 3) re-indexed, the faces whose three vertices stay, or None,
     :class:`Cleaning`)."""
     P = np.asarray(points, np.float64)
     keep = np.ones(len(P), bool)
-    floor = find_floor(P, rng)
+    floor = find_floor(P, rng, axis)
     stats: dict = {"points_in": int(len(P))}
     if floor is not None:
         n, d, rms = floor
@@ -208,6 +211,39 @@ def clean_scan(points: np.ndarray, normals: np.ndarray | None = None, faces: np.
         remap = np.cumsum(keep) - 1
         F = remap[faces[keep[faces].all(1)]] if len(faces) else faces
     return P[keep], nrm, F, Cleaning(keep, floor, stats)
+
+
+def clean_wide_scan(points: np.ndarray, normals: np.ndarray | None = None, faces: np.ndarray | None = None):
+    """A scan wider than a person because of its floor (a room's floor scanned around the
+    person, more than ``frames.PERSON_MAX_M`` across), in unknown units: for each unit
+    (``frames.UNITS``, metres first) and each height-axis hypothesis -- the principal axis (a
+    floor narrower than the person is tall) and the least principal axis (the normal of a floor
+    wider than that: it dominates the spread) -- the scan is cleaned in metres
+    (:func:`clean_scan`); the first whose floor is found and whose rest is a person's size
+    (``frames.detect_unit`` in metres) wins; only units at which the scan is too wide for a
+    person are tried (a person's back is flat enough to pass for a floor: the floor must be what
+    made the scan too wide). points (P, 3) file units. Returns (unit, metres per
+    unit, points (P', 3) metres, normals, faces, :class:`Cleaning`) or None."""
+    from service.model.frames import PERSON_MAX_M, UNITS, UnitError, detect_unit
+
+    pts = np.asarray(points, np.float64)
+    for name, scale in UNITS.items():
+        Pm = pts * scale
+        if np.ptp(Pm, axis=0).max() <= PERSON_MAX_M:  # not too wide at this unit: not a wide floor
+            continue
+        c = Pm[:: max(1, len(Pm) // 5000)] - Pm.mean(0)
+        _, _, Vt = np.linalg.svd(c, full_matrices=False)
+        for axis in (Vt[0], Vt[2]):
+            kept, nrm, F, cleaning = clean_scan(Pm, normals, faces, axis=axis)
+            if cleaning.floor is None or cleaning.stats.get("undone"):
+                continue
+            try:
+                detect_unit(kept)  # the rest must be a person's size in metres
+            except UnitError:
+                continue
+            cleaning.stats["wide_floor"] = True
+            return name, scale, kept, nrm, F, cleaning
+    return None
 
 
 def point_spacing(tree: cKDTree, points: np.ndarray, rng: np.random.Generator | None = None) -> float:

@@ -30,7 +30,8 @@
    knees and feet below -- with a blouse, or a business suit; with hair), ``holes`` (8 missing
    surface patches of 4-9 cm radius), ``cut_head`` (everything above a plane 4 cm under the
    head top dropped), ``floor_disc`` (a dense disc of floor points under the feet, a point
-   cloud) and ``scanner`` (a clothed mesh with holes, a cut head top and a scanner's noisy,
+   cloud), ``room_floor`` (a 3.2 m square of a room's floor around an unclothed point cloud:
+   wider than a person, so the unit is told after the floor is found) and ``scanner`` (a clothed mesh with holes, a cut head top and a scanner's noisy,
    tilted floor); their "before" is the same scan fitted without the scan cleaning
    (``FitParams(scan_cleanup=False)``), same run.
 
@@ -97,6 +98,7 @@ CONDITIONS = (
     Condition("cut_head", False, False, degrade=("cut_head",), before="scan_cleanup"),
     Condition("floor_disc", False, True, degrade=("floor_disc",), before="scan_cleanup"),
     Condition("scanner", True, False, degrade=("holes", "cut_head", "scanner_floor"), before="scan_cleanup"),
+    Condition("room_floor", False, True, degrade=("room_floor",), before="scan_cleanup"),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500

@@ -621,7 +621,8 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
 
 
 # -- what real scanners add and lose (issue 12) ------------------------------------------------
-DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor")
+DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor")
+ROOM_FLOOR_HALF_M = 1.6  # the room floor's half width (metres)
 
 
 def _model_points(scan: SyntheticScan) -> np.ndarray:
@@ -698,7 +699,9 @@ def with_floor(scan: SyntheticScan, rng: np.random.Generator, kind: str = "disc"
     dense disc (radius 0.45 m, 6 mm spacing: about as many points as the body) as a turntable
     scanner leaves it; ``scanner``, a 1.4 m square of the room's floor at 15 mm spacing with
     4 mm of noise across the floor, tilted by up to 1.5 degrees (a scanner's level) and up to
-    1 cm below or above the soles. Meshes get the floor's triangles (not joined to the feet);
+    1 cm below or above the soles; ``room``, a 3.2 m square of the room's floor at 25 mm spacing,
+    4 mm of noise (wider than any person is tall: the scan's extent no longer tells its unit).
+    Meshes get the floor's triangles (not joined to the feet);
     point clouds its points with normals +Y (model frame)."""
     from dataclasses import replace
 
@@ -713,8 +716,11 @@ def with_floor(scan: SyntheticScan, rng: np.random.Generator, kind: str = "disc"
         tilt = np.radians(rng.uniform(0.0, 1.5))
         slope = np.tan(tilt) * np.array([np.cos(a), np.sin(a)])
         P[:, 1] = (P[:, [0, 2]] - c) @ slope + rng.uniform(-0.01, 0.01) + rng.normal(scale=0.004, size=len(P))
+    elif kind == "room":
+        P, tri = _floor_grid(c, ROOM_FLOOR_HALF_M, 0.025, rng, disc=False)
+        P[:, 1] = rng.uniform(-0.01, 0.01) + rng.normal(scale=0.004, size=len(P))
     else:
-        raise ValueError(f"unknown floor {kind!r}; expected 'disc' or 'scanner'")
+        raise ValueError(f"unknown floor {kind!r}; expected 'disc', 'scanner' or 'room'")
     n0 = len(scan.points)
     pts = np.concatenate([scan.points, _from_model(scan, P)])
     normals = None
@@ -737,6 +743,8 @@ def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.ran
             scan = with_floor(scan, rng, "disc")
         elif k == "scanner_floor":
             scan = with_floor(scan, rng, "scanner")
+        elif k == "room_floor":
+            scan = with_floor(scan, rng, "room")
         else:
             raise ValueError(f"unknown degradation {k!r}; expected one of {DEGRADATIONS}")
     return scan
