@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from service.app import create_app
+from service.model import scan_cleanup as SC
 from service.model.gltf import read_glb
 from service.settings import Settings
 from tests.bench import synthetic_scans as S
@@ -30,16 +31,19 @@ def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
 
 @pytest.fixture(scope="module")
 def scan_customer(client: TestClient, model) -> tuple[str, S.SyntheticScan]:
-    """A clothed mesh scan uploaded over HTTP, fitted by the job's use case in process."""
+    """A clothed mesh scan standing on a scanner's floor, uploaded over HTTP, fitted by the job's
+    use case in process."""
     p = heldout_people(model, 2)[1]
     scan = S.make_scan(model, np.random.default_rng(5), p["weights"], p["gender"], clothed=True, point_cloud=False,
                        n_points=8000, max_pose_deg=15.0, unit="cm", up="+y")
+    n_person = len(scan.points)
+    scan = S.with_floor(scan, np.random.default_rng(6), "scanner")  # the points after n_person
     r = client.post("/v1/customers", files={"mesh": ("scan.ply", S.scan_file_bytes(scan, "ply"))})
     assert r.status_code == 202, r.text
     cid = r.json()["id"]
     out = client.app.state.context.customers.run_fit(cid, lambda f, m: None)
     assert out["status"] == "done", out
-    return cid, scan, {"Authorization": f"Bearer {r.json()['token']}"}
+    return cid, scan, {"Authorization": f"Bearer {r.json()['token']}"}, n_person
 
 
 def _glb(r) -> dict:
@@ -108,15 +112,18 @@ def test_edit_websocket_of_a_measurement_customer(client: TestClient, model) -> 
 
 @pytest.mark.slow
 def test_edit_a_clothed_scan(client: TestClient, scan_customer, model, validate_glb) -> None:
-    cid, scan, auth = scan_customer
+    cid, scan, auth, n_person = scan_customer
     rec = client.get(f"/v1/customers/{cid}", headers=auth).json()
     assert rec["editable"] is True and rec["status"] == "ready"
     base = _glb(client.post(f"/v1/customers/{cid}/edit", json={}, headers=auth))
-    assert base["positions"].shape == scan.points.shape  # the scan's own vertices, in order
+    # the scan's own vertices, in order, without the floor the fit dropped (the same cleaning)
+    kept = SC.clean_scan(scan.points * 0.01, scan.normals, scan.faces)[3].kept
+    assert kept[n_person:].mean() < 0.002 and kept[:n_person].mean() > 0.98
+    assert base["positions"].shape == (kept.sum(), 3)
     # no edit: the scan itself, moved rigidly into the model frame (distances between its
     # vertices, in metres, as in the file in cm)
     back = base["positions"].astype(np.float64)
-    d = np.linalg.norm(np.diff(back, axis=0), axis=1) - np.linalg.norm(np.diff(scan.points * 0.01, axis=0), axis=1)
+    d = np.linalg.norm(np.diff(back, axis=0), axis=1) - np.linalg.norm(np.diff(scan.points[kept] * 0.01, axis=0), axis=1)
     assert np.abs(d).max() < 1e-4
     heavier = _glb(client.post(f"/v1/customers/{cid}/edit?compression=meshopt",
                                json={"measurements": {"weight_kg": rec["measurements"]["weight_kg"] + 10}},
@@ -128,11 +135,11 @@ def test_edit_a_clothed_scan(client: TestClient, scan_customer, model, validate_
     assert report["issues"]["numErrors"] == 0
     with client.websocket_connect(f"/v1/customers/{cid}/edit/ws", headers=auth) as ws:
         head = ws.receive_json()
-        assert head["kind"] == "scan" and head["vertices"] == len(scan.points)
+        assert head["kind"] == "scan" and head["vertices"] == kept.sum()
         ws.receive_bytes()
         ws.receive_bytes()
         ws.send_json({"pose": {"thigh_l": [0.4, 0, 0]}})
         v = np.frombuffer(ws.receive_bytes(), "<f4").reshape(-1, 3)
-        assert v.shape == scan.points.shape and np.isfinite(v).all()
+        assert v.shape == (kept.sum(), 3) and np.isfinite(v).all()
     assert client.delete(f"/v1/customers/{cid}", headers=auth).status_code == 204
     assert not client.app.state.context.meshes.path(cid).exists()

@@ -15,6 +15,7 @@ from service.model.frames import rotation_to_y
 from service.model.geometry import vertex_normals
 from service.model.fitting import FitError, FitResult, fit_body
 from service.model.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
+from service.model.scan_cleanup import kept_faces
 from service.model.shape import MeasurementError, avatar_from_measurements, estimate_gender
 from service.model.tryon import CustomerBody, customer_body
 from service.records import Customer, FitStats, JobRef, ScanInfo
@@ -293,8 +294,9 @@ class CustomerService:
         if scan.faces is not None:  # a mesh: kept for editing, with its warping graph checked
             progress(FIT_SHARE, "building the warping graph for editing")
             T = np.asarray(fit.to_model, np.float64)
-            arrays = {"vertices": (scan.points @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
-                      "faces": np.asarray(scan.faces, np.int32)}
+            kept = np.ones(len(scan.points), bool) if fit.kept is None else fit.kept  # without the floor
+            arrays = {"vertices": (scan.points[kept] @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
+                      "faces": kept_faces(scan.faces, kept).astype(np.int32)}
             ready = ready.model_copy(update={"editable": True})
             build_editor(self.model, ready, arrays)  # fails here, in the job, rather than at the first edit
             self.ctx.meshes.save(cid, arrays)

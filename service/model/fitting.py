@@ -177,6 +177,7 @@ class FitResult:
     inner_iterations: int = 0
     seconds: float = 0.0
     stats: dict = field(default_factory=dict)
+    kept: np.ndarray | None = None  # (P,) bool: the input points the fit used (the floor and stray clusters dropped)
 
 
 # -- the model as data for fitting ------------------------------------------------------------
@@ -692,6 +693,7 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
                     raise FitError(NOT_A_PERSON + reason) from None
         if wide is None:
             raise
+    cleaning = None
     if wide is not None:
         unit, scale, pts_m, normals, faces, cleaning = wide
     else:
@@ -806,6 +808,7 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
         partial=PC.is_partial(coverage), coverage=coverage,
         outer_iterations=outer, inner_iterations=inner_total, seconds=time.perf_counter() - t_start,
         stats={"init_seconds": t_init, "refine_seconds": t_refine, "solver": backend, "accepted_fraction": float(accepted.mean()),
-               "person_check": checks, "cleaning": cleaning.stats if params.scan_cleanup else None,
+               "person_check": checks, "cleaning": cleaning.stats if cleaning is not None else None,
                "screen_costs_mm": [round(1000 * x, 1) for x in sorted(screen_costs)[:4]]},
+        kept=None if cleaning is None else cleaning.kept,
     )

@@ -205,12 +205,17 @@ def clean_scan(points: np.ndarray, normals: np.ndarray | None = None, faces: np.
         stats["undone"] = True
     stats["points_out"] = int(keep.sum())
     nrm = None if normals is None else np.asarray(normals)[keep]
-    F = None
-    if faces is not None:
-        faces = np.asarray(faces, np.int64)
-        remap = np.cumsum(keep) - 1
-        F = remap[faces[keep[faces].all(1)]] if len(faces) else faces
-    return P[keep], nrm, F, Cleaning(keep, floor, stats)
+    return P[keep], nrm, kept_faces(faces, keep), Cleaning(keep, floor, stats)
+
+
+def kept_faces(faces: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:
+    """The faces (F, 3) whose three vertices are kept (keep: (P,) bool), re-indexed into the kept
+    vertices: (F', 3) int64, or None without faces."""
+    if faces is None:
+        return None
+    faces = np.asarray(faces, np.int64)
+    remap = np.cumsum(keep) - 1
+    return remap[faces[keep[faces].all(1)]] if len(faces) else faces
 
 
 def clean_wide_scan(points: np.ndarray, normals: np.ndarray | None = None, faces: np.ndarray | None = None):
