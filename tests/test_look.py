@@ -141,6 +141,46 @@ def test_avatar_glb_with_look_is_valid(model, bodies, validate_glb, compression)
     assert len(glb["indices"]) < len(model.body_faces)
 
 
+@pytest.mark.slow
+def test_renderer_draws_the_avatar_glb_and_preview_scenes(model, bodies, tmp_path) -> None:
+    """worker/build/preview.mjs in Chromium (three.js): a GLB as a shop's viewer loads it
+    (``--glb``: every look node drawn, skinned, three textured; the front view shows the body,
+    the face view the head) and the catalogue build's JSON scenes (``preview.render``)."""
+    import json
+    import os
+    import subprocess
+    from pathlib import Path
+
+    from PIL import Image
+
+    from worker.build import preview
+
+    gender, body = bodies["m200-130"]
+    data = scenes.avatar_glb(model, body.vertices, None, normals=body.normals, look=looks.resolve(gender))
+    (tmp_path / "tall.glb").write_bytes(data)
+    script = Path(preview.__file__).with_name("preview.mjs")
+    proc = subprocess.run(["node", str(script), "--glb", str(tmp_path / "out"), str(tmp_path / "tall.glb")],
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "VIEWS": "front,face"},
+                          cwd=script.parent.parent.parent)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["errors"] == [] and len(out["images"]) == 2
+    info = out["scenes"]["tall"]
+    assert info["meshes"] == LOOK_NODES and info["skinned"] == 5 and info["textured"] == 3
+    assert 1.95 < info["bbox"][1][1] < 2.1  # a 200 cm man
+    bg = np.array([242, 242, 242])
+    for view, lo, hi in (("front", 0.08, 0.6), ("face", 0.4, 0.98)):
+        px = np.asarray(Image.open(tmp_path / "out" / f"tall-{view}.png").convert("RGB"), np.int64)
+        drawn = (np.abs(px - bg).sum(-1) > 30).mean()
+        assert lo < drawn < hi, (view, drawn)  # the whole body small; the head filling the frame
+    mesh = preview.mesh("box", body.vertices[: model.n_body_vertices], model.body_faces, color=(0.8, 0.3, 0.2, 1.0))
+    res = preview.render([{"name": "bare", "views": ["front"], "width": 200, "height": 300, "meshes": [mesh]}],
+                         tmp_path / "json")
+    assert res["errors"] == [] and len(res["images"]) == 1
+    px = np.asarray(Image.open(res["images"][0]).convert("RGB"), np.int64)
+    assert (np.abs(px - bg).sum(-1) > 30).mean() > 0.05
+
+
 def test_avatar_glb_choices(model, bodies) -> None:
     gender, body = bodies["m185-80"]
     bare = read_glb(scenes.avatar_glb(model, body.vertices, look=looks.resolve(gender, "none", False)))
