@@ -8,6 +8,7 @@ import pytest
 
 from service.model import fitting as F
 from tests.bench import synthetic_scans as SS
+from tests.bench.fitting import v2v_mm
 from service.model.lbs import axis_angle_to_matrix
 
 
@@ -59,11 +60,6 @@ def test_unit_detection_errors_are_fit_errors():
         F.detect_scan_unit(pts * 10)
 
 
-def _evaluate(model, scan, fit):
-    """Mean distance (mm) between the fitted and the true body, vertex to vertex."""
-    C = scan.to_model @ np.linalg.inv(fit.to_model)
-    V = fit.posed_vertices[: model.n_body_vertices] @ C[:3, :3].T + C[:3, 3]
-    return 1000 * float(np.linalg.norm(V - scan.true_posed[: model.n_body_vertices], axis=1).mean())
 
 
 def _person(model):
@@ -84,7 +80,7 @@ def test_fit_unclothed_scan(model):
                      progress=lambda f, m: progress.append(f))
     assert (fit.unit, fit.up) == ("cm", "+z")
     assert progress[-1] == 1.0 and progress == sorted(progress)
-    err = _evaluate(model, scan, fit)
+    err = v2v_mm(model, scan, fit)
     assert err < 8.0, err
     height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]
     assert abs(height - scan.measurements["height_cm"]) < 4.0
@@ -105,7 +101,7 @@ def test_fit_clothed_point_cloud_stays_inside_clothes(model):
                         point_cloud=True, n_points=8000, max_pose_deg=20, unit="mm", up="+y")
     fit = F.fit_body(model, scan.points, None, None, clothed=True)
     assert fit.unit == "mm"
-    err = _evaluate(model, scan, fit)
+    err = v2v_mm(model, scan, fit)
     assert err < 20.0, err
     body = fit.posed_vertices[: model.n_body_vertices]
     P = scan.points @ fit.to_model[:3, :3].T + fit.to_model[:3, 3]

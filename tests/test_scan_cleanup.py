@@ -9,6 +9,7 @@ import pytest
 
 from service.model import scan_cleanup as SC
 from tests.bench import synthetic_scans as SS
+from tests.bench.fitting import v2v_mm
 
 
 _BODIES: dict = {}
@@ -137,11 +138,8 @@ def test_fit_scan_with_floor_and_cut_head(model):
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
     assert (fit.unit, fit.up) == ("mm", "+z")
     assert fit.stats["cleaning"]["floor_points"] > 0.9 * (len(scan.points) - (scan.point_is_body.sum()))
-    C = scan.to_model @ np.linalg.inv(fit.to_model)
-    nb = model.n_body_vertices
-    V = fit.posed_vertices[:nb] @ C[:3, :3].T + C[:3, 3]
-    v2v_mm = 1000 * float(np.linalg.norm(V - scan.true_posed[:nb], axis=1).mean())
-    assert v2v_mm < 8.0, v2v_mm
+    err = v2v_mm(model, scan, fit)
+    assert err < 8.0, err
     height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]
     assert abs(height - scan.measurements["height_cm"]) < 3.0, height - scan.measurements["height_cm"]
     assert not fit.partial
@@ -160,11 +158,8 @@ def test_fit_scan_on_a_room_floor(model):
     scan = SS.with_floor(scan, np.random.default_rng(22), "room")
     fit = F.fit_body(model, scan.points, scan.normals, None, clothed=False)
     assert (fit.unit, fit.up) == ("cm", "+y") and fit.stats["cleaning"]["wide_floor"]
-    C = scan.to_model @ np.linalg.inv(fit.to_model)
-    nb = model.n_body_vertices
-    V = fit.posed_vertices[:nb] @ C[:3, :3].T + C[:3, 3]
-    v2v_mm = 1000 * float(np.linalg.norm(V - scan.true_posed[:nb], axis=1).mean())
-    assert v2v_mm < 5.0, v2v_mm
+    err = v2v_mm(model, scan, fit)
+    assert err < 5.0, err
     height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]
     assert abs(height - scan.measurements["height_cm"]) < 1.0, height - scan.measurements["height_cm"]
 

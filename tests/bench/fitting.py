@@ -156,6 +156,15 @@ def _apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
     return P @ T[:3, :3].T + T[:3, 3]
 
 
+def v2v_mm(model, scan, fit) -> float:
+    """Mean distance (mm) between the fitted and the true posed body, vertex to vertex, in the
+    truth's model frame (through the scan: ``scan.to_model @ inv(fit.to_model)``)."""
+    nb = model.n_body_vertices
+    C = scan.to_model @ np.linalg.inv(np.asarray(fit.to_model, np.float64))
+    return 1000 * float(np.linalg.norm(_apply(C, np.asarray(fit.posed_vertices[:nb], np.float64))
+                                       - scan.true_posed[:nb], axis=1).mean())
+
+
 def evaluate(model, scan, fit, surface: BodySurface) -> dict:
     """Errors of a fit against the scan's truth (see the module docstring)."""
     nb = model.n_body_vertices
