@@ -23,11 +23,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.model import garment as G
+from service.model.body import BONES
 from service.model.catalogue import Material, RenderLayout, Texture
 from service.model.geometry import face_incidence, mesh_edges, row_dot, vertex_normals
 from service.model.gltf import MeshTemplate, vertex_tangents
 from service.model.poses import preset_transforms
-from service.model.skin_weights import transfer_skin_weights
+from service.model.skin_weights import leg_frame, transfer_skin_weights
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
@@ -45,6 +46,9 @@ TEXTURE_EXT = {"image/png": ".png", "image/jpeg": ".jpg"}
 # and the arms show through them (pinstripe blouse: 0.8 % -> 2.5 % of its vertices > 3 mm inside
 # the posed body, median over 6 people x 3 poses; seen in the page's screenshots)
 SKIN_RELEASE_IN_POSES = False
+# step 4 of skin_weights (the legs' share ramped left/right below the crotch, skirts only): the
+# pencil skirt's front opened over the forward thigh in the page's walking step without it
+SKIN_LEG_RAMP = True
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
     n = min(n or EXAMPLES["n"], model.n_components)
@@ -236,7 +240,9 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
                                              model.lbs_weights[:nb], len(model.bone_parents),
                                              test_transforms=preset_transforms(model, model.mean)
                                              if SKIN_RELEASE_IN_POSES else None,
-                                             rest_lengths=shortest)
+                                             rest_lengths=shortest,
+                                             legs=leg_frame(body0, model.joints(model.mean), list(BONES))
+                                             if SKIN_LEG_RAMP else None)
     meta = dict(meta or {})
     meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
                  "examples_c": examples.c})

@@ -537,6 +537,39 @@ FIVE_BODIES = {
     "150/45 man": {"gender": "male", "height_cm": 150, "weight_kg": 45},
 }
 STRETCH_PERCENTILE = 99.9
+INSIDE_DEPTH = 0.003  # metres: a garment vertex deeper than this inside the posed body counts
+SHOW_THROUGH_DEPTH = 0.0  # metres: the body shows through where the garment is this far inside it
+COVER_DISTANCE = 0.05  # metres: a body vertex is covered when the garment is this close over it
+SHOW_THROUGH_CATEGORIES = ("bottom", "demo", "suit")
+
+
+def covered_points(body: np.ndarray, body_faces: np.ndarray, garment: np.ndarray, faces: np.ndarray) -> tuple:
+    """The rest body's (V, 3) vertices covered by the garment (M, 3): its closest point within
+    ``COVER_DISTANCE`` and over the vertex (offset within 45 degrees of the body normal). Returns
+    (body vertex ids (K,), garment face (K,), barycentric (K, 3)): fixed garment points to follow
+    through a pose."""
+    from service.model.geometry import closest_points_on_mesh, vertex_normals
+
+    n = vertex_normals(body, body_faces).astype(np.float64)
+    face, q, bary = closest_points_on_mesh(body, np.asarray(garment, np.float64), np.asarray(faces))
+    d = q - body
+    dist = np.linalg.norm(d, axis=1)
+    ok = (dist < COVER_DISTANCE) & (np.einsum("ij,ij->i", d, n) > np.cos(np.pi / 4) * dist)
+    return np.flatnonzero(ok), face[ok], bary[ok]
+
+
+def show_through(covered: tuple, garment: np.ndarray, faces: np.ndarray, body: np.ndarray,
+                 normals: np.ndarray) -> float:
+    """Share of the covered body vertices (:func:`covered_points`) whose garment point, posed with
+    the garment (M, 3) and body (V, 3) / normals, lies more than ``SHOW_THROUGH_DEPTH`` inside the
+    body along its normal: the skin showing through (a skirt's front opened by the forward
+    thigh in a walking step)."""
+    ids, face, bary = covered
+    if not len(ids):
+        return 0.0
+    q = np.einsum("kc,kcj->kj", bary, np.asarray(garment, np.float64)[np.asarray(faces)[face]])
+    along = np.einsum("ij,ij->i", q - body[ids], normals[ids])
+    return float((along < -SHOW_THROUGH_DEPTH).mean())
 
 
 def catalogue_bases(model, ex, EX) -> dict:
@@ -556,13 +589,17 @@ def catalogue_bases(model, ex, EX) -> dict:
     return out
 
 
-def bench_pose_stretch(model, bases: dict) -> dict:
+def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dict:
     """99.9th-percentile edge stretch (posed / rest length) of every garment in the page's four
     poses (adapted to each body) on the five bodies: nearest-vertex skin weights (before) vs the
     inpainted transfer (after); beside it the avatar's own skin, the garment's stretch relative
     to the body's under it (each edge's ratio over the largest edge ratio of the body triangles
     closest to its two ends), and how well the garment follows the body: the p95 change of each
-    garment vertex's distance to the body surface, posed vs rest (mm)."""
+    garment vertex's distance to the body surface, posed vs rest (mm). Also, per garment, the
+    share of its vertices more than ``INSIDE_DEPTH`` inside the posed body (all bodies and poses
+    pooled) and, for bottoms, the body showing through it in the walking step
+    (:func:`show_through`), worst body. ``reference``: bases of the same garments built another
+    way (e.g. the previous skin weights), measured alongside ("ref_*" keys)."""
     from service.model import lbs as L
     from service.model import poses as P
     from service.model.geometry import closest_points_on_mesh, mesh_edges
@@ -570,7 +607,10 @@ def bench_pose_stretch(model, bases: dict) -> dict:
     nb = model.n_body_vertices
     Fb = model.body_faces
     per = {k: {"before": 1.0, "after": 1.0, "after_relative": 1.0, "gap_change_mm_before": 0.0,
-               "gap_change_mm_after": 0.0, "worst": ""} for k in bases}
+               "gap_change_mm_after": 0.0, "worst": "", "inside": 0, "n": 0, "show_through_pct": 0.0,
+               "show_through_160_55_pct": 0.0, "ref_after": 1.0, "ref_inside": 0, "ref_show_through_pct": 0.0,
+               "ref_show_through_160_55_pct": 0.0} for k in bases}
+    vf = vertex_faces(Fb, nb)
     avatar = 1.0
     t_adapt = []
     for bname, meas in FIVE_BODIES.items():
@@ -582,9 +622,32 @@ def bench_pose_stretch(model, bases: dict) -> dict:
         t_adapt.append(time.perf_counter() - t0)
         fits = {k: T.try_on(b, body)[0].astype(np.float64) for k, (b, _, _) in bases.items()}
         under = {k: closest_points_on_mesh(v, rest, Fb) for k, v in fits.items()}
+        covered = {k: covered_points(rest, Fb, fits[k], b.faces) for k, (b, c, _) in bases.items()
+                   if c in SHOW_THROUGH_CATEGORIES}
         for pname, pose in poses.items():
             posed = model.forward(pose=pose, vertices=body.vertices)
             pb = posed.vertices[:nb]
+            tree = cKDTree(pb)
+            pn = None
+            for k, (b, _, _) in bases.items():
+                for pre, bb in (("", b), ("ref_", (reference or {}).get(k, (None,))[0])):
+                    if bb is None:
+                        continue
+                    pv = L.skin(fits[k], posed.transforms, bb.skin_idx, bb.skin_w)
+                    per[k][pre + "inside"] += int((penetration_depths(pv, pb, Fb, tree, vf) > INSIDE_DEPTH).sum())
+                    if pre == "":
+                        per[k]["n"] += len(pv)
+                    if pre == "ref_":
+                        per[k]["ref_after"] = max(per[k]["ref_after"], float(np.percentile(
+                            P.edge_stretch(fits[k], pv, b.faces), STRETCH_PERCENTILE)))
+                    if pname == "walking" and k in covered:
+                        if pn is None:
+                            from service.model.geometry import vertex_normals
+                            pn = vertex_normals(pb, Fb).astype(np.float64)
+                        st = 100 * show_through(covered[k], pv, bb.faces, pb, pn)
+                        per[k][pre + "show_through_pct"] = max(per[k][pre + "show_through_pct"], st)
+                        if bname == "160/55 woman":
+                            per[k][pre + "show_through_160_55_pct"] = st
             avatar = max(avatar, float(np.percentile(P.edge_stretch(rest, pb, Fb), STRETCH_PERCENTILE)))
             face_stretch = np.max([np.linalg.norm(pb[Fb[:, a]] - pb[Fb[:, c]], axis=1) /
                                    np.linalg.norm(rest[Fb[:, a]] - rest[Fb[:, c]], axis=1)
@@ -619,7 +682,9 @@ def bench_pose_stretch(model, bases: dict) -> dict:
             "median_after": float(np.median([v["after"] for v in garments.values()])),
             "median_after_relative": float(np.median([v["after_relative"] for v in garments.values()])),
             "median_gap_change_mm_before": float(np.median([v["gap_change_mm_before"] for v in garments.values()])),
-            "median_gap_change_mm_after": float(np.median([v["gap_change_mm_after"] for v in garments.values()]))}
+            "median_gap_change_mm_after": float(np.median([v["gap_change_mm_after"] for v in garments.values()])),
+            "reference": reference is not None,
+            "show_through": [k for k, (_, c, _) in bases.items() if c in SHOW_THROUGH_CATEGORIES]}
 
 
 LAYER_PAIRS = [(b, t) for t in ("womens-tshirt", "pinstripe-blouse", "cropped-tee")
@@ -699,15 +764,24 @@ def bench_clothes_motion(limit: int) -> dict:
             "layering": bench_layering(model, bases, people=limit or 10)}
 
 
-def pose_stretch_catalogue() -> dict:
+def pose_stretch_catalogue(before: str | None = None) -> dict:
     """Only the pose-stretch rows of :func:`bench_clothes_motion` (the catalogue's bases built
-    as at service start)."""
+    as at service start). ``before="leg_ramp"``: also the bases without ``T.SKIN_LEG_RAMP``,
+    measured alongside."""
     model = load_body_model()
     ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    reference = None
+    if before == "leg_ramp":
+        T.SKIN_LEG_RAMP, keep = False, T.SKIN_LEG_RAMP
+        try:
+            reference = catalogue_bases(model, ex, EX)
+        finally:
+            T.SKIN_LEG_RAMP = keep
     t0 = time.perf_counter()
-    bases = catalogue_bases(model, ex, T.example_vertices(model, ex))
+    bases = catalogue_bases(model, ex, EX)
     t_build = time.perf_counter() - t0
-    r = bench_pose_stretch(model, bases)
+    r = bench_pose_stretch(model, bases, reference)
     r["build_bases_s"] = t_build
     return r
 
@@ -724,6 +798,21 @@ def format_pose_stretch(s: dict) -> str:
     L.append(f"  worst {s['worst_before']:.2f} -> {s['worst_after']:.2f}; median garment (no shoes) after "
              f"{s['median_after']:.2f}, relative to the body under it {s['median_after_relative']:.2f}; gap change "
              f"median {s['median_gap_change_mm_before']:.1f} -> {s['median_gap_change_mm_after']:.1f} mm")
+    L.append(f"  garment vertices > {1000 * INSIDE_DEPTH:.0f} mm inside the posed body (5 bodies x 4 poses pooled), "
+             f"and the body showing through bottoms in the walking step (covered body vertices > "
+             f"{1000 * SHOW_THROUGH_DEPTH:.0f} mm outside the garment; worst body | 160/55 woman)"
+             + ("; reference -> this" if s.get("reference") else ""))
+    for k, v in s["per_garment"].items():
+        n = max(v["n"], 1)
+        row = f"    {k:<22}inside {100 * v['inside'] / n:6.2f} %"
+        if s.get("reference"):
+            row = (f"    {k:<22}p99.9 {v['ref_after']:5.2f} -> {v['after']:5.2f}   inside "
+                   f"{100 * v['ref_inside'] / n:6.2f} -> {100 * v['inside'] / n:6.2f} %")
+        if k in s.get("show_through", ()):
+            row += (f"   show-through {v['ref_show_through_pct']:5.1f} | {v['ref_show_through_160_55_pct']:5.1f} -> "
+                    if s.get("reference") else "   show-through ") + \
+                f"{v['show_through_pct']:5.1f} | {v['show_through_160_55_pct']:5.1f} %"
+        L.append(row)
     if "build_bases_s" in s:
         L.append(f"  building the {len(s['per_garment'])} bases (fits + skin weights): {s['build_bases_s']:.1f} s")
     return "\n".join(L)
