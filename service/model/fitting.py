@@ -112,6 +112,14 @@ class FitParams:
     inside_weight: float = 0.1
     # clothing in Alg. 1: correspondences more than this inside the scan are dropped there
     alg1_inside_tol: float = 0.003
+    # clothing in the refinement (issue 12, loose clothes): a body point this far (metres) inside
+    # the clothes may still touch them -- cloth thickness (~1-2 mm) plus the scanner's noise
+    # (~2 mm) -- so it keeps nearly the full weight; deeper inside, the clothes stand off the
+    # body (free space under a jacket or skirt) and the pair says only "the body is inside":
+    # its weight falls as 1 / (1 + (depth / contact)^2) (Cauchy, redescending), so a loose
+    # jacket 3 cm out pulls ~100x less than a tight shirt instead of inside_weight's constant
+    # 10 %, which inflated the body under suits. None: the constant inside_weight
+    clothing_contact: float | None = 0.004
     # Gaussian shape prior sum_k beta_k^2 / var_k, weighted against the data terms (sums of
     # squared metres over template vertices): s^2 makes it the posterior under per-coordinate
     # noise s
@@ -500,22 +508,28 @@ def _posed_normals(rest_normals: np.ndarray, p: _Posed) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
-def _clothing_weight(signed: np.ndarray, clothed: bool, params: FitParams) -> np.ndarray:
-    """Weight of a correspondence by the side of the scan the body is on: ``signed`` > 0 is a
-    body point outside the scan (through the clothes: full weight), < 0 inside."""
+def _clothing_weight(signed: np.ndarray, clothed: bool, params: FitParams,
+                     contact: float | None = None) -> np.ndarray:
+    """Weight (n,) of correspondences by the side of the scan the body is on: ``signed`` (n,)
+    metres > 0 is a body point outside the scan (through the clothes: full weight), < 0 inside:
+    ``inside_weight``, or with ``contact`` (metres) the asymmetric Cauchy weight
+    1 / (1 + (depth / contact)^2) (see ``FitParams.clothing_contact``)."""
     if not clothed:
         return np.ones_like(signed)
-    return np.where(signed >= 0, 1.0, params.inside_weight)
+    if contact is None:
+        return np.where(signed >= 0, 1.0, params.inside_weight)
+    return np.where(signed >= 0, 1.0, 1.0 / (1.0 + (signed / contact) ** 2))
 
 
 def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.ndarray,
             schedule: list[tuple[np.ndarray, int]], clothed: bool, params: FitParams,
-            omega: float | None = None) -> tuple[_State, float]:
+            omega: float | None = None, contact: float | None = None) -> tuple[_State, float]:
     """Parametric ICP on subsamples: per iteration, correspondences both ways (template
     subsample -> nearest scan point, scan subsample -> nearest template vertex) rejected by
     normals and distance, point-to-plane residuals weighted for clothing, then one damped
     Gauss-Newton step on (translation, the scheduled bones, the first shape components).
-    ``schedule``: [(bones, n_shape_components)] per iteration. Returns the state and the
+    ``schedule``: [(bones, n_shape_components)] per iteration; ``contact``: the clothing
+    weight's contact depth (``_clothing_weight``; None: constant ``inside_weight``). Returns the state and the
     final trimmed mean distance (metres) both ways."""
     cos_rej = np.cos(np.radians(params.coarse_normal_reject_deg))
     Ps = scan.points[scan.sub]
@@ -542,7 +556,7 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         nn = np.r_[a_n, b_n]
         cc = np.r_[a_c, b_c]
         r = np.einsum("ij,ij->i", nn, p.v[vi] - cc)
-        w = _clothing_weight(r, clothed, params) * np.r_[np.full(len(a_i), m / len(a_i)),
+        w = _clothing_weight(r, clothed, params, contact) * np.r_[np.full(len(a_i), m / len(a_i)),
                                                           np.full(len(b_i), m / len(b_i))]
         w = w / np.maximum(1.0, np.abs(r) / params.robust_scale)  # Huber-like: far pairs count less
         Jp = _pose_jacobian(rig, p, bones)
@@ -726,7 +740,8 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
         rn = vertex_normals(rig.mean, rig.faces, rig.incidence)[ridx]
         s, _ = _coarse(rig, scan, s, _subset(rig, ridx), rn,
                        [(ALL_BONES, len(rig.U))] * params.refine_iterations, clothed,
-                       replace(params, levenberg=params.refine_levenberg), omega=params.bone_smoothness)
+                       replace(params, levenberg=params.refine_levenberg), omega=params.bone_smoothness,
+                       contact=params.clothing_contact)
         tree = scan.tree
     else:
         tree = cKDTree(P)

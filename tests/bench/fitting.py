@@ -75,7 +75,8 @@ class Condition:
     catalogue items; None: a random MakeHuman suit, maybe shoes or a hat), ``degrade``
     (``synthetic_scans.DEGRADATIONS`` applied in order), ``before`` (the same scan fitted again,
     same run, with ``BEFORE_PARAMS(before)``: ``"refine_damping"``, ``"pose_prior"``,
-    ``"scan_cleanup"`` without the scan cleaning of issue 12 (``FitParams(scan_cleanup=False)``), None: not)."""
+    ``"scan_cleanup"`` without the scan cleaning of issue 12 (``FitParams(scan_cleanup=False)``),
+    ``"clothing_contact"`` (``FitParams(clothing_contact=None)``), None: not)."""
 
     name: str
     clothed: bool
@@ -113,13 +114,17 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     """The fit before one of issue 12's changes: ``refine_damping`` (the shape/posture
     decoupling: the refinement's Levenberg damping as the coarse stage's, 1e-3, which crawls
     along the shape-posture valley), ``pose_prior`` (no joint limits, bone smoothness 0.1) or
-    ``scan_cleanup`` (no floor or stray-cluster removal, holes not rejected in the data term)."""
+    ``scan_cleanup`` (no floor or stray-cluster removal, holes not rejected in the data term) or
+    ``clothing_contact`` (the refinement's clothing weight a constant ``inside_weight`` for body
+    points inside the clothes, not the depth-dependent contact weight)."""
     from service.model.fitting import FitParams
 
     if kind == "scan_cleanup":
         return FitParams(scan_cleanup=False)
     if kind == "refine_damping":
         return FitParams(refine_levenberg=FitParams().levenberg)
+    if kind == "clothing_contact":
+        return FitParams(clothing_contact=None)
     if kind == "pose_prior":
         return FitParams(joint_limit_weight=0.0, bone_smoothness=0.1, coarse_bone_smoothness=0.1)
     raise ValueError(f"unknown 'before' kind {kind!r}")
@@ -205,7 +210,8 @@ def _stats(values: list[float]) -> dict:
 # -- 1. accuracy ------------------------------------------------------------------------------
 def select_conditions(names: str | None, before: str | None = None) -> tuple[Condition, ...]:
     """The conditions named in a comma-separated list (None or '': all); ``before`` overrides
-    every condition's "before" refit ('refine_damping', 'pose_prior', 'scan_cleanup', 'none')."""
+    every condition's "before" refit ('refine_damping', 'pose_prior', 'scan_cleanup',
+    'clothing_contact', 'none')."""
     from dataclasses import replace
 
     wanted = [n.strip() for n in (names or "").split(",") if n.strip()] or [c.name for c in CONDITIONS]
