@@ -273,6 +273,49 @@ def test_pencil_skirt_stays_closed_in_the_walking_step(model, pencil_skirt) -> N
     assert stretch.max() < 1.6
 
 
+def test_stale_skin_weights_are_recomputed(model, pencil_skirt) -> None:
+    """A basis stored by an older service (skinning version 1: no leg ramp) gets the current
+    weights (``refresh_skinning``, from the basis's own example fits) and a new ETag; a current
+    one is left alone."""
+    old, new = pencil_skirt
+    assert new.meta["skinning"] == T.SKINNING_VERSION and T.refresh_skinning(model, new) is None
+    stale = T.GarmentBasis(g=old.g, B=old.B, faces=old.faces, binding=old.binding, skin_idx=old.skin_idx,
+                           skin_w=old.skin_w, gn=old.gn, Bn=old.Bn, meta={**old.meta, "skinning": 1})
+    fresh = T.refresh_skinning(model, stale)
+    assert fresh is not None and fresh.meta["skinning"] == T.SKINNING_VERSION and fresh.etag() != old.etag()
+
+    def dense(b):
+        W = np.zeros((b.n_vertices, len(model.bone_parents)))
+        np.add.at(W, (np.arange(b.n_vertices)[:, None], np.asarray(b.skin_idx)), np.asarray(b.skin_w))
+        return W
+
+    assert np.abs(dense(fresh) - dense(new)).max() < 0.02  # as if built today
+    assert np.abs(dense(stale) - dense(new)).max() > 0.2  # (the stale weights were not)
+
+
+def test_stale_garment_served_with_current_weights(client: TestClient, model, pencil_skirt) -> None:
+    """Through the API: a stored garment whose basis has version-1 weights is refreshed when it
+    is first tried on (files and record ETag rewritten once), and its try-on carries the new weights."""
+    from service.model.gltf import read_glb
+
+    ctx = client.app.state.context
+    old, new = pencil_skirt
+    rec = next(g for g in ctx.garments.repo.list() if g.catalogue_id == "pencil-skirt")
+    stale = T.GarmentBasis(g=old.g, B=old.B, faces=old.faces, binding=old.binding, skin_idx=old.skin_idx,
+                           skin_w=old.skin_w, gn=old.gn, Bn=old.Bn, meta={**old.meta, "skinning": 1, "etag": "stale"})
+    stale.render_vertex, stale.render_uv, stale.render_faces = new.render_vertex, new.render_uv, new.render_faces
+    ctx.garments.bases.save(rec.id, stale)
+    ctx.garments.repo.put(rec.model_copy(update={"etag": "stale"}))
+    c = client.post("/v1/customers", json={"measurements": {"gender": "female"}}).json()
+    r = client.get(f"/v1/customers/{c['id']}/garments/{rec.id}.glb", headers={"Authorization": f"Bearer {c['token']}"})
+    assert r.status_code == 200, r.text
+    after = ctx.garments.repo.get(rec.id)
+    assert after.etag not in ("stale", "") and T.GarmentBasis.load(ctx.garments.bases.path(rec.id)).meta["skinning"] == 2
+    served = read_glb(r.content)
+    assert served["json"]["skins"]  # skinned, with the refreshed weights (checked on the stored basis above)
+    assert ctx.garments.require_ready(after, rec.id)[0].etag == after.etag  # no second refresh
+
+
 # -- poses -------------------------------------------------------------------------------------------
 def test_presets_point_segments_at_targets(model) -> None:
     spec = P.presets()

@@ -15,7 +15,7 @@ from service.model.catalogue import CatalogueItem, Material, RenderLayout, Textu
 from service.model.fitting import FitError, fit_body
 from service.model.mesh_io import scan_type
 from service.model.frames import unit_against
-from service.model.tryon import GarmentBasis, build_garment_basis
+from service.model.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
 from service.storage.records import new_id
 
@@ -100,7 +100,22 @@ class GarmentService:
         basis = self.bases.load(gid, record.etag)
         if basis is None:
             raise NotFound(f"garment '{gid}' not found (its basis files are missing)")
-        return record, basis
+        return self._current_skinning(record, basis)
+
+    def _current_skinning(self, record: Garment, basis: GarmentBasis) -> tuple[Garment, GarmentBasis]:
+        """A basis whose skin weights an older version of the service made gets them recomputed
+        (``tryon.refresh_skinning``, once: written atomically beside the record, whose ETag
+        changes with it; concurrent refreshes write the same files)."""
+        fresh = refresh_skinning(self.model, basis)
+        if fresh is None:
+            return record, basis
+        updated = record.model_copy(update={"etag": fresh.etag()})
+        self.bases.save(record.id, fresh)
+        if not self.repo.replace_if_exists(updated):  # deleted meanwhile
+            self.bases.delete(record.id)
+            raise NotFound(f"garment '{record.id}' not found")
+        log.info("garment %s: skin weights recomputed (skinning version %s)", record.id, fresh.meta["skinning"])
+        return updated, fresh
 
     def basis_glb(self, gid: str, compression: str | None,
                   if_none_match: list[str] | None = None) -> tuple[bytes | None, str]:
@@ -420,7 +435,10 @@ class GarmentService:
             for item in self.demo_items():
                 gid = self.repo.demo_id(item.id)
                 old = self.repo.get(gid) if gid else None
-                if old is not None and old.is_current(self.model.version) and self.bases.load(old.id, old.etag):
+                basis = self.bases.load(old.id, old.etag) if old is not None and old.is_current(self.model.version) else None
+                if basis is not None:
+                    if held:
+                        self._current_skinning(old, basis)
                     ids.append(old.id)
                     continue
                 if not held:

@@ -49,6 +49,10 @@ SKIN_RELEASE_IN_POSES = False
 # step 4 of skin_weights (the legs' share ramped left/right below the crotch, skirts only): the
 # pencil skirt's front opened over the forward thigh in the page's walking step without it
 SKIN_LEG_RAMP = True
+# the version of the skin weights a basis carries (meta "skinning"; absent: 1): bases built by an
+# older version get their weights recomputed (:func:`refresh_skinning`) when next served.
+# 2: step 4, the legs' ramp
+SKINNING_VERSION = 2
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
     n = min(n or EXAMPLES["n"], model.n_components)
@@ -230,39 +234,73 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
     inc = face_incidence(np.asarray(faces), fits.shape[1])
     gn, Bn = G.build_basis(np.stack([vertex_normals(f, faces, inc) for f in fits]), examples)
     nb = model.n_body_vertices
-    body0 = model.mean[:nb]
-    binding = G.bind_to_body(g, body0)
-    # skin weights: tested in the page's poses on the mean body, each edge at its shortest over
-    # the example fits (a heavy body squeezes the armpit and crotch)
-    e = mesh_edges(faces)
-    shortest = np.linalg.norm(fits[:, e[:, 0]] - fits[:, e[:, 1]], axis=2).min(axis=0)
-    skin_idx, skin_w = transfer_skin_weights(g, faces, body0, model.body_faces, model.lbs_indices[:nb],
-                                             model.lbs_weights[:nb], len(model.bone_parents),
-                                             test_transforms=preset_transforms(model, model.mean)
-                                             if SKIN_RELEASE_IN_POSES else None,
-                                             rest_lengths=shortest,
-                                             legs=leg_frame(body0, model.joints(model.mean), list(BONES))
-                                             if SKIN_LEG_RAMP else None)
+    binding = G.bind_to_body(g, model.mean[:nb])
+    skin_idx, skin_w = garment_skin_weights(model, g, faces, fits)
     meta = dict(meta or {})
     meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
-                 "examples_c": examples.c})
+                 "examples_c": examples.c, "skinning": SKINNING_VERSION})
     look: dict = {}
     if layout is not None:
         look = {"render_vertex": np.asarray(layout.vertex, np.int32), "render_uv": np.asarray(layout.uv, np.float32),
                 "render_faces": np.asarray(layout.faces, np.int32)}
         if look["render_vertex"].min() < 0 or look["render_vertex"].max() >= g.shape[0]:
             raise ValueError("the render layout refers to a vertex out of range")
-    h = hashlib.sha256()
-    for a in (g, B, np.asarray(faces, np.int32), skin_idx, skin_w, *look.values()):
-        h.update(np.ascontiguousarray(a).tobytes())
-    h.update(material_digest(material))
-    meta["etag"] = h.hexdigest()[:32]
     basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
                          skin_idx=skin_idx, skin_w=skin_w,
                          gn=gn, Bn=Bn, meta=meta)
     basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
     basis.material = material
+    meta["etag"] = basis_digest(basis)
     return basis
+
+
+def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skin weights (M, 4) int + (M, 4) float of a garment g (M, 3) on the mean avatar
+    (``skin_weights.transfer_skin_weights``), tested in the page's poses on the mean body
+    with each edge at its shortest over the example fits (1 + 2N, M, 3) (a heavy body squeezes
+    the armpit and crotch)."""
+    nb = model.n_body_vertices
+    body0 = model.mean[:nb]
+    e = mesh_edges(faces)
+    shortest = np.linalg.norm(fits[:, e[:, 0]] - fits[:, e[:, 1]], axis=2).min(axis=0)
+    return transfer_skin_weights(g, faces, body0, model.body_faces, model.lbs_indices[:nb],
+                                 model.lbs_weights[:nb], len(model.bone_parents),
+                                 test_transforms=preset_transforms(model, model.mean)
+                                 if SKIN_RELEASE_IN_POSES else None,
+                                 rest_lengths=shortest,
+                                 legs=leg_frame(body0, model.joints(model.mean), list(BONES))
+                                 if SKIN_LEG_RAMP else None)
+
+
+def basis_digest(basis: GarmentBasis) -> str:
+    """The content digest of a basis (its ETag): geometry, skinning, render layout, material."""
+    h = hashlib.sha256()
+    for a in (basis.g, basis.B, basis.faces, basis.skin_idx, basis.skin_w,
+              *(x for x in (basis.render_vertex, basis.render_uv, basis.render_faces) if x is not None)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(material_digest(basis.material))
+    return h.hexdigest()[:32]
+
+
+def refresh_skinning(model, basis: GarmentBasis) -> GarmentBasis | None:
+    """A basis whose skin weights an older ``SKINNING_VERSION`` made, with weights made by this
+    one (and a new ETag); None when they are current. The example fits are the basis's own
+    central differences undone: g +- c sigma_i B_i (exact for the mean, the shortest-edge test
+    needs no more)."""
+    if int(basis.meta.get("skinning", 1)) >= SKINNING_VERSION:
+        return None
+    g, B = np.asarray(basis.g, np.float64), np.asarray(basis.B, np.float64)
+    step = (float(basis.meta.get("examples_c", EXAMPLES["c"])) * np.sqrt(model.variances[: len(B)]))[:, None, None]
+    fits = np.concatenate([g[None], np.stack([g + step * B, g - step * B], 1).reshape(-1, *g.shape)])
+    skin_idx, skin_w = garment_skin_weights(model, g, np.asarray(basis.faces), fits)
+    meta = {**basis.meta, "skinning": SKINNING_VERSION}
+    out = GarmentBasis(g=np.asarray(basis.g), B=np.asarray(basis.B), faces=np.asarray(basis.faces),
+                       binding=np.asarray(basis.binding), skin_idx=skin_idx, skin_w=skin_w,
+                       gn=np.asarray(basis.gn), Bn=np.asarray(basis.Bn), meta=meta)
+    out.render_vertex, out.render_uv, out.render_faces = basis.render_vertex, basis.render_uv, basis.render_faces
+    out.material = basis.material
+    meta["etag"] = basis_digest(out)
+    return out
 
 
 @dataclass
