@@ -182,12 +182,19 @@ def face_distance_bounds(p: np.ndarray, c: np.ndarray, n: np.ndarray, r: np.ndar
 
 def _closest_pruned(p, V, F, cand, valid, d1, nn, vert_faces, bounds):
     """:func:`closest_points_on_mesh` after the candidates (P, C) are known: only the candidates
-    whose lower bound is within the nearest faced vertex's distance are evaluated, flattened
+    whose lower bound is within an upper bound of the answer (the nearest faced vertex's distance,
+    or the distance to the face of the smallest lower bound if nearer) are evaluated, flattened
     (row-major: each row's first-appearance order kept), and each row takes its first minimum."""
     P = len(p)
     ub = np.where(vert_faces[nn, 0] >= 0, d1, np.inf).min(axis=1)  # a vertex's faces are no farther
     c, n, r = bounds
-    keep = valid & (face_distance_bounds(p[:, None, :], c[cand], n[cand], r[cand]) <= (ub * ub)[:, None] * (1 + PRUNE_SLACK) + PRUNE_SLACK_SQ)
+    lb = np.where(valid, face_distance_bounds(p[:, None, :], c[cand], n[cand], r[cand]), np.inf)
+    # a tighter upper bound: the distance to each row's face of the smallest lower bound
+    best = cand[np.arange(P), np.argmin(lb, axis=1)]
+    tb = V[F[best]]
+    qb = closest_point_on_triangles(p, tb[:, 0], tb[:, 1], tb[:, 2])
+    ub2 = np.where(valid.any(axis=1), np.minimum(ub * ub, np.einsum("ni,ni->n", qb - p, qb - p)), ub * ub)
+    keep = lb <= ub2[:, None] * (1 + PRUNE_SLACK) + PRUNE_SLACK_SQ
     keep[:, 0] |= ~keep.any(axis=1)  # a row with no face at all keeps its padding (face 0, never valid)
     rows, cols = np.nonzero(keep)
     fc = cand[rows, cols]
