@@ -50,15 +50,16 @@ def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-TOPOLOGY_CACHE_SIZE = 64  # garment and base-layer topologies kept per process (Laplacian, boundary)
+TOPOLOGY_CACHE_SIZE = 64  # garment and base-layer topologies kept per process (Laplacian, rims, vertex faces)
 _topologies: OrderedDict[tuple, tuple[sp.csr_matrix, np.ndarray, np.ndarray]] = OrderedDict()
 _topologies_lock = threading.Lock()
 
 
 def topology(faces: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """A mesh's (n vertices, faces (F, 3)) uniform Laplacian (n, n), :func:`boundary_vertices`
-    (n,) bool and ``geometry.vertex_faces`` (n, valence), once per process per topology (keyed by the faces' bytes: a garment basis' faces,
-    or the look's base layer, are the same for every customer). Read-only."""
+    (n,) bool and ``geometry.vertex_faces`` (n, valence), once per process per topology (keyed
+    by the faces' bytes: a garment basis' faces, or the look's base layer, are the same for every
+    customer). Read-only."""
     f = np.ascontiguousarray(faces)
     key = (n, f.shape, f.dtype.str, hashlib.sha1(f.tobytes()).hexdigest())
     with _topologies_lock:
@@ -170,8 +171,8 @@ def prepare_outer(outer: np.ndarray, outer_faces: np.ndarray, body: np.ndarray, 
                   outer_vertex_faces: np.ndarray | None = None) -> tuple:
     """What pushing any inner garment inside an outer garment (M, 3) needs of the outer one on
     this body: (outward normals (M, 3), boundary (M,) bool, (k-d tree, vertex faces, face
-    bounds), rim band or None); ``outer_boundary``, ``outer_vertex_faces``: when known. In an outfit, made once per outer garment's final shape and shared by every
-    garment under it."""
+    bounds), rim band or None); ``outer_boundary``, ``outer_vertex_faces``: when known. In an
+    outfit, made once per outer garment's final shape and shared by every garment under it."""
     O = np.asarray(outer, np.float64)
     on = outward_normals(O, outer_faces, body, body_normals, body_tree)
     ob = outer_boundary if outer_boundary is not None else boundary_vertices(outer_faces, len(O))
