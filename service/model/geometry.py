@@ -143,11 +143,11 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     tree = tree if tree is not None else cKDTree(V)
     vert_faces = vert_faces if vert_faces is not None else vertex_faces(F, len(V))
     d1, nn = tree.query(p, k=k)
-    cand, valid = _unique_rows(vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1))
+    raw = vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1)
     if PRUNE_CANDIDATES:
-        return _closest_pruned(p, V, F, cand, valid, np.asarray(d1).reshape(len(p), -1),
-                               np.asarray(nn).reshape(len(p), -1), vert_faces,
-                               bounds if bounds is not None else face_bounds(V, F))
+        return _closest_pruned(p, V, F, raw, np.asarray(d1).reshape(len(p), -1), np.asarray(nn).reshape(len(p), -1),
+                               vert_faces, bounds if bounds is not None else face_bounds(V, F))
+    cand, valid = _unique_rows(raw)
     tri = V[F[cand]]  # (P, C, 3, 3)
     q = closest_point_on_triangles(p[:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
     d = np.where(valid, np.einsum("pci,pci->pc", q - p[:, None], q - p[:, None]), np.inf)
@@ -180,12 +180,15 @@ def face_distance_bounds(p: np.ndarray, c: np.ndarray, n: np.ndarray, r: np.ndar
     return pd2 + np.maximum(inplane - r, 0.0) ** 2
 
 
-def _closest_pruned(p, V, F, cand, valid, d1, nn, vert_faces, bounds):
-    """:func:`closest_points_on_mesh` after the candidates (P, C) are known: only the candidates
-    whose lower bound is within an upper bound of the answer (the nearest faced vertex's distance,
-    or the distance to the face of the smallest lower bound if nearer) are evaluated, flattened
-    (row-major: each row's first-appearance order kept), and each row takes its first minimum."""
+def _closest_pruned(p, V, F, raw, d1, nn, vert_faces, bounds):
+    """:func:`closest_points_on_mesh` from the raw candidates (P, C) (-1 padded, with repeats):
+    each row's distinct faces (:func:`_sorted_unique_rows`), of which only those whose lower bound
+    is within an upper bound of the answer (the nearest faced vertex's distance, or the distance
+    to the face of the smallest lower bound if nearer) are evaluated, flattened; each row takes its
+    nearest face, ties going to the face that appears first in ``raw`` (as the reference's
+    first-appearance order does)."""
     P = len(p)
+    cand, valid = _sorted_unique_rows(raw)
     ub = np.where(vert_faces[nn, 0] >= 0, d1, np.inf).min(axis=1)  # a vertex's faces are no farther
     c, n, r = bounds
     lb = np.where(valid, face_distance_bounds(p[:, None, :], c[cand], n[cand], r[cand]), np.inf)
@@ -204,10 +207,28 @@ def _closest_pruned(p, V, F, cand, valid, d1, nn, vert_faces, bounds):
     d = np.where(valid[rows, cols], np.einsum("ni,ni->n", q - pr, q - pr), np.inf)
     starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     is_min = d == np.minimum.reduceat(d, starts)[np.repeat(np.arange(P), np.diff(np.r_[starts, len(rows)]))]
-    pos = np.flatnonzero(is_min)
-    j = pos[np.r_[True, rows[pos][1:] != rows[pos][:-1]]]  # each row's first minimum
+    m = np.flatnonzero(is_min)
+    first = np.argmax(raw[rows[m]] == fc[m, None], axis=1)  # where each tying face first appears
+    m = m[np.lexsort((first, rows[m]))]
+    j = m[np.r_[True, rows[m][1:] != rows[m][:-1]]]  # each row's nearest face, first appearing
     t = tri[j]
     return fc[j], q[j], barycentric(q[j], t[:, 0], t[:, 1], t[:, 2])
+
+
+def _sorted_unique_rows(cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate face ids (P, C) int, -1 padded, with repeats: each row's distinct ids in
+    ascending order, packed to the left, (P, C') with C' the most any row has, and valid (P, C')
+    bool; invalid slots hold 0. Two row sorts (no argsort): several times faster than
+    :func:`_unique_rows`, whose first-appearance order the caller restores where it matters."""
+    big = np.iinfo(np.int64).max
+    s = np.sort(np.where(cand >= 0, cand, big).astype(np.int64), axis=1)
+    rep = np.zeros_like(s, bool)
+    rep[:, 1:] = s[:, 1:] == s[:, :-1]
+    s = np.sort(np.where(rep, big, s), axis=1)
+    valid = s != big
+    s = s[:, :max(int(valid.sum(axis=1).max()), 1)]
+    valid = valid[:, :s.shape[1]]
+    return np.where(valid, s, 0), valid
 
 
 def _unique_rows(cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
