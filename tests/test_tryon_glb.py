@@ -98,3 +98,25 @@ def test_unskinned_avatar_mesh_without_template(model) -> None:
     assert "skins" not in read_glb(scenes.gltf.scene_to_glb([mesh]))["json"]
     with pytest.raises(ValueError, match="joints"):  # a skinned template needs the skin
         scenes.gltf.scene_to_glb([{**mesh, "template": scenes.avatar_mesh(model, model.mean)["template"]}])
+
+
+def test_layered_outfit_is_cached_with_the_same_bytes(model, garments, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The layering of an outfit under a look is kept per process (``scenes.layered_outfit``):
+    asked again, the same customer and outfit get the same bytes without layering again; another
+    customer is layered."""
+    from service.application import look as looks
+
+    calls = []
+    layer = scenes.layer_outfit
+    monkeypatch.setattr(scenes, "layer_outfit", lambda *a, **k: calls.append(1) or layer(*a, **k))
+    lk = looks.resolve("female")
+    body = T.customer_body(model, model.population["weights"][5])
+    ref = scenes.outfit_glb(model, body, garments, None, look=lk, cache=False)
+    assert scenes.outfit_glb(model, body, garments, None, look=lk) == ref
+    n = len(calls)
+    assert scenes.outfit_glb(model, body, garments, None, look=lk) == ref  # a hit: read-only arrays, same bytes
+    assert scenes.outfit_glb(model, body, garments, "meshopt", look=lk) is not None
+    assert len(calls) == n
+    other = T.customer_body(model, model.population["weights"][6])
+    scenes.outfit_glb(model, other, garments, None, look=lk)
+    assert len(calls) == n + 1

@@ -16,6 +16,7 @@ from service.model.geometry import vertex_normals
 from service.model.layering import layer_outfit
 from service.model.tryon import CustomerBody, GarmentBasis, try_on
 from service.records import Garment
+from service.storage.cache import VersionedLRU
 
 from . import look as looks
 from .look import Look
@@ -148,13 +149,43 @@ def _untextured(material: Any) -> bool:
     return material.base_color_texture is None and material.normal_texture is None
 
 
+LAYERED_CACHE_SIZE = 32  # layered outfits kept per process (~0.5 MB each for three layers)
+_layered = VersionedLRU(LAYERED_CACHE_SIZE)
+
+
+def layered_outfit(layers: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray, body_normals: np.ndarray,
+                   skins: list[tuple[np.ndarray, np.ndarray]], n_joints: int, cache: bool = True
+                   ) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
+    """``layering.layer_outfit`` of layers [(vertices (M_i, 3), faces)] with their skins on a body
+    (Vb, 3), cached per process by the digest of everything it reads (the same customer trying
+    the same outfit again, in another compression or after a page reload, is not layered again).
+    Returns new lists of (read-only) arrays."""
+    h = hashlib.sha1(np.asarray([n_joints, len(layers)], np.int64).tobytes())
+    for a in (body, body_normals, *[x for layer in layers for x in layer], *[x for sk in skins for x in sk]):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    key = h.hexdigest()
+    hit = _layered.get(key, None) if cache else None
+    if hit is None:
+        layered, new_skins = layer_outfit(layers, body, body_normals, skins=skins, n_joints=n_joints)
+        assert new_skins is not None
+        for a in (*layered, *[x for sk in new_skins for x in sk]):
+            a.setflags(write=False)
+        hit = (layered, new_skins)
+        _layered.put(key, None, hit)
+    return list(hit[0]), list(hit[1])
+
+
 def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
                compression: str | None, with_avatar: bool = True, look: Look | None = None,
-               template: bool = True) -> bytes:
+               template: bool = True, cache: bool = True) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
-    reference path, the same bytes)."""
+    reference path, the same bytes). ``cache``: the layering from the process cache when the
+    same layers were layered on the same body before (:func:`layered_outfit`; False: always
+    layered, for benchmarks)."""
     meshes = avatar_meshes(model, body.vertices, body.normals, look, template) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
@@ -168,9 +199,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
         # each inner layer skinned like the layer over it where covered, so it stays inside when posed
         layer_skins = ([(under["vertex_joints"], under["vertex_weights"])] if under is not None else []) \
             + [(basis.skin_idx, basis.skin_w) for _, basis in garments]
-        layered, new_skins = layer_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64),
-                                          skins=layer_skins, n_joints=len(BONES))
-        assert new_skins is not None
+        layered, new_skins = layered_outfit(layers, body.vertices[:nb], np.asarray(body.normals, np.float64),
+                                            layer_skins, len(BONES), cache)
         if under is not None:
             v = layered.pop(0).astype(np.float32)
             under["vertex_joints"], under["vertex_weights"] = new_skins.pop(0)

@@ -121,19 +121,33 @@ def barycentric(p, a, b, c):
     return np.stack([1.0 - v - w, v, w], axis=-1)
 
 
+PRUNE_CANDIDATES = True  # closest_points_on_mesh: skip candidate faces that cannot be the closest (same results)
+PRUNE_SLACK = 1e-9  # relative slack on the pruning bound (rounding of the bound itself)
+PRUNE_SLACK_SQ = 1e-18  # squared metres: absolute slack (a point on a vertex ties its faces at 0)
+
+
 def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, k: int = 8,
-                           tree: cKDTree | None = None, vert_faces: np.ndarray | None = None):
+                           tree: cKDTree | None = None, vert_faces: np.ndarray | None = None,
+                           bounds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
     """The closest point of a triangle mesh to each of ``points`` (P, 3): exact among the
-    triangles around the k nearest vertices (pass ``tree`` over ``vertices`` and
-    ``vertex_faces(faces, V)`` to reuse them). Returns (face ids (P,) int64, closest points
-    (P, 3) float64, barycentric weights (P, 3) float64 of the closest points in those faces)."""
+    triangles around the k nearest vertices (pass ``tree`` over ``vertices``,
+    ``vertex_faces(faces, V)`` and :func:`face_bounds` to reuse them). Returns (face ids (P,) int64, closest points
+    (P, 3) float64, barycentric weights (P, 3) float64 of the closest points in those faces).
+
+    With ``PRUNE_CANDIDATES``, a candidate face is evaluated only when a lower bound of its
+    distance (:func:`face_distance_bounds`) is within the distance to the nearest vertex that has
+    a face (an upper bound of the answer): the same faces win, ties included, at ~1/4 the work."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     p = np.asarray(points, np.float64).reshape(-1, 3)
     tree = tree if tree is not None else cKDTree(V)
     vert_faces = vert_faces if vert_faces is not None else vertex_faces(F, len(V))
-    _, nn = tree.query(p, k=k)
-    cand, valid = _unique_rows(vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1))
+    d1, nn = tree.query(p, k=k)
+    raw = vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1)
+    if PRUNE_CANDIDATES:
+        return _closest_pruned(p, V, F, raw, np.asarray(d1).reshape(len(p), -1), np.asarray(nn).reshape(len(p), -1),
+                               vert_faces, bounds if bounds is not None else face_bounds(V, F))
+    cand, valid = _unique_rows(raw)
     tri = V[F[cand]]  # (P, C, 3, 3)
     q = closest_point_on_triangles(p[:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
     d = np.where(valid, np.einsum("pci,pci->pc", q - p[:, None], q - p[:, None]), np.inf)
@@ -142,6 +156,79 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     face = cand[r, j]
     t = tri[r, j]
     return face, q[r, j], barycentric(q[r, j], t[:, 0], t[:, 1], t[:, 2])
+
+
+def face_bounds(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each triangle's bounding disk: centroids (F, 3), unit normals (F, 3) (0 when degenerate)
+    and radii (F,) (the largest vertex distance from the centroid)."""
+    tri = vertices[faces]  # (F, 3, 3)
+    c = tri.mean(axis=1)
+    r = np.sqrt(np.einsum("fki,fki->fk", tri - c[:, None], tri - c[:, None]).max(axis=1))
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    return c, n, r
+
+
+def face_distance_bounds(p: np.ndarray, c: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Squared lower bounds (...,) of the distances from points p (..., 3) to triangles with
+    bounding disks (:func:`face_bounds` gathered: centroids (..., 3), unit normals (..., 3),
+    radii (...,)): the distance to the triangle's plane combined with the in-plane distance to
+    its disk, both no larger than the true ones."""
+    u = p - c
+    pd2 = np.einsum("...i,...i->...", u, n) ** 2
+    inplane = np.sqrt(np.maximum(np.einsum("...i,...i->...", u, u) - pd2, 0.0))
+    return pd2 + np.maximum(inplane - r, 0.0) ** 2
+
+
+def _closest_pruned(p, V, F, raw, d1, nn, vert_faces, bounds):
+    """:func:`closest_points_on_mesh` from the raw candidates (P, C) (-1 padded, with repeats):
+    each row's distinct faces (:func:`_sorted_unique_rows`), of which only those whose lower bound
+    is within an upper bound of the answer (the nearest faced vertex's distance, or the distance
+    to the face of the smallest lower bound if nearer) are evaluated, flattened; each row takes its
+    nearest face, ties going to the face that appears first in ``raw`` (as the reference's
+    first-appearance order does)."""
+    P = len(p)
+    cand, valid = _sorted_unique_rows(raw)
+    ub = np.where(vert_faces[nn, 0] >= 0, d1, np.inf).min(axis=1)  # a vertex's faces are no farther
+    c, n, r = bounds
+    lb = np.where(valid, face_distance_bounds(p[:, None, :], c[cand], n[cand], r[cand]), np.inf)
+    # a tighter upper bound: the distance to each row's face of the smallest lower bound
+    best = cand[np.arange(P), np.argmin(lb, axis=1)]
+    tb = V[F[best]]
+    qb = closest_point_on_triangles(p, tb[:, 0], tb[:, 1], tb[:, 2])
+    ub2 = np.where(valid.any(axis=1), np.minimum(ub * ub, np.einsum("ni,ni->n", qb - p, qb - p)), ub * ub)
+    keep = lb <= ub2[:, None] * (1 + PRUNE_SLACK) + PRUNE_SLACK_SQ
+    keep[:, 0] |= ~keep.any(axis=1)  # a row with no face at all keeps its padding (face 0, never valid)
+    rows, cols = np.nonzero(keep)
+    fc = cand[rows, cols]
+    tri = V[F[fc]]  # (N, 3, 3)
+    pr = p[rows]
+    q = closest_point_on_triangles(pr, tri[:, 0], tri[:, 1], tri[:, 2])
+    d = np.where(valid[rows, cols], np.einsum("ni,ni->n", q - pr, q - pr), np.inf)
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    is_min = d == np.minimum.reduceat(d, starts)[np.repeat(np.arange(P), np.diff(np.r_[starts, len(rows)]))]
+    m = np.flatnonzero(is_min)
+    first = np.argmax(raw[rows[m]] == fc[m, None], axis=1)  # where each tying face first appears
+    m = m[np.lexsort((first, rows[m]))]
+    j = m[np.r_[True, rows[m][1:] != rows[m][:-1]]]  # each row's nearest face, first appearing
+    t = tri[j]
+    return fc[j], q[j], barycentric(q[j], t[:, 0], t[:, 1], t[:, 2])
+
+
+def _sorted_unique_rows(cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate face ids (P, C) int, -1 padded, with repeats: each row's distinct ids in
+    ascending order, packed to the left, (P, C') with C' the most any row has, and valid (P, C')
+    bool; invalid slots hold 0. Two row sorts (no argsort): several times faster than
+    :func:`_unique_rows`, whose first-appearance order the caller restores where it matters."""
+    big = np.iinfo(np.int64).max
+    s = np.sort(np.where(cand >= 0, cand, big).astype(np.int64), axis=1)
+    rep = np.zeros_like(s, bool)
+    rep[:, 1:] = s[:, 1:] == s[:, :-1]
+    s = np.sort(np.where(rep, big, s), axis=1)
+    valid = s != big
+    s = s[:, :max(int(valid.sum(axis=1).max()), 1)]
+    valid = valid[:, :s.shape[1]]
+    return np.where(valid, s, 0), valid
 
 
 def _unique_rows(cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,11 +16,15 @@ Shapes: garment vertices (M, 3), faces (F, 3); body vertices (V, 3) and unit nor
 """
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh, vertex_faces, vertex_normals
+from service.model.geometry import closest_points_on_mesh, face_bounds, vertex_faces, vertex_normals
 from service.model.nonrigid import factor_spd
 from service.model.skin_weights import dense_weights, top_k, uniform_laplacian
 
@@ -33,6 +37,7 @@ PASSES = 3
 RECHECK_MOVE = 1e-6  # metres: a vertex moved less than this by a pass is not checked again
 RIM_SAMPLES = True  # also check the inner garment from the body vertices along the outer garment's rims
 RIM_CONE = np.pi / 4  # a rim covers the body vertices it is over within this angle of their normal
+RIM_NEAR_ONLY = True  # rim_violations: closest points only for band vertices near the inner garment (same results)
 
 
 def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
@@ -43,6 +48,35 @@ def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
     out = np.zeros(n, bool)
     out[u[c == 1].ravel()] = True
     return out
+
+
+TOPOLOGY_CACHE_SIZE = 64  # garment and base-layer topologies kept per process (Laplacian, rims, vertex faces)
+_topologies: OrderedDict[tuple, tuple[sp.csr_matrix, np.ndarray, np.ndarray]] = OrderedDict()
+_topologies_lock = threading.Lock()
+
+
+def topology(faces: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    """A mesh's (n vertices, faces (F, 3)) uniform Laplacian (n, n), :func:`boundary_vertices`
+    (n,) bool and ``geometry.vertex_faces`` (n, valence), once per process per topology (keyed
+    by the faces' bytes: a garment basis' faces, or the look's base layer, are the same for every
+    customer). Read-only."""
+    f = np.ascontiguousarray(faces)
+    key = (n, f.shape, f.dtype.str, hashlib.sha1(f.tobytes()).hexdigest())
+    with _topologies_lock:
+        hit = _topologies.get(key)
+        if hit is not None:
+            _topologies.move_to_end(key)
+            return hit
+    L = sp.csr_matrix(uniform_laplacian(f, n))
+    b = boundary_vertices(f, n)
+    vf = vertex_faces(np.asarray(f, np.int64), n)
+    b.setflags(write=False)
+    vf.setflags(write=False)
+    with _topologies_lock:
+        _topologies[key] = (L, b, vf)
+        while len(_topologies) > TOPOLOGY_CACHE_SIZE:
+            _topologies.popitem(last=False)
+    return L, b, vf
 
 
 def outward_normals(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
@@ -60,7 +94,8 @@ def violations(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, ou
                gap: float = GAP, outer_index: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For each inner vertex (M, 3): the needed inward displacement (M, 3), covered (M,) bool,
     and its closest point on the outer garment as (face (M,), barycentric weights (M, 3)).
-    ``outer_index``: (k-d tree over the outer vertices, ``geometry.vertex_faces``) to reuse.
+    ``outer_index``: (k-d tree over the outer vertices, ``geometry.vertex_faces``,
+    ``geometry.face_bounds``) to reuse.
 
     Where the closest point is inside the outer surface, the vertex is covered within
     ``COVER_DISTANCE`` and must lie ``gap`` below it along the outer normal. Where it is on the
@@ -78,12 +113,13 @@ def violations(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, ou
     # only vertices that can be within COVER_DISTANCE of the outer surface (its closest point is
     # at most one edge from its nearest vertex): the exact closest points are the costly part
     edge = np.linalg.norm(outer[F] - outer[np.roll(F, 1, axis=1)], axis=2).max()
-    tree, vf = outer_index if outer_index is not None else (cKDTree(outer), vertex_faces(F, len(outer)))
+    tree, vf, fb = outer_index if outer_index is not None else \
+        (cKDTree(outer), vertex_faces(F, len(outer)), face_bounds(np.asarray(outer, np.float64), F))
     d1, _ = tree.query(X, distance_upper_bound=COVER_DISTANCE + edge)
     near = np.flatnonzero(np.isfinite(d1))
     if len(near) == 0:
         return D, covered, face, bary
-    f_n, q, b_n = closest_points_on_mesh(X[near], outer, F, tree=tree, vert_faces=vf)
+    f_n, q, b_n = closest_points_on_mesh(X[near], outer, F, tree=tree, vert_faces=vf, bounds=fb)
     face[near], bary[near] = f_n, b_n
     D_n, cov_n = _violations(X[near], q, f_n, b_n, F, outer_normals, outer_boundary, body, body_normals, body_tree,
                              gap)
@@ -130,20 +166,35 @@ def push_inside(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, o
     return _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap, passes, body_tree)[0]
 
 
+def prepare_outer(outer: np.ndarray, outer_faces: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
+                  body_tree: cKDTree, outer_boundary: np.ndarray | None = None,
+                  outer_vertex_faces: np.ndarray | None = None) -> tuple:
+    """What pushing any inner garment inside an outer garment (M, 3) needs of the outer one on
+    this body: (outward normals (M, 3), boundary (M,) bool, (k-d tree, vertex faces, face
+    bounds), rim band or None); ``outer_boundary``, ``outer_vertex_faces``: when known. In an
+    outfit, made once per outer garment's final shape and shared by every garment under it."""
+    O = np.asarray(outer, np.float64)
+    on = outward_normals(O, outer_faces, body, body_normals, body_tree)
+    ob = outer_boundary if outer_boundary is not None else boundary_vertices(outer_faces, len(O))
+    F = np.asarray(outer_faces, np.int64)
+    index = (cKDTree(O), outer_vertex_faces if outer_vertex_faces is not None else vertex_faces(F, len(O)),
+             face_bounds(O, F))
+    band = rim_band(O, outer_faces, ob, body, body_normals, index) if RIM_SAMPLES else None
+    return on, ob, index, band
+
+
 def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap=GAP, passes=PASSES, body_tree=None,
-                 inner_laplacian=None, outer_boundary=None):
+                 inner_laplacian=None, outer_boundary=None, prepared=None, inner_vertex_faces=None):
     """:func:`push_inside`, also returning the final cover: covered (M,) bool and the closest
     outer points as (face (M,), barycentric (M, 3)). ``inner_laplacian`` (the inner mesh's
-    uniform Laplacian) and ``outer_boundary`` (:func:`boundary_vertices` of the outer mesh):
-    given when already known (they depend on the faces only)."""
+    uniform Laplacian), ``outer_boundary`` (:func:`boundary_vertices` of the outer mesh) and
+    ``prepared`` (:func:`prepare_outer`), ``inner_vertex_faces``: given when already known."""
     X = np.asarray(inner, np.float64).copy()
     O = np.asarray(outer, np.float64)
     B = np.asarray(body, np.float64)
     tree = body_tree if body_tree is not None else cKDTree(B)
-    on = outward_normals(O, outer_faces, B, body_normals, tree)
-    ob = outer_boundary if outer_boundary is not None else boundary_vertices(outer_faces, len(O))
-    index = (cKDTree(O), vertex_faces(np.asarray(outer_faces, np.int64), len(O)))
-    band = rim_band(O, outer_faces, ob, B, body_normals) if RIM_SAMPLES else None
+    on, ob, index, band = prepared if prepared is not None else \
+        prepare_outer(O, outer_faces, B, body_normals, tree, outer_boundary)
     L = inner_laplacian
     recheck = None  # after the first pass only the vertices that moved can have changed
     for _ in range(passes):
@@ -155,7 +206,7 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
             D0[recheck], covered[recheck], face[recheck], bary[recheck] = violations(
                 X[recheck], O, outer_faces, on, ob, B, body_normals, tree, gap, index)
         if band is not None:
-            Dr = rim_violations(X, inner_faces, band, B, body_normals, gap)
+            Dr = rim_violations(X, inner_faces, band, B, body_normals, gap, inner_vertex_faces)
             deeper = np.einsum("ij,ij->i", Dr, Dr) > np.einsum("ij,ij->i", D0, D0)
             D0[deeper] = Dr[deeper]
         c = (np.einsum("ij,ij->i", D0, D0) > 0).astype(np.float64)
@@ -173,11 +224,12 @@ def _push_inside(inner, inner_faces, outer, outer_faces, body, body_normals, gap
 
 
 def rim_band(outer: np.ndarray, outer_faces: np.ndarray, outer_boundary: np.ndarray, body: np.ndarray,
-             body_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+             body_normals: np.ndarray, outer_index: tuple | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The body vertices near the outer garment's boundary that it covers (the "over" test of
     :func:`inner_outside_share`) and the outer garment's height over each: (body ids (K,),
     heights (K,)), or None. Along a rim the outer surface ends between the inner garment's
-    sparse vertices, so the inner garment is also checked from these body vertices."""
+    sparse vertices, so the inner garment is also checked from these body vertices.
+    ``outer_index``: as in :func:`violations`."""
     if not outer_boundary.any():
         return None
     rim = np.asarray(outer, np.float64)[outer_boundary]
@@ -185,7 +237,9 @@ def rim_band(outer: np.ndarray, outer_faces: np.ndarray, outer_boundary: np.ndar
     k = np.flatnonzero(np.isfinite(d))
     if len(k) == 0:
         return None
-    _, q, _ = closest_points_on_mesh(body[k], outer, np.asarray(outer_faces, np.int64))
+    tree, vf, fb = outer_index if outer_index is not None else (None, None, None)
+    _, q, _ = closest_points_on_mesh(body[k], outer, np.asarray(outer_faces, np.int64), tree=tree, vert_faces=vf,
+                                     bounds=fb)
     u = q - body[k]
     du = np.linalg.norm(u, axis=1)
     ho = np.einsum("ij,ij->i", u, body_normals[k])
@@ -194,21 +248,33 @@ def rim_band(outer: np.ndarray, outer_faces: np.ndarray, outer_boundary: np.ndar
 
 
 def rim_violations(inner: np.ndarray, inner_faces: np.ndarray, band: tuple[np.ndarray, np.ndarray],
-                   body: np.ndarray, body_normals: np.ndarray, gap: float = GAP) -> np.ndarray:
+                   body: np.ndarray, body_normals: np.ndarray, gap: float = GAP,
+                   inner_vertex_faces: np.ndarray | None = None) -> np.ndarray:
     """Inward displacements (M, 3) of the inner garment's vertices from the :func:`rim_band`:
     where the inner surface over a band body vertex (its closest point, within the cone) is above
     the outer garment's height there less the gap, the three vertices of its face move down along
-    that body normal by the excess (the largest excess wins)."""
+    that body normal by the excess (the largest excess wins). ``inner_vertex_faces``:
+    ``geometry.vertex_faces`` of the inner mesh, when known."""
     k, ho = band
     F = np.asarray(inner_faces, np.int64)
-    f, q, _ = closest_points_on_mesh(body[k], inner, F)
+    X = np.asarray(inner, np.float64)
+    D = np.zeros_like(X)
+    # only body vertices within COVER_DISTANCE of the inner surface can be bad: its closest point
+    # is at most one edge from its nearest vertex (the same answers, fewer closest points)
+    edge = np.linalg.norm(X[F] - X[np.roll(F, 1, axis=1)], axis=2).max()
+    tree = cKDTree(X)
+    d1, _ = tree.query(body[k], distance_upper_bound=COVER_DISTANCE + edge if RIM_NEAR_ONLY else np.inf)
+    near = np.isfinite(d1)
+    if not near.any():
+        return D
+    k, ho = k[near], ho[near]
+    f, q, _ = closest_points_on_mesh(body[k], X, F, tree=tree, vert_faces=inner_vertex_faces)
     u = q - body[k]
     du = np.linalg.norm(u, axis=1)
     nb = body_normals[k]
     hi = np.einsum("ij,ij->i", u, nb)
     g = np.minimum(gap, 0.5 * ho)
     bad = (du < COVER_DISTANCE) & (hi > np.cos(RIM_CONE) * du) & (hi > ho - g)
-    D = np.zeros_like(np.asarray(inner, np.float64))
     if not bad.any():
         return D
     ex = (hi - ho + g)[bad]
@@ -259,13 +325,16 @@ def layer_outfit(garments: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
     sk = [(np.asarray(i), np.asarray(w)) for i, w in skins] if skins is not None else None
     B = np.asarray(body, np.float64)
     tree = cKDTree(B)
-    # what depends on a garment's faces only, once per outfit: inner Laplacians, outer rims
-    lap = [uniform_laplacian(f, len(v)) for v, f in garments[:-1]]
-    rims = [None] + [boundary_vertices(f, len(v)) for v, f in garments[1:]]
+    # what depends on a garment's faces only, once per process per topology: Laplacians, rims
+    topo = [topology(f, len(v)) for v, f in garments]
+    lap = [t[0] for t in topo]
+    prep: dict[int, tuple] = {}  # per outer garment, once its shape is final (it is never pushed again)
     for i in range(len(garments) - 2, -1, -1):
         for j in range(len(garments) - 1, i, -1):
+            if j not in prep:
+                prep[j] = prepare_outer(out[j], garments[j][1], B, body_normals, tree, topo[j][1], topo[j][2])
             out[i], covered, face, bary = _push_inside(out[i], garments[i][1], out[j], garments[j][1], B, body_normals,
-                                                       gap, PASSES, tree, lap[i], rims[j])
+                                                       gap, PASSES, tree, lap[i], topo[j][1], prep[j], topo[i][2])
             if sk is not None:
                 sk[i] = covered_skin(garments[i][1], sk[i], garments[j][1], sk[j], covered, face, bary, n_joints,
                                      lap[i])
