@@ -111,7 +111,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     """The fit before one of issue 12's changes: ``refine_damping`` (the shape/posture
     decoupling: the refinement's Levenberg damping as the coarse stage's, 1e-3, which crawls
     along the shape-posture valley), ``pose_prior`` (no joint limits, bone smoothness 0.1) or
-    ``scan_cleanup`` (no floor or stray-cluster removal, holes not rejected in the data term)."""
+    ``scan_cleanup`` (no floor or stray-cluster removal, holes not rejected in the data term) or
+    ``landmark_init`` (the initialisation from ICP alone, no landmark hypotheses)."""
     from service.model.fitting import FitParams
 
     if kind == "landmark_init":
