@@ -44,6 +44,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from service.model import landmarks as LM
 from service.model import person_check as PC
 from service.model import scan_cleanup as SC
 from service.model.frames import UnitError, detect_unit, orient_outward, up_candidates
@@ -139,6 +140,10 @@ class FitParams:
     min_accepted: float = 0.2  # fewer template vertices matching the scan: not a person
     coarse_candidates: int = 3
     limb_search: bool = True
+    # issue 12: limbs aimed at the scan's extremities (service.model.landmarks) before the
+    # coarse schedule, the assignment and up to this many left/right swaps scored beside ICP alone
+    landmark_init: bool = True
+    landmark_hypotheses: int = 4
     # neighbouring-bone smoothness while the pose is found (against per-point residuals
     # normalised to the subsample size): a prior that prefers the smaller of two rotations
     # that explain the scan equally well
@@ -523,14 +528,17 @@ def _clothing_weight(signed: np.ndarray, clothed: bool, params: FitParams,
 
 def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.ndarray,
             schedule: list[tuple[np.ndarray, int]], clothed: bool, params: FitParams,
-            omega: float | None = None, contact: float | None = None) -> tuple[_State, float]:
+            omega: float | None = None, contact: float | None = None,
+            landmarks: tuple | None = None) -> tuple[_State, float]:
     """Parametric ICP on subsamples: per iteration, correspondences both ways (template
     subsample -> nearest scan point, scan subsample -> nearest template vertex) rejected by
     normals and distance, point-to-plane residuals weighted for clothing, then one damped
     Gauss-Newton step on (translation, the scheduled bones, the first shape components).
     ``schedule``: [(bones, n_shape_components)] per iteration; ``contact``: the clothing
     weight's contact depth (``_clothing_weight``; None: constant ``inside_weight``). Returns the state and the
-    final trimmed mean distance (metres) both ways."""
+    final trimmed mean distance (metres) both ways. ``landmarks``: (effector subset, targets
+    (e, 3), weight, iterations): point-to-point pulls of the effectors to the scan's tips in the
+    first ``iterations`` iterations (issue 12's landmark initialisation)."""
     cos_rej = np.cos(np.radians(params.coarse_normal_reject_deg))
     Ps = scan.points[scan.sub]
     Ns = scan.normals[scan.sub]
@@ -538,7 +546,7 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
     omega = params.coarse_bone_smoothness if omega is None else omega
     lam = params.shape_prior
     cost = np.inf
-    for bones, n_shape in schedule:
+    for it, (bones, n_shape) in enumerate(schedule):
         p = _pose_model(rig, s, sub)
         nv = _posed_normals(rest_normals, p)
         # template -> scan
@@ -564,6 +572,15 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         Jall = np.concatenate([Jp, _shape_jacobian(rig, p, comps)], axis=2) if n_shape else Jp
         H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r)
         npz = Jp.shape[2]
+        if landmarks is not None and it < landmarks[3]:
+            eff, targets, w_lm, _ = landmarks
+            pe = _pose_model(rig, s, eff)
+            Je = _pose_jacobian(rig, pe, bones)
+            if n_shape:
+                Je = np.concatenate([Je, _shape_jacobian(rig, pe, comps)], axis=2)
+            Je = Je.reshape(-1, Je.shape[2])
+            H += w_lm * Je.T @ Je
+            g += w_lm * Je.T @ (pe.v - targets).reshape(-1)
         Hs, gs = _smoothness(rig, s, p, bones, omega)
         Hl, gl = _joint_limit_terms(rig, s, p, bones, params.joint_limit_weight)
         H[:npz, :npz] += Hs + Hl
@@ -625,6 +642,102 @@ def _limb_search(rig: _Rig, scan: _Scan, s: _State, sub: _Sub, rest_normals: np.
     return s
 
 
+# landmark initialisation (issue 12): the chain (upper, lower bone) aimed at each extremity,
+# and the bone whose far end is the extremity's effector on the template
+LANDMARK_CHAINS = {"hand_l": (5, 6), "hand_r": (8, 9), "foot_l": (11, 12), "foot_r": (14, 15)}
+EFFECTOR_BONES = {"head": (4, 0), "hand_l": (7, 5), "hand_r": (10, 8), "foot_l": (13, 11), "foot_r": (16, 14)}
+LANDMARK_ANCHORS = (0, 3)  # the joints (pelvis, neck) whose nearest scan points anchor the geodesics
+TEMPLATE_GRAPH_MAX_EDGE_M = 0.15  # the template subsample is sparse on the legs (vertex density)
+# the coarse ICP of a hypothesis pulls the effectors to their tips (point to point, weight per
+# effector relative to the template subsample's size, i.e. a share of the data term) in this
+# share of its iterations; the rest fit the scan alone
+LANDMARK_WEIGHT = 0.05
+LANDMARK_PULL_SHARE = 0.75
+AIM_ROUNDS = 2  # cyclic-coordinate-descent sweeps over each chain's bones
+AIM_MAX_DEG = 120.0  # larger turns of one bone are clipped (a wrong tip must not fold a limb)
+
+
+def _effector_subset(rig: _Rig) -> _Sub:
+    """The template vertex at the far end of each effector bone (``landmarks.LABELS`` order):
+    among the vertices mostly skinned to the bone, the one farthest from its chain's root joint
+    in the mean rest shape (the head top, fingertips, toe tips)."""
+    idx = []
+    for label in LM.LABELS:
+        bone, anchor = EFFECTOR_BONES[label]
+        cand = np.nonzero(rig.W[:, bone] > 0.5)[0]
+        idx.append(cand[np.argmax(np.linalg.norm(rig.mean[cand] - rig.jmean[anchor], axis=1))])
+    return _subset(rig, np.array(idx))
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray, max_angle: float) -> np.ndarray:
+    """(3, 3) the smallest rotation turning direction a (3,) towards b (3,), at most max_angle."""
+    a = a / max(np.linalg.norm(a), 1e-12)
+    b = b / max(np.linalg.norm(b), 1e-12)
+    axis = np.cross(a, b)
+    sn = np.linalg.norm(axis)
+    if sn < 1e-9:
+        return np.eye(3)
+    angle = min(float(np.arctan2(sn, np.dot(a, b))), max_angle)
+    return axis_angle_to_matrix(axis / sn * angle)
+
+
+def _aim_limbs(rig: _Rig, s: _State, targets: dict, eff: _Sub) -> _State:
+    """The state with each limb of ``targets`` ({label: (3,) scan tip}) turned, bone by bone
+    from the limb's root (cyclic coordinate descent), so that its effector points at the tip."""
+    s = s.copy()
+    max_angle = np.radians(AIM_MAX_DEG)
+    for _ in range(AIM_ROUNDS):
+        for label, bones in LANDMARK_CHAINS.items():
+            if label not in targets:
+                continue
+            k = LM.LABELS.index(label)
+            for b in bones:
+                p = _pose_model(rig, s, eff)
+                q = p.G[b, :3, :3] @ p.joints[b] + p.G[b, :3, 3]  # the bone's posed joint
+                Rw = _rotation_between(p.v[k] - q, targets[label] - q, max_angle)
+                Rp = p.G[rig.parents[b], :3, :3]
+                s.rot[b] = Rp.T @ Rw @ Rp @ s.rot[b]
+    return s
+
+
+def _landmark_hypotheses(rig: _Rig, scan: _Scan, s0: _State, s_icp: _State, sub: _Sub,
+                         rest_normals: np.ndarray, schedule: list, clothed: bool, params: FitParams) -> _State:
+    """Issue 12: the scan's extremities (``landmarks.find_extremities``) assigned to the
+    template's effectors at the root-fitted state ``s0``; for the assignment and its left/right
+    swaps the limbs are aimed at the tips and the coarse schedule run. The state of least
+    symmetric distance plus limit cost wins; ``s_icp`` (ICP alone) is one of the candidates,
+    so a scan without usable landmarks (holes, a skirt, a hand on the hip) keeps it."""
+    best_cost = _chamfer(rig, scan, s_icp, sub) + _limit_cost(s_icp, params)
+    best = s_icp
+    pts = scan.points[scan.sub]
+    ext = LM.find_extremities(pts)
+    eff = _effector_subset(rig)
+    # the template's own geodesics from its anchors to its effectors, at the root-fitted pose
+    p0 = _pose_model(rig, s0, sub)
+    q0 = np.einsum("jab,jb->ja", p0.G[:, :3, :3], p0.joints) + p0.G[:, :3, 3]
+    anchors = q0[list(LANDMARK_ANCHORS)]
+    e0 = _pose_model(rig, s0, eff).v
+    near = cKDTree(p0.v).query(e0)[1]  # the subsample's vertices nearest the effectors
+    expected = LM.Extremities(p0.v[near], np.zeros(len(e0)), e0[0], near,
+                              LM.knn_graph(p0.v, max_edge=TEMPLATE_GRAPH_MAX_EDGE_M)).anchor_geodesics(p0.v, anchors)
+    tips = LM.assign(ext.points, ext.anchor_geodesics(pts, anchors), expected, e0)
+    for h in LM.hypotheses(tips)[:params.landmark_hypotheses]:
+        if not any(label in h for label in LANDMARK_CHAINS):
+            continue
+        cand = _aim_limbs(rig, s0, h, eff)
+        keep = np.array([label in h for label in LM.LABELS])
+        pull = (_subset(rig, eff.idx[keep]), np.array([h[label] for label in np.array(LM.LABELS)[keep]]),
+                LANDMARK_WEIGHT * len(sub.idx), int(LANDMARK_PULL_SHARE * len(schedule)))
+        cand, _ = _coarse(rig, scan, cand, sub, rest_normals, schedule, clothed, params, landmarks=pull)
+        cost = _chamfer(rig, scan, cand, sub) + _limit_cost(cand, params)
+        if cost < best_cost - LANDMARK_MARGIN_M:
+            best_cost, best = cost, cand
+    return best
+
+
+LANDMARK_MARGIN_M = 1e-4  # a hypothesis must beat ICP alone by this much (symmetric distance, m)
+
+
 def _initialise(rig: _Rig, points_m: np.ndarray, normals: np.ndarray, clothed: bool,
                 params: FitParams, rng: np.random.Generator):
     """Up axis, facing and a coarse pose and shape (see module docstring). Returns
@@ -653,11 +766,13 @@ def _initialise(rig: _Rig, points_m: np.ndarray, normals: np.ndarray, clothed: b
     per_level = max(1, n_it // (2 * len(BONE_LEVELS)))
     schedule = [(lv, 0) for lv in BONE_LEVELS for _ in range(per_level)]
     schedule += [(ALL_BONES, params.coarse_shape_components)] * max(1, n_it - len(schedule))
-    for cost0, up, R, t, scan, s in screened[:params.coarse_candidates]:
-        s, cost = _coarse(rig, scan, s, sub, rest_normals, schedule, clothed, params)
+    for cost0, up, R, t, scan, s0 in screened[:params.coarse_candidates]:
+        s, cost = _coarse(rig, scan, s0.copy(), sub, rest_normals, schedule, clothed, params)
         if best is None or cost < best[0]:
-            best = (cost, up, R, t, scan, s)
-    _, up, R, t, scan, s = best
+            best = (cost, up, R, t, scan, s, s0)
+    _, up, R, t, scan, s, s0 = best
+    if params.landmark_init:  # issue 12: limbs aimed at the scan's extremities, several hypotheses
+        s = _landmark_hypotheses(rig, scan, s0, s, sub, rest_normals, schedule, clothed, params)
     if params.limb_search:
         s = _limb_search(rig, scan, s, sub, rest_normals, clothed, params)
         s, _ = _coarse(rig, scan, s, sub, rest_normals, schedule[-4:], clothed, params)

@@ -60,7 +60,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.model import measurements as M
-from service.model.body import load_body_model
+from service.model.body import BONES, load_body_model
 from service.model.geometry import closest_point_on_triangles, vertex_faces
 from tests.bench import synthetic_scans as SS
 from tests.bench.common import heldout_people, shared_data_dir
@@ -116,9 +116,12 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     along the shape-posture valley), ``pose_prior`` (no joint limits, bone smoothness 0.1) or
     ``scan_cleanup`` (no floor or stray-cluster removal, holes not rejected in the data term) or
     ``clothing_contact`` (the refinement's clothing weight a constant ``inside_weight`` for body
-    points inside the clothes, not the depth-dependent contact weight)."""
+    points inside the clothes, not the depth-dependent contact weight) or ``landmark_init`` (the
+    initialisation from ICP alone, no landmark hypotheses)."""
     from service.model.fitting import FitParams
 
+    if kind == "landmark_init":
+        return FitParams(landmark_init=False)
     if kind == "scan_cleanup":
         return FitParams(scan_cleanup=False)
     if kind == "refine_damping":
@@ -178,7 +181,9 @@ def evaluate(model, scan, fit, surface: BodySurface) -> dict:
     truth = scan.true_posed[:nb]
     _, Jf = posed(model, fit.weights, fit.rotvecs, fit.translation)
     fitted_m = model.measure(model.vertices(fit.weights), scan.gender)
+    jerr = np.linalg.norm(_apply(C, Jf) - scan.true_joints, axis=1)
     return {
+        "worst_joint": [BONES[int(np.argmax(jerr))], round(1000 * float(jerr.max()), 1)],
         "v2v_mm": 1000 * float(np.linalg.norm(Pf[:nb] - truth, axis=1).mean()),
         "p2s_mm": 1000 * float(surface.distances(truth, Pf).mean()),
         "joints_mm": 1000 * float(np.linalg.norm(_apply(C, Jf) - scan.true_joints, axis=1).mean()),
@@ -273,7 +278,9 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                         "points": int(len(scan.points))})
             rows[name].append(row)
             if progress:
-                progress(f"[{k + 1}/{len(people)}] {name}: {row['p2s_mm']:.2f} mm, {seconds:.1f} s")
+                progress(f"[{k + 1}/{len(people)}] {name}: avatar {person['index']} {row['p2s_mm']:.2f} mm, "
+                         f"{seconds:.1f} s, worst joint {row['worst_joint']}; before "
+                         + (f"{row['before']['p2s_mm']:.2f} mm" if "p2s_mm" in row["before"] else "-"))
     out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
            "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
            "goal": GOALS, "conditions": {}}
