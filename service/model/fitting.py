@@ -50,6 +50,7 @@ from service.model import scan_cleanup as SC
 from service.model.frames import UnitError, detect_unit, orient_outward, up_candidates
 from service.model.geometry import estimate_normals, face_incidence, vertex_normals
 from service.model.lbs import axis_angle_to_matrix, global_transforms, matrix_to_axis_angle
+from service.model.poses import rotation_between
 from service.model.nonrigid import (
     EdgeSystem,
     damped_step,
@@ -669,18 +670,6 @@ def _effector_subset(rig: _Rig) -> _Sub:
     return _subset(rig, np.array(idx))
 
 
-def _rotation_between(a: np.ndarray, b: np.ndarray, max_angle: float) -> np.ndarray:
-    """(3, 3) the smallest rotation turning direction a (3,) towards b (3,), at most max_angle."""
-    a = a / max(np.linalg.norm(a), 1e-12)
-    b = b / max(np.linalg.norm(b), 1e-12)
-    axis = np.cross(a, b)
-    sn = np.linalg.norm(axis)
-    if sn < 1e-9:
-        return np.eye(3)
-    angle = min(float(np.arctan2(sn, np.dot(a, b))), max_angle)
-    return axis_angle_to_matrix(axis / sn * angle)
-
-
 def _aim_limbs(rig: _Rig, s: _State, targets: dict, eff: _Sub) -> _State:
     """The state with each limb of ``targets`` ({label: (3,) scan tip}) turned, bone by bone
     from the limb's root (cyclic coordinate descent), so that its effector points at the tip."""
@@ -694,7 +683,7 @@ def _aim_limbs(rig: _Rig, s: _State, targets: dict, eff: _Sub) -> _State:
             for b in bones:
                 p = _pose_model(rig, s, eff)
                 q = p.G[b, :3, :3] @ p.joints[b] + p.G[b, :3, 3]  # the bone's posed joint
-                Rw = _rotation_between(p.v[k] - q, targets[label] - q, max_angle)
+                Rw = rotation_between(p.v[k] - q, targets[label] - q, max_angle)
                 Rp = p.G[rig.parents[b], :3, :3]
                 s.rot[b] = Rp.T @ Rw @ Rp @ s.rot[b]
     return s

@@ -63,19 +63,19 @@ def targets(preset: dict) -> dict[str, np.ndarray]:
     return {k: v / np.linalg.norm(v) for k, v in out.items()}
 
 
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def rotation_between(a: np.ndarray, b: np.ndarray, max_angle: float = np.pi) -> np.ndarray:
     """The smallest rotation (3, 3) taking direction a (3,) onto b (3,) (three.js'
-    ``Quaternion.setFromUnitVectors``)."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
+    ``Quaternion.setFromUnitVectors``), or towards it by at most ``max_angle`` radians."""
+    a = a / max(float(np.linalg.norm(a)), 1e-12)
+    b = b / max(float(np.linalg.norm(b)), 1e-12)
     axis = np.cross(a, b)
     s, c = np.linalg.norm(axis), float(a @ b)
     if s < 1e-12:
         if c > 0:
             return np.eye(3)
         perp = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 0, 1.0])
-        return _lbs.axis_angle_to_matrix(np.pi * perp / np.linalg.norm(perp))
-    return _lbs.axis_angle_to_matrix(axis / s * np.arctan2(s, c))
+        return _lbs.axis_angle_to_matrix(min(np.pi, max_angle) * perp / np.linalg.norm(perp))
+    return _lbs.axis_angle_to_matrix(axis / s * min(float(np.arctan2(s, c)), max_angle))
 
 
 def pose_from_directions(joints: np.ndarray, parents: np.ndarray, bone_targets: dict[str, np.ndarray],
