@@ -238,22 +238,11 @@ class _Builder:
         self.buffer_views: list[dict[str, Any]] = []
         self.accessors: list[dict[str, Any]] = []
 
-    def add(
-        self,
-        data: np.ndarray,
-        component_type: int,
-        type_: str,
-        *,
-        target: int | None = None,
-        minmax: bool = False,
-        normalized: bool = False,
-        bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> int:
-        """Append ``data`` as one view plus one accessor (see :func:`_make_view`); returns the
+    def add(self, data: np.ndarray, component_type: int, type_: str, **options: Any) -> int:
+        """Append ``data`` as one view plus one accessor (:func:`_make_view`, whose keyword
+        options ``target``, ``minmax``, ``normalized``, ``bounds`` it takes); returns the
         accessor index."""
-        view, acc = _make_view(data, component_type, type_, target=target, minmax=minmax, normalized=normalized,
-                               bounds=bounds)
-        return self.add_view(view, acc)
+        return self.add_view(*_make_view(data, component_type, type_, **options))
 
     def add_view(self, view: View, acc: dict[str, Any], encoded: bytes | None = None) -> int:
         """Append a view made by :func:`_make_view` (and, optionally, its meshopt bytes) plus
