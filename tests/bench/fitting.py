@@ -117,11 +117,14 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     ``scan_cleanup`` (no floor or stray-cluster removal, holes not rejected in the data term) or
     ``clothing_contact`` (the refinement's clothing weight a constant ``inside_weight`` for body
     points inside the clothes, not the depth-dependent contact weight) or ``landmark_init`` (the
-    initialisation from ICP alone, no landmark hypotheses)."""
+    initialisation from ICP alone, no landmark hypotheses) or ``landmark_candidates`` (the
+    landmark hypotheses tried on the best coarse candidate only, not on each of the best 3)."""
     from service.model.fitting import FitParams
 
     if kind == "landmark_init":
         return FitParams(landmark_init=False)
+    if kind == "landmark_candidates":
+        return FitParams(landmark_candidates=1)
     if kind == "scan_cleanup":
         return FitParams(scan_cleanup=False)
     if kind == "refine_damping":
