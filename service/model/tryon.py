@@ -49,10 +49,13 @@ SKIN_RELEASE_IN_POSES = False
 # step 4 of skin_weights (the legs' share ramped left/right below the crotch, skirts only): the
 # pencil skirt's front opened over the forward thigh in the page's walking step without it
 SKIN_LEG_RAMP = True
+# step 1's release on the limb side of steep inpainted edges (skin_weights.release_limb_side):
+# the tops' armpit seams stretched up to 5.3x in the page's poses without it
+SKIN_LIMB_SIDE = True
 # the version of the skin weights a basis carries (meta "skinning"; absent: 1): bases built by an
 # older version get their weights recomputed (:func:`refresh_skinning`) when next served.
-# 2: step 4, the legs' ramp
-SKINNING_VERSION = 2
+# 2: step 4, the legs' ramp; 3: the limb side of steep inpainted edges released (armpits)
+SKINNING_VERSION = 3
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
     n = min(n or EXAMPLES["n"], model.n_components)
@@ -269,7 +272,8 @@ def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarr
                                  if SKIN_RELEASE_IN_POSES else None,
                                  rest_lengths=shortest,
                                  legs=leg_frame(body0, model.joints(model.mean), list(BONES))
-                                 if SKIN_LEG_RAMP else None)
+                                 if SKIN_LEG_RAMP else None,
+                                 parents=model.bone_parents if SKIN_LIMB_SIDE else None)
 
 
 def basis_digest(basis: GarmentBasis) -> str:

@@ -772,18 +772,20 @@ def bench_clothes_motion(limit: int) -> dict:
 
 def pose_stretch_catalogue(before: str | None = None) -> dict:
     """Only the pose-stretch rows of :func:`bench_clothes_motion` (the catalogue's bases built
-    as at service start). ``before="leg_ramp"``: also the bases without ``T.SKIN_LEG_RAMP``,
-    measured alongside."""
+    as at service start). ``before="leg_ramp"`` / ``"limb_side"``: also the bases without
+    ``T.SKIN_LEG_RAMP`` / ``T.SKIN_LIMB_SIDE``, measured alongside."""
     model = load_body_model()
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
     reference = None
-    if before == "leg_ramp":
-        T.SKIN_LEG_RAMP, keep = False, T.SKIN_LEG_RAMP
+    switch = {"leg_ramp": "SKIN_LEG_RAMP", "limb_side": "SKIN_LIMB_SIDE"}.get(before or "")
+    if switch:
+        keep = getattr(T, switch)
+        setattr(T, switch, False)
         try:
             reference = catalogue_bases(model, ex, EX)
         finally:
-            T.SKIN_LEG_RAMP = keep
+            setattr(T, switch, keep)
     t0 = time.perf_counter()
     bases = catalogue_bases(model, ex, EX)
     t_build = time.perf_counter() - t0
