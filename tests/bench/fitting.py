@@ -118,9 +118,13 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     ``clothing_contact`` (the refinement's clothing weight a constant ``inside_weight`` for body
     points inside the clothes, not the depth-dependent contact weight) or ``landmark_init`` (the
     initialisation from ICP alone, no landmark hypotheses) or ``landmark_candidates`` (the
-    landmark hypotheses tried on the best coarse candidate only, not on each of the best 3)."""
+    landmark hypotheses tried on the best coarse candidate only, not on each of the best 3) or
+    ``refine_bare`` (clothed scans refined with the clothing weights from the start, no
+    posture-first refinement on the clothes' outer surface: ``FitParams(refine_bare_iterations=0)``)."""
     from service.model.fitting import FitParams
 
+    if kind == "refine_bare":
+        return FitParams(refine_bare_iterations=0)
     if kind == "landmark_init":
         return FitParams(landmark_init=False)
     if kind == "landmark_candidates":
@@ -219,7 +223,7 @@ def _stats(values: list[float]) -> dict:
 def select_conditions(names: str | None, before: str | None = None) -> tuple[Condition, ...]:
     """The conditions named in a comma-separated list (None or '': all); ``before`` overrides
     every condition's "before" refit ('refine_damping', 'pose_prior', 'scan_cleanup',
-    'clothing_contact', 'none')."""
+    'clothing_contact', 'landmark_init', 'refine_bare', 'none')."""
     from dataclasses import replace
 
     wanted = [n.strip() for n in (names or "").split(",") if n.strip()] or [c.name for c in CONDITIONS]
