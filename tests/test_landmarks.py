@@ -1,7 +1,8 @@
 """Landmarks for the fit's initialisation (service/model/landmarks.py, issue 12): the scan's
 extremities against the true posed effectors (fingertips, toe tips, head top) of synthetic
 posed bodies, with holes and a cut head; their assignment by geodesics from the anchors; the
-limb aiming of fitting.py; a whole fit from a wrong ICP minimum (slow)."""
+limb aiming of fitting.py; a whole fit from a wrong ICP minimum (slow); the crotch and the
+shoulders (acromia) against the true posed body, under a pencil skirt and on simple shapes."""
 from __future__ import annotations
 
 import numpy as np
@@ -149,3 +150,126 @@ def test_landmarks_pick_the_facing_of_a_turned_bent_body(model):
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
     row = BF.evaluate(model, scan, fit, surface)
     assert row["p2s_mm"] < 2.0 and abs(row["measurements"]["arm_length_cm"]) < 2.0, row
+
+
+# -- the crotch and the shoulders (landmarks.find_crotch, find_shoulder) ------------------------
+LANDMARK_CM = 6.0  # a crotch or shoulder this close to the true one counts as correct
+
+
+def _perineum(model) -> int:
+    """The template's crotch vertex: the lowest vertex within 1 cm of the midline (rest mean)."""
+    X = model.mean[:model.n_body_vertices].astype(np.float64)
+    c = model.measurement_spec.crotch
+    mid = np.nonzero((np.abs(X[:, 0]) < 0.01) & (X[:, 1] < X[c, 1] + 0.05))[0]
+    return int(mid[np.argmin(X[mid, 1])])
+
+
+def _posed_frame(model, rig, scan):
+    """(joints (17, 3), global rotations (17, 3, 3)) of the true pose, model frame."""
+    s = F._State(np.asarray(scan.weights, np.float64), F.axis_angle_to_matrix(scan.rotvecs),
+                 np.asarray(scan.translation, np.float64))
+    p = F._pose_model(rig, s, F._subset(rig, np.array([0])))
+    q = np.einsum("jab,jb->ja", p.G[:, :3, :3], p.joints) + p.G[:, :3, 3]
+    return q, p.G[:, :3, :3]
+
+
+def _shoulders(model, rig, P, scan) -> list:
+    q, G = _posed_frame(model, rig, scan)
+    out = []
+    for b in (5, 8):  # the upper arms' heads (left at +X)
+        R = G[rig.parents[b]]
+        out.append(LM.find_shoulder(P, q[b], R @ [np.sign(rig.jmean[b, 0]), 0.0, 0.0], R @ [0.0, 1.0, 0.0]))
+    return out
+
+
+@pytest.mark.parametrize("seed", [3, 7, 8])
+def test_crotch_and_shoulders_on_an_unclothed_scan(model, rig, seed):
+    """Where the thighs part below the crotch (these seeds; thighs pressed together give None,
+    see the next test), the crotch is found within a few cm, also from hip joints 1.5 cm off
+    (a coarse fit's); each shoulder is found (or None: an arm raised past the corner)."""
+    scan = _scan(model, seed)
+    P = scan.points_in_model_frame()
+    q, _ = _posed_frame(model, rig, scan)
+    assert np.abs(q - scan.true_joints).max() < 1e-3
+    truth = scan.true_posed[_perineum(model)]
+    crotch = LM.find_crotch(P, q[[11, 14]])
+    assert crotch is not None
+    assert 100 * np.linalg.norm(crotch - truth) < LANDMARK_CM
+    off = LM.find_crotch(P, q[[11, 14]] + np.random.default_rng(seed).normal(scale=0.015, size=(2, 3)))
+    assert off is None or 100 * np.linalg.norm(off - truth) < LANDMARK_CM
+    found = 0
+    for k, s in zip(model.measurement_spec.acromion, _shoulders(model, rig, P, scan)):
+        if s is not None:  # None: an arm raised past the shoulder's corner
+            found += 1
+            assert 100 * np.linalg.norm(s - scan.true_posed[k]) < LANDMARK_CM
+    assert found >= 1
+
+
+@pytest.mark.parametrize("seed", [1, 5, 9])
+def test_thighs_pressed_together_give_no_wrong_crotch(model, rig, seed):
+    """Thighs touching well below the crotch part too low: None, or the crotch, never lower."""
+    scan = _scan(model, seed)
+    q, _ = _posed_frame(model, rig, scan)
+    crotch = LM.find_crotch(scan.points_in_model_frame(), q[[11, 14]])
+    assert crotch is None or 100 * np.linalg.norm(crotch - scan.true_posed[_perineum(model)]) < LANDMARK_CM
+
+
+@pytest.mark.parametrize("seed", [1, 2, 7])
+def test_a_skirt_gives_no_crotch_or_the_right_one(model, rig, seed):
+    """A pencil skirt hides where the legs join: the legs part at its hem, which must not be
+    taken for the crotch."""
+    from tests.bench.common import shared_data_dir
+
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=model.n_components) * np.sqrt(model.variances) * 0.5
+    scan = SS.make_scan(model, rng, w, "female", clothed=True, point_cloud=False, n_points=12_500, noise_mm=2.0,
+                        max_pose_deg=30.0, garments=["pinstripe-blouse", "pencil-skirt"], unit="m", up="+y",
+                        clothes_dir=shared_data_dir() / "makehuman_clothes")
+    q, _ = _posed_frame(model, rig, scan)
+    crotch = LM.find_crotch(scan.points_in_model_frame(), q[[11, 14]])
+    assert crotch is None or 100 * np.linalg.norm(crotch - scan.true_posed[_perineum(model)]) < LANDMARK_CM
+
+
+def test_the_legs_apart_and_a_hem_on_cylinders():
+    """Synthetic legs: two vertical cylinders joined by a pelvis cylinder with a bottom (the
+    saddle) at 0.8 m give the crotch there; the same legs under a skirt (a wide open cylinder
+    down to 0.5 m, the legs only seen below it) give None."""
+    rng = np.random.default_rng(0)
+
+    def cylinder(cx, r, y0, y1, n):
+        a, y = rng.uniform(0, 2 * np.pi, n), rng.uniform(y0, y1, n)
+        return np.c_[cx + r * np.cos(a), y, r * np.sin(a)]
+
+    def disc(r, y, n):
+        a, s = rng.uniform(0, 2 * np.pi, n), r * np.sqrt(rng.uniform(0, 1, n))
+        return np.c_[s * np.cos(a), np.full(n, y), s * np.sin(a)]
+
+    hips = np.array([[0.1, 0.9, 0.0], [-0.1, 0.9, 0.0]])
+    legs = [cylinder(0.095, 0.075, 0.0, 0.8, 6000), cylinder(-0.095, 0.075, 0.0, 0.8, 6000)]
+    body = np.vstack(legs + [cylinder(0.0, 0.17, 0.8, 1.2, 6000), disc(0.17, 0.8, 1500)])
+    crotch = LM.find_crotch(body, hips)
+    assert crotch is not None and abs(crotch[1] - 0.8) < 0.03 and abs(crotch[0]) < 0.03, crotch
+    skirt = np.vstack([leg[leg[:, 1] < 0.5] for leg in legs] + [cylinder(0.0, 0.18, 0.5, 1.2, 9000)])
+    assert LM.find_crotch(skirt, hips) is None
+    assert LM.find_crotch(np.zeros((10, 3)), hips) is None
+
+
+def test_a_shoulder_corner_and_a_raised_arm():
+    """A box torso with a horizontal arm cylinder: the acromion is the top-outer corner; an
+    arm raised along (out + up) leaves no corner within reach: None."""
+    rng = np.random.default_rng(1)
+    torso = np.c_[rng.uniform(-0.17, 0.17, 20000), rng.uniform(1.0, 1.42, 20000), rng.uniform(-0.1, 0.1, 20000)]
+    on_surface = (np.abs(torso[:, 0]) > 0.165) | (torso[:, 1] > 1.415) | (np.abs(torso[:, 2]) > 0.095)
+    torso = torso[on_surface]
+    joint = np.array([0.15, 1.38, 0.0])
+    out, up = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    s = LM.find_shoulder(torso, joint, out, up)
+    assert s is not None and np.linalg.norm(s - [0.17, 1.42, 0.0]) < 0.02, s
+    t = rng.uniform(0, 0.5, 8000)[:, None]
+    d = (out + up) / np.sqrt(2)
+    a = rng.uniform(0, 2 * np.pi, len(t))
+    n1 = np.array([0.0, 0.0, 1.0])
+    n2 = np.cross(d, n1)
+    arm = joint + t * d + 0.045 * (np.cos(a)[:, None] * n1 + np.sin(a)[:, None] * n2)
+    torso_low = torso[torso[:, 1] < 1.36]
+    assert LM.find_shoulder(np.vstack([torso_low, arm]), joint, out, up) is None
