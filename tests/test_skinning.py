@@ -230,21 +230,27 @@ def test_leg_ramp_splits_the_legs_by_side_below_the_crotch(model) -> None:
     assert 0.4 < wide[0, th_l] < 0.8 and 0.0 < wide[0, th_r] < 0.4
 
 
-@pytest.fixture(scope="module")
-def pencil_skirt(model):
+def _catalogue_basis_without(model, garment_id: str, switch: str):
+    """A catalogue garment's basis built with the ``tryon`` skinning switch ``switch`` off, and
+    with it as it is: (old, new)."""
     from service.model.catalogue import load_catalogue
 
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
-    it = {i.id: i for i in load_catalogue().garments()}["pencil-skirt"]
+    it = {i.id: i for i in load_catalogue().garments()}[garment_id]
     fits = np.stack([it.fit_to(E) for E in EX])
-    keep = T.SKIN_LEG_RAMP
+    keep = getattr(T, switch)
     try:
-        T.SKIN_LEG_RAMP = False
+        setattr(T, switch, False)
         old = T.build_garment_basis(model, fits, it.faces, ex)
     finally:
-        T.SKIN_LEG_RAMP = keep
+        setattr(T, switch, keep)
     return old, T.build_garment_basis(model, fits, it.faces, ex)
+
+
+@pytest.fixture(scope="module")
+def pencil_skirt(model):
+    return _catalogue_basis_without(model, "pencil-skirt", "SKIN_LEG_RAMP")
 
 
 def test_pencil_skirt_stays_closed_in_the_walking_step(model, pencil_skirt) -> None:
@@ -276,19 +282,7 @@ def test_pencil_skirt_stays_closed_in_the_walking_step(model, pencil_skirt) -> N
 @pytest.fixture(scope="module")
 def cropped_tee(model):
     """The catalogue's cropped tee without and with the limb-side release (``T.SKIN_LIMB_SIDE``)."""
-    from service.model.catalogue import load_catalogue
-
-    ex = T.example_set(model)
-    EX = T.example_vertices(model, ex)
-    it = {i.id: i for i in load_catalogue().garments()}["cropped-tee"]
-    fits = np.stack([it.fit_to(E) for E in EX])
-    keep = T.SKIN_LIMB_SIDE
-    try:
-        T.SKIN_LIMB_SIDE = False
-        old = T.build_garment_basis(model, fits, it.faces, ex)
-    finally:
-        T.SKIN_LIMB_SIDE = keep
-    return old, T.build_garment_basis(model, fits, it.faces, ex)
+    return _catalogue_basis_without(model, "cropped-tee", "SKIN_LIMB_SIDE")
 
 
 def test_cropped_tee_armpits_stretch_less_in_hands_on_hips(model, cropped_tee) -> None:
