@@ -71,6 +71,7 @@ class FitError(ValueError):
 
 NOT_A_PERSON = "not a person: "  # the prefix of every FitError of the person check
 OUTSIDE_POPULATION = "the fitted body is outside the population: "
+NOT_FITTED = "the body could not be fitted to the whole scan: "  # a wrong minimum (issue 12)
 
 
 def check_person_before(points_m: np.ndarray) -> None:
@@ -949,6 +950,10 @@ def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
         reason, checks = PC.fit_evidence(P, final)
         if reason:
             raise FitError(NOT_A_PERSON + reason)
+        reason, part = PC.unexplained_part(P, final)
+        checks.update(part)
+        if reason:
+            raise FitError(NOT_FITTED + reason)
         checks.update(check_population(model, s.beta))
     # partial scans: the share of each side of the body with scan surface nearby
     facing = s.rot[0] @ np.array([0.0, 0.0, 1.0])  # the root's facing (model faces +Z at rest)

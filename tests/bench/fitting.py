@@ -327,6 +327,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                                         default=None)},
             "refused_as_not_person": sum(("not a person" in f["error"]) or ("outside the population" in f["error"])
                                          for f in failures[name]),
+            "refused_as_not_fitted": sum("could not be fitted to the whole scan" in f["error"] for f in failures[name]),
             "goal": {"body_p2s_median_mm": goal_mm, "body_p2s_p90_mm": GOALS["body_p90_mm"],
                      "seconds_median": GOALS["seconds"]},
             "meets_goal": bool(r) and not failures[name] and p2s["median"] <= goal_mm
@@ -541,6 +542,8 @@ def format_result(r: dict) -> str:
     row("  worst cm", [_f(c["before"]["stature_worst_cm"]) for c in conds.values()])
     row("refused (not a person / outside population)", [str(c["refused_as_not_person"]) for c in conds.values()],
         "goal: 0 (false rejections)")
+    row("refused (part of the scan not explained)", [str(c.get("refused_as_not_fitted", 0)) for c in conds.values()],
+        "a wrong fit refused, not returned")
     row("flagged partial (whole scans)", [str(c["flagged_partial"]) for c in conds.values()], "goal: 0")
     row("meets goals", ["yes" if c["meets_goal"] else "no" for c in conds.values()])
     L.append("  measurements on the fitted rest body, mean |error| (cm, kg)")
