@@ -71,15 +71,27 @@ def _person(model):
 @pytest.mark.slow
 def test_fit_unclothed_scan(model):
     """A posed, noisy, re-meshed body in cm with Z up: the fit recovers units, the up axis,
-    the body (vertex-to-vertex) and the measurements."""
+    the body (vertex-to-vertex) and the measurements. BLAS runs with ``blas_threads`` (1)
+    threads during the fit, and as before after it."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
     person = _person(model)
     scan = SS.make_scan(model, np.random.default_rng(11), person["weights"], person["gender"], clothed=False,
                         point_cloud=False, n_points=8000, max_pose_deg=20, unit="cm", up="+z")
-    progress = []
-    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
-                     progress=lambda f, m: progress.append(f))
+    progress, threads, before = [], [], blas_threads()
+
+    def report(f, m):
+        progress.append(f)
+        threads.extend(blas_threads())
+
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False, progress=report)
     assert (fit.unit, fit.up) == ("cm", "+z")
     assert progress[-1] == 1.0 and progress == sorted(progress)
+    assert threads and set(threads) == {F.DEFAULT_PARAMS.blas_threads}, threads
+    assert blas_threads() == before
     err = v2v_mm(model, scan, fit)
     assert err < 8.0, err
     height = model.measure(model.vertices(fit.weights), person["gender"])["height_cm"]

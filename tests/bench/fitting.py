@@ -120,11 +120,14 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     initialisation from ICP alone, no landmark hypotheses) or ``landmark_candidates`` (the
     landmark hypotheses tried on the best coarse candidate only, not on each of the best 3) or
     ``refine_bare`` (clothed scans refined with the clothing weights from the start, no
-    posture-first refinement on the clothes' outer surface: ``FitParams(refine_bare_iterations=0)``)."""
+    posture-first refinement on the clothes' outer surface: ``FitParams(refine_bare_iterations=0)``)
+    or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
     from service.model.fitting import FitParams
 
     if kind == "refine_bare":
         return FitParams(refine_bare_iterations=0)
+    if kind == "blas_threads":
+        return FitParams(blas_threads=None)
     if kind == "landmark_init":
         return FitParams(landmark_init=False)
     if kind == "landmark_candidates":
