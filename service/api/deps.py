@@ -169,3 +169,13 @@ Underwear = Annotated[
     Query(description="Dress the avatar in its gender's base layer (underwear; the body under it is not "
                       "drawn). Default true: nobody is shown nude; false shows the bare body"),
 ]
+# Pose-corrective morph targets (issue 11) on the try-on GLBs.
+PoseCorrectives = Annotated[
+    bool,
+    Query(description="Give each garment one morph target per page pose (`pose:<name>`, the presets of "
+                      "`GET /v1/customers/{cid}/poses`): rest-space POSITION deltas (sparse accessors) that "
+                      "keep the skinned garment outside the body in that pose; a viewer sets the current "
+                      "pose's target influence to 1, the others to 0. Costs ~10 ms per pose on the "
+                      "customer's first request (the posed bodies; the first adaptation of the poses ~1 s), "
+                      "then ~2 ms per garment and pose. Default false: no targets"),
+]

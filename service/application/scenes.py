@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from service.model import gltf
+from service.model import correctives, gltf
 from service.model.body import BONES, BodyModel
 from service.model.geometry import vertex_normals
 from service.model.layering import layer_outfit
@@ -179,13 +179,15 @@ def layered_outfit(layers: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
 
 def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
                compression: str | None, with_avatar: bool = True, look: Look | None = None,
-               template: bool = True, cache: bool = True) -> bytes:
+               template: bool = True, cache: bool = True, poses: dict[str, np.ndarray] | None = None) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
     reference path, the same bytes). ``cache``: the layering from the process cache when the
     same layers were layered on the same body before (:func:`layered_outfit`; False: always
-    layered, for benchmarks)."""
+    layered, for benchmarks). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
+    body): each garment also gets one pose-corrective morph target per pose
+    (:func:`add_pose_correctives`)."""
     meshes = avatar_meshes(model, body.vertices, body.normals, look, template) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
@@ -212,8 +214,52 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
             if not np.array_equal(v, worn[i]):
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
-    meshes += [look_mesh(basis, rec, v, n, template, sk) for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
+    garment_meshes = [look_mesh(basis, rec, v, n, template, sk)
+                      for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
+    if poses:
+        for rank, (mesh, v, sk, (_, basis)) in enumerate(zip(garment_meshes, worn, skins, garments)):
+            add_pose_correctives(mesh, model, body, basis, v, sk, rank, poses)
+    meshes += garment_meshes
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
+
+
+POSED_BODIES_PER_CUSTOMER = 4  # pose sets (posed bodies, k-d trees) kept per customer body
+REST = ""  # posed_bodies' key of the unposed body
+
+
+def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarray]) -> dict[str, correctives.PosedBody]:
+    """The customer's body in each of ``poses`` (:func:`correctives.posed_body`) and unposed
+    (key ``REST``), cached on the body per pose set (every garment of an outfit, and the next
+    try-on, reuse them)."""
+    h = hashlib.sha1()
+    for name, p in poses.items():
+        h.update(name.encode() + b"\0" + np.ascontiguousarray(p, np.float64).tobytes())
+    key = h.hexdigest()
+    hit = body._posed.get(key)
+    if hit is None:
+        ids = correctives.obstacle_vertices(model)
+        hit = {name: correctives.posed_body(model, body.vertices, p, ids) for name, p in poses.items()}
+        hit[REST] = correctives.posed_body(model, body.vertices, np.zeros((len(BONES), 3)), ids)
+        if len(body._posed) >= POSED_BODIES_PER_CUSTOMER:
+            body._posed.pop(next(iter(body._posed)))
+        body._posed[key] = hit
+    return hit
+
+
+def add_pose_correctives(mesh: dict[str, Any], model: BodyModel, body: CustomerBody, basis: GarmentBasis,
+                         v: np.ndarray, skin: tuple[np.ndarray, np.ndarray] | None, layer: int,
+                         poses: dict[str, np.ndarray]) -> None:
+    """Give a garment scene mesh (:func:`look_mesh` of vertices ``v`` (M, 3) skinned with
+    ``skin``, or the basis' own skin) one morph target per pose, ``pose:<name>``: rest-space
+    deltas that keep it outside the posed body (``correctives.corrective_deltas``; outer layers
+    with more clearance), gathered into the render layout, stored sparse."""
+    idx, w = (basis.skin_idx, basis.skin_w) if skin is None else skin
+    bodies = posed_bodies(model, body, poses)
+    deltas = np.stack([correctives.corrective_deltas(v, idx, w, bodies[name], basis.smoother(), layer,
+                                                     rest=bodies[REST])[0] for name in poses])
+    if basis.has_layout:
+        deltas = np.take(deltas, np.asarray(basis.render_vertex), axis=1)
+    mesh.update(targets=deltas, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
 def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None) -> bytes:
