@@ -595,7 +595,7 @@ def catalogue_bases(model, ex, EX) -> dict:
     return out
 
 
-def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dict:
+def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correctives: bool = False) -> dict:
     """99.9th-percentile edge stretch (posed / rest length) of every garment in the page's four
     poses (adapted to each body) on the five bodies: nearest-vertex skin weights (before) vs the
     inpainted transfer (after); beside it the avatar's own skin, the garment's stretch relative
@@ -605,7 +605,11 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
     share of its vertices more than ``INSIDE_DEPTH`` inside the posed body (all bodies and poses
     pooled) and, for bottoms, the body showing through it in the walking step
     (:func:`show_through`), worst body. ``reference``: bases of the same garments built another
-    way (e.g. the previous skin weights), measured alongside ("ref_*" keys)."""
+    way (e.g. the previous skin weights), measured alongside ("ref_*" keys). ``correctives``: the
+    garments posed with their pose-corrective morph target at influence 1
+    (``service.model.correctives``, as ``?pose_correctives=1`` serves them; the "ref_*" keys
+    without), and the time to compute them."""
+    from service.model import correctives as C
     from service.model import lbs as L
     from service.model import poses as P
     from service.model.geometry import closest_points_on_mesh, mesh_edges
@@ -618,7 +622,8 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
                "ref_show_through_160_55_pct": 0.0} for k in bases}
     vf = vertex_faces(Fb, nb)
     avatar = 1.0
-    t_adapt = []
+    t_adapt, t_corr, t_posed = [], [], []
+    ids = C.obstacle_vertices(model)
     for bname, meas in FIVE_BODIES.items():
         X = S.avatar_from_measurements(model, meas).vertices
         body = T.customer_body(model, model.project(X))
@@ -630,16 +635,28 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
         under = {k: closest_points_on_mesh(v, rest, Fb) for k, v in fits.items()}
         covered = {k: covered_points(rest, Fb, fits[k], b.faces) for k, (b, c, _) in bases.items()
                    if c in SHOW_THROUGH_CATEGORIES}
+        rest_body = C.posed_body(model, body.vertices, np.zeros((len(model.bone_parents), 3)), ids) \
+            if correctives else None
         for pname, pose in poses.items():
             posed = model.forward(pose=pose, vertices=body.vertices)
             pb = posed.vertices[:nb]
             tree = cKDTree(pb)
             pn = None
+            delta = {k: 0.0 for k in bases}
+            if correctives:
+                t0 = time.perf_counter()
+                cb = C.posed_body(model, body.vertices, pose, ids)
+                t_posed.append(time.perf_counter() - t0)
+                for k, (b, _, _) in bases.items():
+                    t0 = time.perf_counter()
+                    delta[k] = C.corrective_deltas(fits[k], b.skin_idx, b.skin_w, cb, b.smoother(), 0,
+                                                   rest=rest_body)[0].astype(np.float64)
+                    t_corr.append(time.perf_counter() - t0)
             for k, (b, _, _) in bases.items():
                 for pre, bb in (("", b), ("ref_", (reference or {}).get(k, (None,))[0])):
                     if bb is None:
                         continue
-                    pv = L.skin(fits[k], posed.transforms, bb.skin_idx, bb.skin_w)
+                    pv = L.skin(fits[k] + (delta[k] if pre == "" else 0.0), posed.transforms, bb.skin_idx, bb.skin_w)
                     per[k][pre + "inside"] += int((penetration_depths(pv, pb, Fb, tree, vf) > INSIDE_DEPTH).sum())
                     if pre == "":
                         per[k]["n"] += len(pv)
@@ -668,7 +685,7 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
                 near = b.binding[:, 0]
                 for which, (idx, w) in (("before", (model.lbs_indices[near], model.lbs_weights[near])),
                                         ("after", (b.skin_idx, b.skin_w))):
-                    pv = L.skin(v, posed.transforms, idx, w)
+                    pv = L.skin(v + (delta[k] if which == "after" else 0.0), posed.transforms, idx, w)
                     s = P.edge_stretch(v, pv, b.faces)
                     p = float(np.percentile(s, STRETCH_PERCENTILE))
                     if which == "after":
@@ -689,7 +706,9 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
             "median_after_relative": float(np.median([v["after_relative"] for v in garments.values()])),
             "median_gap_change_mm_before": float(np.median([v["gap_change_mm_before"] for v in garments.values()])),
             "median_gap_change_mm_after": float(np.median([v["gap_change_mm_after"] for v in garments.values()])),
-            "reference": reference is not None,
+            "reference": reference is not None, "correctives": correctives,
+            "correctives_ms_median": 1000 * float(np.median(t_corr)) if t_corr else None,
+            "posed_body_ms_median": 1000 * float(np.median(t_posed)) if t_posed else None,
             "show_through": [k for k, (_, c, _) in bases.items() if c in SHOW_THROUGH_CATEGORIES]}
 
 
@@ -773,7 +792,8 @@ def bench_clothes_motion(limit: int) -> dict:
 def pose_stretch_catalogue(before: str | None = None) -> dict:
     """Only the pose-stretch rows of :func:`bench_clothes_motion` (the catalogue's bases built
     as at service start). ``before="leg_ramp"`` / ``"limb_side"``: also the bases without
-    ``T.SKIN_LEG_RAMP`` / ``T.SKIN_LIMB_SIDE``, measured alongside."""
+    ``T.SKIN_LEG_RAMP`` / ``T.SKIN_LIMB_SIDE``, measured alongside. ``before="correctives"``:
+    the garments with their pose-corrective morph targets (this) and without (reference)."""
     model = load_body_model()
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
@@ -789,7 +809,9 @@ def pose_stretch_catalogue(before: str | None = None) -> dict:
     t0 = time.perf_counter()
     bases = catalogue_bases(model, ex, EX)
     t_build = time.perf_counter() - t0
-    r = bench_pose_stretch(model, bases, reference)
+    if before == "correctives":
+        reference = bases
+    r = bench_pose_stretch(model, bases, reference, correctives=before == "correctives")
     r["build_bases_s"] = t_build
     return r
 
@@ -821,6 +843,9 @@ def format_pose_stretch(s: dict) -> str:
                     if s.get("reference") else "   show-through ") + \
                 f"{v['show_through_pct']:5.1f} | {v['show_through_160_55_pct']:5.1f} %"
         L.append(row)
+    if s.get("correctives"):
+        L.append(f"  pose correctives (reference: without; this: with): {s['posed_body_ms_median']:.1f} ms per posed "
+                 f"body (once per customer and pose), {s['correctives_ms_median']:.2f} ms per garment and pose (median)")
     if "build_bases_s" in s:
         L.append(f"  building the {len(s['per_garment'])} bases (fits + skin weights): {s['build_bases_s']:.1f} s")
     return "\n".join(L)
