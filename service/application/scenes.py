@@ -225,6 +225,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
 
 POSED_BODIES_PER_CUSTOMER = 4  # pose sets (posed bodies, k-d trees) kept per customer body
 REST = ""  # posed_bodies' key of the unposed body
+CORRECTIVES_CACHE_SIZE = 128  # garments' pose targets kept per process (~100 kB each for 2k vertices x 4 poses)
+_correctives = VersionedLRU(CORRECTIVES_CACHE_SIZE)
 
 
 def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarray]) -> dict[str, correctives.PosedBody]:
@@ -237,9 +239,8 @@ def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarr
     key = h.hexdigest()
     hit = body._posed.get(key)
     if hit is None:
-        ids = correctives.obstacle_vertices(model)
-        hit = {name: correctives.posed_body(model, body.vertices, p, ids) for name, p in poses.items()}
-        hit[REST] = correctives.posed_body(model, body.vertices, np.zeros((len(BONES), 3)), ids)
+        hit = {name: correctives.posed_body(model, body.vertices, p) for name, p in poses.items()}
+        hit[REST] = correctives.posed_body(model, body.vertices, np.zeros((len(BONES), 3)))
         if len(body._posed) >= POSED_BODIES_PER_CUSTOMER:
             body._posed.pop(next(iter(body._posed)))
         body._posed[key] = hit
@@ -252,11 +253,21 @@ def add_pose_correctives(mesh: dict[str, Any], model: BodyModel, body: CustomerB
     """Give a garment scene mesh (:func:`look_mesh` of vertices ``v`` (M, 3) skinned with
     ``skin``, or the basis' own skin) one morph target per pose, ``pose:<name>``: rest-space
     deltas that keep it outside the posed body (``correctives.corrective_deltas``; outer layers
-    with more clearance), gathered into the render layout, stored sparse."""
+    with more clearance), gathered into the render layout, stored sparse. Cached per process
+    by the digest of everything they are made of (the same customer and garment asked again)."""
     idx, w = (basis.skin_idx, basis.skin_w) if skin is None else skin
     bodies = posed_bodies(model, body, poses)
-    deltas = np.stack([correctives.corrective_deltas(v, idx, w, bodies[name], basis.smoother(), layer,
-                                                     rest=bodies[REST])[0] for name in poses])
+    h = hashlib.sha1(json.dumps([layer, sorted(bodies)]).encode())
+    for a in (v, idx, w, basis.faces, *[bodies[k].transforms for k in sorted(bodies)]):
+        h.update(np.ascontiguousarray(a).tobytes())
+    key = h.hexdigest()
+    deltas = _correctives.get(key, None)
+    if deltas is None:
+        deltas = np.stack([correctives.corrective_deltas(v, idx, w, bodies[name], basis.smoother(), layer,
+                                                         rest=bodies[REST], faces=np.asarray(basis.faces))[0]
+                           for name in poses])
+        deltas.setflags(write=False)
+        _correctives.put(key, None, deltas)
     if basis.has_layout:
         deltas = np.take(deltas, np.asarray(basis.render_vertex), axis=1)
     mesh.update(targets=deltas, target_names=correctives.target_names(poses), sparse_targets=True)

@@ -103,17 +103,14 @@ def laplacian_smoother(faces: np.ndarray, n_vertices: int) -> sp.csc_matrix:
 
 
 def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, binding: np.ndarray,
-             smoother: sp.csc_matrix | None = None, clearance: float | np.ndarray = CLEARANCE,
-             trigger: float | np.ndarray | None = None) -> tuple[np.ndarray, int]:
+             smoother: sp.csc_matrix | None = None, clearance: float = CLEARANCE) -> tuple[np.ndarray, int]:
     """Move garment vertices that are inside the body (or within ``clearance`` of it) out
     along the body normal, then smooth the displacement so the garment stays smooth.
 
     garment (M, 3); body (Vb, 3) and body_normals (Vb, 3) of the customer; binding (M, k)
     body vertices per garment vertex (the nearest of them is used; with k = 1, pass the
     nearest body vertex of this body, see ``tryon.CustomerBody.binding``). The distance to the
-    skin is that to the bound vertex's tangent plane. ``trigger`` (metres, <= clearance; None:
-    ``clearance``): only vertices nearer the skin than this are pushed (to ``clearance``);
-    both may be per vertex (M,).
+    skin is that to the bound vertex's tangent plane.
     Returns (garment (M, 3) float32, number of vertices moved)."""
     G = np.asarray(garment, np.float32)
     body = np.asarray(body, np.float32)
@@ -124,9 +121,8 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
         j = np.argmin(np.einsum("ijk,ijk->ij", diff, diff), axis=1)
         nb = binding[np.arange(len(G)), j]
     p, n = np.take(body, nb, axis=0), np.take(body_normals, nb, axis=0)  # ~4x faster than body[nb]
-    along = row_dot(G - p, n)
-    depth = clearance - along  # > 0: too close or inside
-    bad = np.flatnonzero(depth > 0 if trigger is None else along < trigger)
+    depth = clearance - row_dot(G - p, n)  # > 0: too close or inside
+    bad = np.flatnonzero(depth > 0)
     if not len(bad):
         return G, 0
     d, nbad = depth[bad], np.take(n, bad, axis=0)
