@@ -217,15 +217,14 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     garment_meshes = [look_mesh(basis, rec, v, n, template, sk)
                       for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
     if poses:
-        for rank, (mesh, v, sk, (_, basis)) in enumerate(zip(garment_meshes, worn, skins, garments)):
-            add_pose_correctives(mesh, model, body, basis, v, sk, rank, poses)
+        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses)
     meshes += garment_meshes
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
 
 POSED_BODIES_PER_CUSTOMER = 4  # pose sets (posed bodies, k-d trees) kept per customer body
 REST = ""  # posed_bodies' key of the unposed body
-CORRECTIVES_CACHE_SIZE = 128  # garments' pose targets kept per process (~100 kB each for 2k vertices x 4 poses)
+CORRECTIVES_CACHE_SIZE = 64  # outfits' pose targets kept per process (~100 kB per 2k-vertex garment, 4 poses)
 _correctives = VersionedLRU(CORRECTIVES_CACHE_SIZE)
 
 
@@ -247,30 +246,47 @@ def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarr
     return hit
 
 
-def add_pose_correctives(mesh: dict[str, Any], model: BodyModel, body: CustomerBody, basis: GarmentBasis,
-                         v: np.ndarray, skin: tuple[np.ndarray, np.ndarray] | None, layer: int,
-                         poses: dict[str, np.ndarray]) -> None:
-    """Give a garment scene mesh (:func:`look_mesh` of vertices ``v`` (M, 3) skinned with
-    ``skin``, or the basis' own skin) one morph target per pose, ``pose:<name>``: rest-space
-    deltas that keep it outside the posed body (``correctives.corrective_deltas``; outer layers
-    with more clearance), gathered into the render layout, stored sparse. Cached per process
-    by the digest of everything they are made of (the same customer and garment asked again)."""
-    idx, w = (basis.skin_idx, basis.skin_w) if skin is None else skin
+def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: CustomerBody,
+                         bases: list[GarmentBasis], worn: list[np.ndarray],
+                         skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray]) -> None:
+    """Give an outfit's garment scene meshes (:func:`look_mesh` of ``worn`` (M_i, 3) skinned with
+    ``skins``, or the bases' own skin; inner first) one morph target per pose, ``pose:<name>``:
+    rest-space deltas that keep each garment outside the posed body
+    (``correctives.posed_pushes``; outer layers with more clearance), an inner garment moved as
+    the garment over it where covered (``correctives.follow_outer``: the layers keep their
+    order), gathered into the render layout, stored sparse. Cached per process by the digest of
+    everything they are made of (the same customer and outfit asked again)."""
+    sk = [(b.skin_idx, b.skin_w) if s is None else s for b, s in zip(bases, skins)]
     bodies = posed_bodies(model, body, poses)
-    h = hashlib.sha1(json.dumps([layer, sorted(bodies)]).encode())
-    for a in (v, idx, w, basis.faces, *[bodies[k].transforms for k in sorted(bodies)]):
-        h.update(np.ascontiguousarray(a).tobytes())
+    h = hashlib.sha1(json.dumps(sorted(bodies)).encode())
+    for a in (*worn, *[x for pair in sk for x in pair], *[b.faces for b in bases],
+              *[bodies[k].transforms for k in sorted(bodies)]):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
     key = h.hexdigest()
     deltas = _correctives.get(key, None)
     if deltas is None:
-        deltas = np.stack([correctives.corrective_deltas(v, idx, w, bodies[name], basis.smoother(), layer,
-                                                         rest=bodies[REST], faces=np.asarray(basis.faces))[0]
-                           for name in poses])
-        deltas.setflags(write=False)
+        deltas = [np.zeros((len(poses), len(v), 3), np.float32) for v in worn]
+        nb = model.n_body_vertices
+        covers = [correctives.cover_map(worn[i], worn[i + 1], bases[i + 1].faces, body.vertices[:nb], body.normals)
+                  for i in range(len(worn) - 1)]
+        for k, name in enumerate(poses):
+            above = None  # the posed pushes of the garment over this one
+            for i in range(len(worn) - 1, -1, -1):  # outermost first
+                d, _ = correctives.posed_pushes(worn[i], *sk[i], bodies[name], bases[i].smoother(), i,
+                                                rest=bodies[REST], faces=np.asarray(bases[i].faces))
+                if above is not None:
+                    d = correctives.follow_outer(d, covers[i], above, bases[i + 1].faces)
+                deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
+                above = d
+        for d in deltas:
+            d.setflags(write=False)
         _correctives.put(key, None, deltas)
-    if basis.has_layout:
-        deltas = np.take(deltas, np.asarray(basis.render_vertex), axis=1)
-    mesh.update(targets=deltas, target_names=correctives.target_names(poses), sparse_targets=True)
+    for mesh, d, basis in zip(meshes, deltas, bases):
+        if basis.has_layout:
+            d = np.take(d, np.asarray(basis.render_vertex), axis=1)
+        mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
 def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None) -> bytes:

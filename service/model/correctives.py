@@ -220,6 +220,39 @@ def _edges(faces: np.ndarray, n: int) -> np.ndarray:
     return np.stack([lap.row[up], lap.col[up]], axis=1)
 
 
+def cover_map(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, body: np.ndarray,
+              body_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where an outfit's outer garment (N, 3) covers the inner one (M, 3) on the rest body (V, 3)
+    with its normals, as ``layering.violations`` decides it (the closest outer point inside the
+    outer surface within ``layering.COVER_DISTANCE``, or a rim over the body vertex under it),
+    and those closest points as (face (M,), barycentric (M, 3)). Returns (covered (M,) bool,
+    face, bary)."""
+    from service.model import layering as LY
+
+    O = np.asarray(outer, np.float64)
+    B = np.asarray(body, np.float64)
+    Bn = np.asarray(body_normals, np.float64)
+    tree = cKDTree(B)
+    F = np.asarray(outer_faces, np.int64)
+    on, ob, index, _ = LY.prepare_outer(O, F, B, Bn, tree, LY.topology(F, len(O))[1])
+    _, covered, face, bary = LY.violations(np.asarray(inner, np.float64), O, F, on, ob, B, Bn, tree,
+                                           outer_index=index)
+    return covered, face, bary
+
+
+def follow_outer(d: np.ndarray, cover: tuple[np.ndarray, np.ndarray, np.ndarray], d_outer: np.ndarray,
+                 outer_faces: np.ndarray) -> np.ndarray:
+    """An inner garment's posed pushes (M, 3) with each covered vertex (:func:`cover_map`) moved
+    as the outer garment's point over it (its posed pushes (N, 3) interpolated): the layers
+    keep the order they have posed without correctives (the inner one, skinned like the outer
+    one where covered, stays under it), and the outer one hides what is under it."""
+    covered, face, bary = cover
+    out = np.array(d, np.float64)
+    F = np.asarray(outer_faces, np.int64)
+    out[covered] = np.einsum("mk,mkj->mj", bary[covered], np.asarray(d_outer, np.float64)[F[face[covered]]])
+    return out
+
+
 def target_names(poses) -> list[str]:
     """The morph target names of poses (their names, in order)."""
     return [TARGET_PREFIX + name for name in poses]
