@@ -128,3 +128,47 @@ def test_round_trip_values(model, setup) -> None:
         d = C.corrective_deltas(v, b.skin_idx, b.skin_w, bodies[name], b.smoother(), rest=bodies[scenes.REST],
                                 faces=b.faces)[0]
         assert np.allclose(out["meshes"][0]["targets"][k], d[np.asarray(b.render_vertex)], atol=1e-7)
+
+
+def test_outfit_correctives_keep_the_layer_order(model, setup) -> None:
+    """The blouse under the jacket on the heavy man, the three page poses: with both garments'
+    targets at 1 (as outfit.glb makes them), the blouse is outside the jacket over no more of
+    the rest pose's doubly covered body than without them (``layering.posed_outside``), and
+    without following the jacket (each garment corrected alone) it would be outside more."""
+    from service.model import layering as LY
+    from service.model.body import BONES
+    from service.model.geometry import vertex_normals
+
+    bases, body, poses = setup
+    nb = model.n_body_vertices
+    bi, bo = bases["pinstripe-blouse"], bases["casual-jacket"]
+    Bv, Bn = body.vertices[:nb].astype(np.float64), body.normals.astype(np.float64)
+    vi, vo = T.try_on(bi, body, 0)[0], T.try_on(bo, body, 1)[0]
+    (vi, vo), (si, so) = LY.layer_outfit([(vi, bi.faces), (vo, bo.faces)], Bv, Bn,
+                                         skins=[(bi.skin_idx, bi.skin_w), (bo.skin_idx, bo.skin_w)], n_joints=len(BONES))
+    pairs = LY.layered_pairs(vi, bi.faces, vo, bo.faces, Bv, Bn)
+    out = read_glb(scenes.outfit_glb(model, body, [(record("blouse", 0), bi), (record("jacket", 1), bo)], None,
+                                     with_avatar=False, poses=poses))
+    names = out["meshes"][0]["target_names"]
+    rest = C.posed_body(model, body.vertices, np.zeros((len(BONES), 3)))
+    cover = C.cover_map(vi, vo, bo.faces, Bv, Bn)
+    counts = np.zeros(3, int)
+    for name in ("walking", "arms-down", "hands-on-hips"):
+        posed = C.posed_body(model, body.vertices, poses[name])
+        G, PB = posed.transforms, posed.vertices
+        PN = vertex_normals(PB, model.body_faces).astype(np.float64)
+        po = C.posed_pushes(vo, *so, posed, bo.smoother(), 1, rest=rest, faces=bo.faces)[0]
+        pi = C.posed_pushes(vi, *si, posed, bi.smoother(), 0, rest=rest, faces=bi.faces)[0]
+        di, do = C.to_rest(C.follow_outer(pi, cover, po, bo.faces), G, *si), C.to_rest(po, G, *so)
+        alone = C.to_rest(pi, G, *si)
+        k = names.index(f"pose:{name}")
+        # each welded vertex's first render vertex
+        served = [out["meshes"][j]["targets"][k][np.unique(np.asarray(b.render_vertex), return_index=True)[1]]
+                  for j, b in ((0, bi), (1, bo))]
+        assert np.allclose(served[0], di, atol=1e-6) and np.allclose(served[1], do, atol=1e-6)
+        for c, (a, o) in enumerate(((vi, vo), (vi + di, vo + do), (vi + alone, vo + do))):
+            counts[c] += LY.posed_outside(pairs, L.skin(a, G, *si), bi.faces, L.skin(o, G, *so), bo.faces, PB, PN)
+    none, served, alone = counts
+    print("posed_outside none / served / alone:", counts, "of", 3 * len(pairs[0]))
+    assert served <= none + 0.002 * len(pairs[0]) * 3, counts
+    assert alone > served, counts
