@@ -146,6 +146,7 @@ def test_outfit_correctives_keep_the_layer_order(model, setup) -> None:
     vi, vo = T.try_on(bi, body, 0)[0], T.try_on(bo, body, 1)[0]
     (vi, vo), (si, so) = LY.layer_outfit([(vi, bi.faces), (vo, bo.faces)], Bv, Bn,
                                          skins=[(bi.skin_idx, bi.skin_w), (bo.skin_idx, bo.skin_w)], n_joints=len(BONES))
+    vi, vo = (np.asarray(x, np.float32).astype(np.float64) for x in (vi, vo))  # as outfit.glb keeps them
     pairs = LY.layered_pairs(vi, bi.faces, vo, bo.faces, Bv, Bn)
     out = read_glb(scenes.outfit_glb(model, body, [(record("blouse", 0), bi), (record("jacket", 1), bo)], None,
                                      with_avatar=False, poses=poses))

@@ -3,14 +3,23 @@ garment outside the posed body. Pure numpy/scipy.
 
 Plain linear blend skinning pushes some garment vertices inside the body in the page's poses
 (an arm swung back drags the blouse's side into the chest). For each pose (the bone transforms
-G (J, 4, 4) the page applies: ``service.model.poses``), the garment is posed with its own skin
-weights, the vertices nearer the posed skin than ``TRIGGER`` are pushed out to ``CLEARANCE``
-(plus the layer's gap) along the body normal of their nearest posed body vertex, the push spread
-to the neighbours by the garment's smoother (``garment.push_out``, the try-on's own push-out,
-run on the posed shapes), and the posed displacement d taken back to rest space with the
-inverse of the vertex's blended LBS matrix: glTF (and three.js) add morph deltas before
-skinning, and skinning is linear in the rest position, so skin(v + A^-1 d) = skin(v) + d with
-A = sum_k w_k G_{i_k}[:3, :3] (the blended linear part; Kavan et al. 2008, eq. 1).
+G (J, 4, 4) the page applies: the presets adapted to the body, ``service.model.poses``), the
+garment is posed with its own skin weights and:
+
+1. the vertices nearer the posed skin than ``TRIGGER`` (signed distance to the closest point
+   of the posed body without the hands, ``geometry.closest_points_on_mesh``) are pushed out to
+   ``CLEARANCE`` (plus the layer's gap) along the surface normal there, unless that lands them
+   inside another part (the armpit between arm and chest);
+2. the pushes are spread to the neighbours by the garment's smoother, as ``garment.push_out``
+   does at rest, and pushes that would stretch an edge beyond ``STRETCH_LIMIT`` are dropped;
+3. where a body vertex still pokes through a garment triangle between vertices outside the
+   body (coarse garments over a bulging chest), that triangle's vertices are pushed the same
+   way (``BODY_POKES``);
+
+and the posed displacement d is taken back to rest space with the inverse of the vertex's
+blended LBS matrix: glTF (and three.js) add morph deltas before skinning, and skinning is
+linear in the rest position, so skin(v + A^-1 d) = skin(v) + d with A = sum_k w_k
+G_{i_k}[:3, :3] (the blended linear part; Kavan et al. 2008, eq. 1).
 
 The target of pose ``p`` is named ``pose:p``; the page sets its influence to 1 in that pose, 0
 otherwise. Shapes: garment vertices (M, 3) metres, skin (M, 4) + (M, 4), body (V, 3).
@@ -35,9 +44,9 @@ from service.model.geometry import (
 )
 
 TARGET_PREFIX = "pose:"
-# metres: posed garment vertices nearer the posed skin than this (along the nearest body vertex's
-# normal) are pushed out. Below the try-on's CLEARANCE (3 mm) so that cloth merely pressed a
-# little closer by a pose (most of it) keeps a zero delta: the targets stay sparse
+# metres: posed garment vertices nearer the posed skin than this are pushed out. Below the try-on's
+# CLEARANCE (3 mm) so that cloth merely pressed a little closer by a pose (most of it) keeps a
+# zero delta: the targets stay sparse
 TRIGGER = 0.001
 # metres: where they are pushed to (plus ``garment.LAYER_GAP`` per layer: an outer garment over
 # the inner one's correction, as at rest)
@@ -45,6 +54,11 @@ CLEARANCE = 0.002
 STRETCH_LIMIT = 1.8  # an edge may be stretched by a push up to this ratio (or its stretch without it): the
 # avatar's own skin stretches 1.79 at p99.9 in these poses. 1.5 kept 2-4x more vertices inside, 2.2 and no
 # limit stretched more (cropped tee, white T-shirt, casual jacket on the 165/105 woman and 200/130 man)
+# step 3: the 200/130 man's chest showed through the pinstripe blouse in front of the arm in the
+# walking step (page screenshots) with no garment vertex inside it: 66 -> 55 body vertices poking
+# through it after steps 1-2, 22 with step 3
+BODY_POKES = True
+POKE_DISTANCE = 0.02  # metres: body vertices this near the posed garment are tested for poking through it
 PREFILTER = 0.02  # metres: closest points only for vertices this near the skin by the push-out's measure
 # (0.005 / 0.01 left 1.5x / 1.3x as many vertices inside as exact everywhere; 0.02 within 5 %)
 STRETCH_PASSES = 3  # rounds of dropping the pushes that stretch an edge beyond that
@@ -196,7 +210,70 @@ def posed_pushes(garment: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray, 
             break
         drop = np.isin(bad, edges[over].ravel())
         bad, n, need = bad[~drop], n[~drop], need[~drop]
+    if edges is not None and BODY_POKES:
+        d = d + _poke_pushes(v, pv + d, faces, edges, body, CLEARANCE + layer * G.LAYER_GAP, smoother)
     return d, len(bad)
+
+
+def _poke_pushes(v, pv, faces, edges, body, clearance, smoother):
+    """Posed displacement (M, 3) of the garment (posed (M, 3)) where body vertices poke through
+    its triangles between vertices outside the body (:func:`body_pokes`), stretch-limited as
+    the vertex pushes."""
+    bad, need, n = body_pokes(pv, faces, body, clearance)
+    if not len(bad):
+        return np.zeros_like(pv)
+    order = np.lexsort((-need, bad))  # per vertex, its largest push
+    bad, need, n = bad[order], need[order], n[order]
+    first = np.r_[True, bad[1:] != bad[:-1]]
+    bad, need, n = bad[first], need[first], n[first]
+    keep = skin_offsets(pv[bad] + need[:, None] * n, body)[0] > 0.0  # not into another part
+    bad, need, n = bad[keep], need[keep], n[keep]
+    a, b = edges[:, 0], edges[:, 1]
+    rest_len = np.linalg.norm(v[a] - v[b], axis=1) + 1e-12
+    before = np.linalg.norm(pv[a] - pv[b], axis=1) / rest_len
+    for rounds in range(STRETCH_PASSES + 1):
+        if not len(bad):
+            return np.zeros_like(pv)
+        d = _spread(len(pv), bad, need, n, smoother)
+        if rounds == STRETCH_PASSES:
+            break
+        after = np.linalg.norm(pv[a] + d[a] - pv[b] - d[b], axis=1) / rest_len
+        over = after > np.maximum(before, STRETCH_LIMIT)
+        if not over.any():
+            break
+        drop = np.isin(bad, edges[over].ravel())
+        bad, n, need = bad[~drop], n[~drop], need[~drop]
+    return d
+
+
+def body_pokes(pv: np.ndarray, faces: np.ndarray, body: PosedBody,
+               clearance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Garment vertices (K,) to push, by how much (K,) and along which unit normal (K, 3), where
+    a posed body vertex pokes through a garment triangle (M, 3) / (F, 3): the body vertex's
+    closest garment point is over it (within 45 degrees of its normal, not on the garment's
+    rim, within ``POKE_DISTANCE``) but nearer than ``TRIGGER`` along the normal or under it;
+    the triangle's three vertices are pushed so that the point is ``clearance`` out."""
+    from service.model.layering import topology
+
+    F = np.asarray(faces, np.int64)
+    X = body.vertices[body.ids]
+    N = body.normals[body.ids]
+    dist0, _ = cKDTree(pv).query(X, distance_upper_bound=POKE_DISTANCE)
+    near = np.flatnonzero(np.isfinite(dist0))
+    empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    if not len(near):
+        return empty
+    face, q, bary = closest_points_on_mesh(X[near], pv, F)
+    off = q - X[near]
+    dist = np.linalg.norm(off, axis=1)
+    s = np.einsum("ij,ij->i", off, N[near])
+    fb = topology(F, len(pv))[1][F[face]]
+    edge_bound = np.stack([fb[:, 1] & fb[:, 2], fb[:, 2] & fb[:, 0], fb[:, 0] & fb[:, 1]], axis=1)
+    rim = ((bary < 1e-3) & edge_bound).any(axis=1) | ((bary > 1 - 1e-3) & fb).any(axis=1)
+    poke = ~rim & (dist < POKE_DISTANCE) & (np.abs(s) > np.cos(np.pi / 4) * dist) & (s < TRIGGER)
+    if not poke.any():
+        return empty
+    return F[face[poke]].reshape(-1), np.repeat(clearance - s[poke], 3), np.repeat(N[near][poke], 3, axis=0)
 
 
 def _spread(m: int, bad: np.ndarray, need: np.ndarray, n: np.ndarray, smoother: sp.csc_matrix | None) -> np.ndarray:
