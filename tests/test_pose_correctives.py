@@ -173,3 +173,23 @@ def test_outfit_correctives_keep_the_layer_order(model, setup) -> None:
     print("posed_outside none / served / alone:", counts, "of", 3 * len(pairs[0]))
     assert served <= none + 0.002 * len(pairs[0]) * 3, counts
     assert alone > served, counts
+
+
+def test_body_pokes_through_the_blouse_are_pushed_out(model, setup, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The page's screenshot: the heavy man's chest through the pinstripe blouse in front of the
+    arm in the walking step, with hardly a blouse vertex inside him (the skin pokes through
+    triangles between them). Step 3 (``BODY_POKES``) pushes those triangles out: far fewer body
+    vertices poke through than with steps 1-2 alone."""
+    bases, body, poses = setup
+    b = bases["pinstripe-blouse"]
+    v = T.try_on(b, body)[0].astype(np.float64)
+    posed = C.posed_body(model, body.vertices, poses["walking"])
+    rest = C.posed_body(model, body.vertices, np.zeros((17, 3)))
+    counts = {}
+    for on in (False, True):
+        monkeypatch.setattr(C, "BODY_POKES", on)
+        d = C.corrective_deltas(v, b.skin_idx, b.skin_w, posed, b.smoother(), rest=rest, faces=b.faces)[0]
+        pv = L.skin(v + d, posed.transforms, b.skin_idx, b.skin_w)
+        counts[on] = len(C.body_pokes(pv, b.faces, posed, 0.0)[0]) // 3
+    none = len(C.body_pokes(L.skin(v, posed.transforms, b.skin_idx, b.skin_w), b.faces, posed, 0.0)[0]) // 3
+    assert counts[True] < 0.6 * counts[False] and counts[False] <= none, (none, counts)

@@ -1,5 +1,9 @@
-// node shot.mjs BASE OUTDIR: the 200/130 man in the pinstripe blouse, walking, with and without
-// the pose-corrective targets (influences zeroed), front and a few turns.
+// The 200/130 man in the pinstripe blouse in the page's walking step, with and without the
+// pose-corrective targets (hook.setCorrectives: influences zeroed), front and turned; PNGs to OUTDIR.
+// Usage (a server on loopback, as tests/test_web_client.py starts it):
+//   PYTHONPATH=. python -c "import subprocess, sys; from pathlib import Path; from tests.harness import run_server
+//   with run_server(Path('/tmp/pc-data'), 'embedded') as s: subprocess.run(['node', 'tests/pose_correctives_shots.mjs',
+//       str(s.client.base_url).rstrip('/'), 'tests/artifacts/pose_correctives'])"
 import { chromium } from 'playwright-core';
 import path from 'node:path';
 import fs from 'node:fs';
