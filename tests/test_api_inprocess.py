@@ -149,6 +149,22 @@ def test_tryon_etag(client: TestClient, customer: str, auth: dict[str, str]) -> 
     assert client.get(url, headers={"If-None-Match": etag}).status_code == 404
 
 
+def test_tryon_pose_correctives(client: TestClient, customer: str, auth: dict[str, str]) -> None:
+    """``pose_correctives=true`` gives every garment of a try-on and an outfit one morph target
+    per page pose (``pose:<name>``, the presets of ``/poses``) and its own ETag; without it, none."""
+    gids = [g["id"] for g in client.get("/v1/garments").json()][:2]
+    poses = list(client.get(f"/v1/customers/{customer}/poses", headers=auth).json())
+    url = f"/v1/customers/{customer}/garments/{gids[0]}.glb"
+    plain, pc = client.get(url, headers=auth), client.get(url + "?pose_correctives=true", headers=auth)
+    assert pc.status_code == 200 and pc.headers["etag"] != plain.headers["etag"]
+    assert read_glb(plain.content)["meshes"][0]["targets"] is None
+    assert read_glb(pc.content)["meshes"][0]["target_names"] == [f"pose:{p}" for p in poses]
+    outfit = read_glb(client.get(f"/v1/customers/{customer}/outfit.glb", headers=auth,
+                                 params={"garments": ",".join(gids), "pose_correctives": "1"}).content)
+    garments = [m for m in outfit["meshes"] if m["targets"] is not None]
+    assert len(garments) == 2 and outfit["meshes"][0]["name"] == "avatar" and outfit["meshes"][0]["targets"] is None
+
+
 def test_catalogue_upload_tryon_and_basis(client: TestClient, customer: str, auth: dict[str, str]) -> None:
     demo = client.get("/v1/garments").json()
     assert {g["catalogue_id"] for g in demo} >= {"mens-tshirt", "mens-jeans", "pencil-skirt"}

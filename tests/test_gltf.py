@@ -571,8 +571,15 @@ def test_mesh_template_bad_inputs() -> None:
         scene_to_glb([{**fast[0], "vertices": g[:-1]}], skin=skeleton)
     with pytest.raises(ValueError, match="joints"):
         scene_to_glb([fast[0]], skin={"joints": np.zeros((1, 3)), "parents": np.array([-1]), "joint_names": ["r"]})
-    with pytest.raises(ValueError, match="morph"):
-        scene_to_glb([{**fast[2], "targets": np.zeros((1, len(g), 3))}])
+    # morph targets are per-request arrays: a templated mesh takes them (pose correctives), the
+    # same bytes as the reference path, dense or sparse
+    t = np.zeros((2, len(g), 3))
+    t[0, 3] = 0.01
+    for sparse in (False, True):
+        assert scene_to_glb([{**fast[2], "targets": t, "sparse_targets": sparse}]) == \
+            scene_to_glb([{**ref[2], "targets": t, "sparse_targets": sparse}])
+    with pytest.raises(ValueError, match="targets"):
+        scene_to_glb([{**fast[2], "targets": np.zeros((1, len(g) - 1, 3))}])
     with pytest.raises(ValueError, match="finite"):
         scene_to_glb([{**fast[2], "vertices": np.where(np.arange(len(g))[:, None] == 5, np.inf, g)}])
     with pytest.raises(ValueError, match="range"):

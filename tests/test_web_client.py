@@ -82,6 +82,13 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
     assert out["dressed"]["bones"] == BONES
     assert out["dressed"]["customer"] and out["storedId"] == out["dressed"]["customer"]
     assert out["dressedCanvas"]["colours"] > 10
+    # each garment carries one pose-corrective target per preset; the current pose's at 1
+    for key, pose in (("correctivesWalking", "walking"), ("correctivesHips", "hands-on-hips")):
+        got = out[key]
+        assert len(got) == 2, (key, got)  # the two garments (not the avatar)
+        for influences in got.values():
+            assert {"pose:a-pose", "pose:walking", "pose:arms-down", "pose:hands-on-hips"} <= set(influences)
+            assert influences == {k: float(k == f"pose:{pose}") for k in influences}, (key, influences)
     # delete my data: gone server-side, forgotten client-side
     assert out["customerStatusBefore"] == 200 and out["storedToken"]  # the page keeps the token with the id
     assert out["customerStatusNoToken"] == 404  # and the customer is private without it

@@ -134,8 +134,11 @@ try {
   out.storedId = await page.evaluate(() => localStorage.getItem('tryon.customerId'));
   const token = await page.evaluate(() => localStorage.getItem('tryon.customerToken'));
   out.storedToken = Boolean(token);
+  // the garments' pose-corrective targets follow the pose: the current one's at 1, the others at 0
+  out.correctivesWalking = await page.evaluate(() => window.__tryon.poseCorrectives());
   await page.click('#poses button[data-pose=hands-on-hips]');
   await page.waitForTimeout(300);
+  out.correctivesHips = await page.evaluate(() => window.__tryon.poseCorrectives());
   out.dressedCanvas = await canvasVariation(page);
   await shot(page, '03-dressed');
 

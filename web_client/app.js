@@ -341,9 +341,29 @@ function customerPoses() {
   return null;
 }
 
+// Pose-corrective morph targets (outfit.glb?pose_correctives=1): a garment may carry one target
+// per preset, `pose:<name>`, that keeps it outside the body in that pose; the current pose's at
+// influence 1, the others at 0. Meshes without them (the avatar, older GLBs) are left alone.
+let correctivesOn = true; // off: every pose target at 0 (hook.setCorrectives, to compare)
+function setPoseCorrectives(name) {
+  for (const m of meshes()) {
+    const dict = m.morphTargetDictionary, inf = m.morphTargetInfluences;
+    if (!dict || !inf) continue;
+    for (const [key, i] of Object.entries(dict)) {
+      if (key.startsWith('pose:')) inf[i] = correctivesOn && key === `pose:${name}` ? 1 : 0;
+    }
+  }
+}
+hook.setCorrectives = (on) => { correctivesOn = Boolean(on); setPoseCorrectives(state.pose); render(); };
+// {mesh name: {target name: influence}} of the meshes that have pose-corrective targets
+hook.poseCorrectives = () => Object.fromEntries(meshes().filter((m) => m.morphTargetDictionary
+  && Object.keys(m.morphTargetDictionary).some((k) => k.startsWith('pose:'))).map((m) => [m.name,
+  Object.fromEntries(Object.entries(m.morphTargetDictionary).map(([k, i]) => [k, m.morphTargetInfluences[i]]))]));
+
 function applyPose(name) {
   state.pose = name; hook.pose = name;
   if (!current) return;
+  setPoseCorrectives(name);
   // Every bone of that name (the outfit scene shares one skeleton; if a garment carried its
   // own copy of the joints it gets the same rotations).
   for (const [b, q] of rest) b.quaternion.copy(q);
@@ -811,7 +831,7 @@ async function refresh() {
     if (state.worn.length) {
       if (!state.customerId) await saveCustomer();
       else if (state.customerStale) await updateCustomer();
-      r = await api(withHair(`/v1/customers/${state.customerId}/outfit.glb?garments=${state.worn.join(',')}`), asCustomer());
+      r = await api(withHair(`/v1/customers/${state.customerId}/outfit.glb?garments=${state.worn.join(',')}&pose_correctives=1`), asCustomer());
     } else {
       if (state.customerId && state.customerStale) await updateCustomer();
       r = await api(withHair('/v1/avatars'), { method: 'POST', headers: { 'Content-Type': 'application/json', Accept: GLB },

@@ -169,3 +169,14 @@ Underwear = Annotated[
     Query(description="Dress the avatar in its gender's base layer (underwear; the body under it is not "
                       "drawn). Default true: nobody is shown nude; false shows the bare body"),
 ]
+# Pose-corrective morph targets (issue 11) on the try-on GLBs.
+PoseCorrectives = Annotated[
+    bool,
+    Query(description="Give each garment one morph target per page pose (`pose:<name>`, the presets of "
+                      "`GET /v1/customers/{cid}/poses`): rest-space POSITION deltas (sparse accessors) that "
+                      "keep the skinned garment outside the body in that pose; a viewer sets the current "
+                      "pose's target influence to 1, the others to 0. Computing them costs ~40-160 ms per garment "
+                      "and pose (2k-8k vertices), plus ~0.6 s once per customer to adapt the poses; they are "
+                      "then cached per process (the same customer and garments again: ~1 ms). Default false: "
+                      "no targets"),
+]

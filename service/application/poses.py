@@ -2,7 +2,8 @@
 
 The adaptation (``service.model.poses.adapted_poses``: more shoulder abduction until no arm
 vertex is inside the torso or thighs) takes a few seconds on 2 cores, so results are kept per
-(body model, weights) in a small LRU shared by the process."""
+(body model, weights) in a small LRU shared by the process (also read by the try-on's pose
+correctives: the same poses the page applies)."""
 from __future__ import annotations
 
 import threading
@@ -20,10 +21,8 @@ _cache: OrderedDict = OrderedDict()
 _lock = threading.Lock()
 
 
-def customer_poses(customers: CustomerService, cid: str, creds: Credentials) -> dict[str, dict[str, list[float]]]:
-    """{preset name: {bone: [x, y, z] axis-angle radians (local rotation, rest frames = world
-    axes)}} for every bone, in ``BONES`` order (404 unknown customer, 409 not ready)."""
-    record = customers.require_ready(customers.open(customers.repo.get(cid), cid, creds), cid)
+def record_poses(customers: CustomerService, record) -> dict[str, dict[str, list[float]]]:
+    """{preset name: {bone: [x, y, z] axis-angle}} of a ready customer record (cached)."""
     key = (customers.model.version, tuple(record.weights or ()))
     with _lock:
         hit = _cache.get(key)
@@ -37,3 +36,15 @@ def customer_poses(customers: CustomerService, cid: str, creds: Credentials) -> 
         while len(_cache) > POSES_CACHE_SIZE:
             _cache.popitem(last=False)
     return out
+
+
+def pose_arrays(poses: dict[str, dict[str, list[float]]]) -> dict[str, np.ndarray]:
+    """:func:`record_poses` as {name: (17, 3) axis-angle in ``BONES`` order}."""
+    return {name: np.array([p[b] for b in BONES], np.float64) for name, p in poses.items()}
+
+
+def customer_poses(customers: CustomerService, cid: str, creds: Credentials) -> dict[str, dict[str, list[float]]]:
+    """{preset name: {bone: [x, y, z] axis-angle radians (local rotation, rest frames = world
+    axes)}} for every bone, in ``BONES`` order (404 unknown customer, 409 not ready)."""
+    record = customers.require_ready(customers.open(customers.repo.get(cid), cid, creds), cid)
+    return record_poses(customers, record)

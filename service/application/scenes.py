@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from service.model import gltf
+from service.model import correctives, gltf
 from service.model.body import BONES, BodyModel
 from service.model.geometry import vertex_normals
 from service.model.layering import layer_outfit
@@ -179,13 +179,15 @@ def layered_outfit(layers: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
 
 def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
                compression: str | None, with_avatar: bool = True, look: Look | None = None,
-               template: bool = True, cache: bool = True) -> bytes:
+               template: bool = True, cache: bool = True, poses: dict[str, np.ndarray] | None = None) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
     reference path, the same bytes). ``cache``: the layering from the process cache when the
     same layers were layered on the same body before (:func:`layered_outfit`; False: always
-    layered, for benchmarks)."""
+    layered, for benchmarks). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
+    body): each garment also gets one pose-corrective morph target per pose
+    (:func:`add_pose_correctives`)."""
     meshes = avatar_meshes(model, body.vertices, body.normals, look, template) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
@@ -212,8 +214,79 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
             if not np.array_equal(v, worn[i]):
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
-    meshes += [look_mesh(basis, rec, v, n, template, sk) for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
+    garment_meshes = [look_mesh(basis, rec, v, n, template, sk)
+                      for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
+    if poses:
+        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses)
+    meshes += garment_meshes
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
+
+
+POSED_BODIES_PER_CUSTOMER = 4  # pose sets (posed bodies, k-d trees) kept per customer body
+REST = ""  # posed_bodies' key of the unposed body
+CORRECTIVES_CACHE_SIZE = 64  # outfits' pose targets kept per process (~100 kB per 2k-vertex garment, 4 poses)
+_correctives = VersionedLRU(CORRECTIVES_CACHE_SIZE)
+
+
+def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarray]) -> dict[str, correctives.PosedBody]:
+    """The customer's body in each of ``poses`` (:func:`correctives.posed_body`) and unposed
+    (key ``REST``), cached on the body per pose set (every garment of an outfit, and the next
+    try-on, reuse them)."""
+    h = hashlib.sha1()
+    for name, p in poses.items():
+        h.update(name.encode() + b"\0" + np.ascontiguousarray(p, np.float64).tobytes())
+    key = h.hexdigest()
+    hit = body._posed.get(key)
+    if hit is None:
+        hit = {name: correctives.posed_body(model, body.vertices, p) for name, p in poses.items()}
+        hit[REST] = correctives.posed_body(model, body.vertices, np.zeros((len(BONES), 3)))
+        if len(body._posed) >= POSED_BODIES_PER_CUSTOMER:
+            body._posed.pop(next(iter(body._posed)))
+        body._posed[key] = hit
+    return hit
+
+
+def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: CustomerBody,
+                         bases: list[GarmentBasis], worn: list[np.ndarray],
+                         skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray]) -> None:
+    """Give an outfit's garment scene meshes (:func:`look_mesh` of ``worn`` (M_i, 3) skinned with
+    ``skins``, or the bases' own skin; inner first) one morph target per pose, ``pose:<name>``:
+    rest-space deltas that keep each garment outside the posed body
+    (``correctives.posed_pushes``; outer layers with more clearance), an inner garment moved as
+    the garment over it where covered (``correctives.follow_outer``: the layers keep their
+    order), gathered into the render layout, stored sparse. Cached per process by the digest of
+    everything they are made of (the same customer and outfit asked again)."""
+    sk = [(b.skin_idx, b.skin_w) if s is None else s for b, s in zip(bases, skins)]
+    bodies = posed_bodies(model, body, poses)
+    h = hashlib.sha1(json.dumps(sorted(bodies)).encode())
+    for a in (*worn, *[x for pair in sk for x in pair], *[b.faces for b in bases],
+              *[bodies[k].transforms for k in sorted(bodies)]):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    key = h.hexdigest()
+    deltas = _correctives.get(key, None)
+    if deltas is None:
+        deltas = [np.zeros((len(poses), len(v), 3), np.float32) for v in worn]
+        nb = model.n_body_vertices
+        covers = [correctives.cover_map(worn[i], worn[i + 1], bases[i + 1].faces, body.vertices[:nb], body.normals)
+                  for i in range(len(worn) - 1)]
+        for k, name in enumerate(poses):
+            above = None  # the posed pushes of the garment over this one
+            for i in range(len(worn) - 1, -1, -1):  # outermost first
+                d, _ = correctives.posed_pushes(worn[i], *sk[i], bodies[name], bases[i].smoother(), i,
+                                                rest=bodies[REST], faces=np.asarray(bases[i].faces))
+                if above is not None:
+                    d = correctives.follow_outer(d, covers[i], above, bases[i + 1].faces)
+                deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
+                above = d
+        for d in deltas:
+            d.setflags(write=False)
+        _correctives.put(key, None, deltas)
+    for mesh, d, basis in zip(meshes, deltas, bases):
+        if basis.has_layout:
+            d = np.take(d, np.asarray(basis.render_vertex), axis=1)
+        mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
 def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None) -> bytes:

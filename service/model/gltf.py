@@ -252,6 +252,33 @@ class _Builder:
         self.accessors.append({"bufferView": len(self.views) - 1, **acc})
         return len(self.accessors) - 1
 
+    def add_sparse(self, data: np.ndarray, component_type: int, type_: str) -> int:
+        """Append ``data`` (count, ncomp) as a sparse accessor over zeros: only its non-zero rows
+        are stored (UNSIGNED_SHORT/INT indices and their values, two views with no target), min
+        and max over all rows; no rows at all: an accessor without a view (all zeros). For
+        morph deltas that move a few vertices. Returns the accessor index."""
+        arr = np.ascontiguousarray(data, dtype=_DTYPES[component_type])
+        count, flat = arr.shape[0], arr.reshape(arr.shape[0], -1)
+        rows = np.flatnonzero(np.any(flat != 0, axis=1))
+        cast = float if component_type == FLOAT else int
+        lo, hi = _bounds(flat[rows]) if len(rows) else (np.zeros(flat.shape[1]), np.zeros(flat.shape[1]))
+        if len(rows) < count:  # the rows left out are zeros
+            lo, hi = np.minimum(lo, 0), np.maximum(hi, 0)
+        acc: dict[str, Any] = {"componentType": component_type, "count": int(count), "type": type_,
+                               "min": [cast(x) for x in lo], "max": [cast(x) for x in hi]}
+        if len(rows):
+            itype = UNSIGNED_SHORT if count <= 65535 else UNSIGNED_INT
+            views = []
+            for a in (rows.astype(_DTYPES[itype]), flat[rows]):
+                raw = np.ascontiguousarray(a).tobytes()
+                self.views.append((raw, len(rows), None, None, None))
+                self.encoded.append(None)
+                views.append(len(self.views) - 1)
+            acc["sparse"] = {"count": int(len(rows)), "indices": {"bufferView": views[0], "componentType": itype},
+                             "values": {"bufferView": views[1]}}
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
     def add_bytes(self, raw: bytes) -> int:
         """Append opaque bytes (an encoded image) as a bufferView with no target, never
         meshopt-encoded; returns the bufferView index."""
@@ -481,6 +508,7 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
         "double_sided": bool(m.get("double_sided", False)),
         "targets": None,
         "target_names": None,
+        "sparse_targets": bool(m.get("sparse_targets", False)),
         "joints": None,
         "weights": None,
         "uv": None,
@@ -513,8 +541,6 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
             else:
                 out["tangents"] = vertex_tangents(v, f, out["uv"], nrm)
     if m.get("targets") is not None:
-        if tpl is not None:
-            raise ValueError("a templated mesh has no morph targets")
         t = np.asarray(m["targets"], dtype=np.float32)
         if t.ndim != 3 or t.shape[1:] != v.shape:
             raise ValueError(f"targets must be (K, {n}, 3), got {t.shape}")
@@ -632,9 +658,11 @@ def _build_glb(
                 if quant:
                     s = node["scale"][0] if "scale" in node else skin_grid[0]  # type: ignore[index]
                     dq = np.clip(np.round(d.astype(np.float64) / s), -32767, 32767).astype(np.int16)
-                    targets.append({"POSITION": b.add(dq, SHORT, "VEC3", target=ARRAY_BUFFER, minmax=True)})
+                    targets.append({"POSITION": b.add_sparse(dq, SHORT, "VEC3") if m["sparse_targets"] else
+                                    b.add(dq, SHORT, "VEC3", target=ARRAY_BUFFER, minmax=True)})
                 else:
-                    targets.append({"POSITION": b.add(d, FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True)})
+                    targets.append({"POSITION": b.add_sparse(d, FLOAT, "VEC3") if m["sparse_targets"] else
+                                    b.add(d, FLOAT, "VEC3", target=ARRAY_BUFFER, minmax=True)})
             prim["targets"] = targets
             gmesh["weights"] = [0.0] * len(targets)
             gmesh["extras"] = {"targetNames": list(m["target_names"])}
@@ -789,8 +817,9 @@ def scene_to_glb(
     (only used with a normal texture; computed by :func:`vertex_tangents` when absent),
     ``vertex_joints`` (N, 4) int +
     ``vertex_weights`` (N, 4) float (skinned meshes; need ``skin``), and ``targets`` (K, N, 3)
-    morph POSITION deltas with ``target_names`` (K) (see :func:`basis_to_glb`).
-    Mesh i is node i and mesh i, with material i.
+    morph POSITION deltas with ``target_names`` (K) (see :func:`basis_to_glb`), stored as
+    sparse accessors (only the moved vertices) with ``sparse_targets`` True (also with a
+    ``template``: the targets are per-request arrays). Mesh i is node i and mesh i, with material i.
 
     skin: {joints (J, 3) rest world positions, parents (J,) (-1 for roots, parents first),
     joint_names (J)}: ONE joint node hierarchy and ONE glTF skin (skins[0]) shared by every
@@ -908,13 +937,28 @@ def _view_bytes(doc: dict[str, Any], blob: bytes, index: int) -> bytes:
     return blob[off : off + int(view["byteLength"])]
 
 
-def _read_accessor(doc: dict[str, Any], blob: bytes, index: int) -> np.ndarray:
+def _read_accessor(doc: dict[str, Any], blob: bytes, index: int, plain: bool = False) -> np.ndarray:
     """Accessor ``index`` as an array (count,) or (count, ncomp) of its component dtype
-    (raw stored values; meshopt-encoded views are decoded)."""
+    (raw stored values; meshopt-encoded views are decoded; sparse values substituted, over
+    zeros when the accessor has no view)."""
     acc = doc["accessors"][index]
     dtype = _DTYPES[acc["componentType"]]
     ncomp = _NCOMP[acc["type"]]
     count = int(acc["count"])
+    if not plain and ("bufferView" not in acc or "sparse" in acc):
+        dense = np.zeros((count, ncomp), dtype)
+        if "bufferView" in acc:
+            dense[:] = _read_accessor(doc, blob, index, plain=True).reshape(count, ncomp)
+        sp_ = acc.get("sparse")
+        if sp_ is not None:
+            k = int(sp_["count"])
+            itype = _DTYPES[sp_["indices"]["componentType"]]
+            ib = _view_bytes(doc, blob, sp_["indices"]["bufferView"])
+            vb = _view_bytes(doc, blob, sp_["values"]["bufferView"])
+            idx = np.frombuffer(ib, itype, count=k, offset=int(sp_["indices"].get("byteOffset", 0)))
+            vals = np.frombuffer(vb, dtype, count=k * ncomp, offset=int(sp_["values"].get("byteOffset", 0)))
+            dense[idx.astype(np.int64)] = vals.reshape(k, ncomp)
+        return dense[:, 0] if ncomp == 1 else dense
     view = doc["bufferViews"][acc["bufferView"]]
     data = _view_bytes(doc, blob, acc["bufferView"])
     start = int(acc.get("byteOffset", 0))

@@ -317,6 +317,7 @@ class CustomerBody:
     normals: np.ndarray  # (n_body, 3) float32
     _tree: object = None
     _bindings: dict = field(default_factory=dict)
+    _posed: dict = field(default_factory=dict)  # pose set digest -> posed bodies (application.scenes)
 
     def binding(self, basis: "GarmentBasis", garment: np.ndarray) -> np.ndarray:
         """(M, 1) nearest body vertex of each garment vertex on this body (cached per garment)."""

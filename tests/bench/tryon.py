@@ -595,7 +595,7 @@ def catalogue_bases(model, ex, EX) -> dict:
     return out
 
 
-def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dict:
+def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correctives: bool = False) -> dict:
     """99.9th-percentile edge stretch (posed / rest length) of every garment in the page's four
     poses (adapted to each body) on the five bodies: nearest-vertex skin weights (before) vs the
     inpainted transfer (after); beside it the avatar's own skin, the garment's stretch relative
@@ -605,7 +605,11 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
     share of its vertices more than ``INSIDE_DEPTH`` inside the posed body (all bodies and poses
     pooled) and, for bottoms, the body showing through it in the walking step
     (:func:`show_through`), worst body. ``reference``: bases of the same garments built another
-    way (e.g. the previous skin weights), measured alongside ("ref_*" keys)."""
+    way (e.g. the previous skin weights), measured alongside ("ref_*" keys). ``correctives``: the
+    garments posed with their pose-corrective morph target at influence 1
+    (``service.model.correctives``, as ``?pose_correctives=1`` serves them; the "ref_*" keys
+    without), and the time to compute them."""
+    from service.model import correctives as C
     from service.model import lbs as L
     from service.model import poses as P
     from service.model.geometry import closest_points_on_mesh, mesh_edges
@@ -618,7 +622,7 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
                "ref_show_through_160_55_pct": 0.0} for k in bases}
     vf = vertex_faces(Fb, nb)
     avatar = 1.0
-    t_adapt = []
+    t_adapt, t_corr, t_posed = [], [], []
     for bname, meas in FIVE_BODIES.items():
         X = S.avatar_from_measurements(model, meas).vertices
         body = T.customer_body(model, model.project(X))
@@ -630,16 +634,28 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
         under = {k: closest_points_on_mesh(v, rest, Fb) for k, v in fits.items()}
         covered = {k: covered_points(rest, Fb, fits[k], b.faces) for k, (b, c, _) in bases.items()
                    if c in SHOW_THROUGH_CATEGORIES}
+        rest_body = C.posed_body(model, body.vertices, np.zeros((len(model.bone_parents), 3))) \
+            if correctives else None
         for pname, pose in poses.items():
             posed = model.forward(pose=pose, vertices=body.vertices)
             pb = posed.vertices[:nb]
             tree = cKDTree(pb)
             pn = None
+            delta = {k: 0.0 for k in bases}
+            if correctives:
+                t0 = time.perf_counter()
+                cb = C.posed_body(model, body.vertices, pose)
+                t_posed.append(time.perf_counter() - t0)
+                for k, (b, _, _) in bases.items():
+                    t0 = time.perf_counter()
+                    delta[k] = C.corrective_deltas(fits[k], b.skin_idx, b.skin_w, cb, b.smoother(), 0,
+                                                   rest=rest_body, faces=b.faces)[0].astype(np.float64)
+                    t_corr.append(time.perf_counter() - t0)
             for k, (b, _, _) in bases.items():
                 for pre, bb in (("", b), ("ref_", (reference or {}).get(k, (None,))[0])):
                     if bb is None:
                         continue
-                    pv = L.skin(fits[k], posed.transforms, bb.skin_idx, bb.skin_w)
+                    pv = L.skin(fits[k] + (delta[k] if pre == "" else 0.0), posed.transforms, bb.skin_idx, bb.skin_w)
                     per[k][pre + "inside"] += int((penetration_depths(pv, pb, Fb, tree, vf) > INSIDE_DEPTH).sum())
                     if pre == "":
                         per[k]["n"] += len(pv)
@@ -668,7 +684,7 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
                 near = b.binding[:, 0]
                 for which, (idx, w) in (("before", (model.lbs_indices[near], model.lbs_weights[near])),
                                         ("after", (b.skin_idx, b.skin_w))):
-                    pv = L.skin(v, posed.transforms, idx, w)
+                    pv = L.skin(v + (delta[k] if which == "after" else 0.0), posed.transforms, idx, w)
                     s = P.edge_stretch(v, pv, b.faces)
                     p = float(np.percentile(s, STRETCH_PERCENTILE))
                     if which == "after":
@@ -689,7 +705,9 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None) -> dic
             "median_after_relative": float(np.median([v["after_relative"] for v in garments.values()])),
             "median_gap_change_mm_before": float(np.median([v["gap_change_mm_before"] for v in garments.values()])),
             "median_gap_change_mm_after": float(np.median([v["gap_change_mm_after"] for v in garments.values()])),
-            "reference": reference is not None,
+            "reference": reference is not None, "correctives": correctives,
+            "correctives_ms_median": 1000 * float(np.median(t_corr)) if t_corr else None,
+            "posed_body_ms_median": 1000 * float(np.median(t_posed)) if t_posed else None,
             "show_through": [k for k, (_, c, _) in bases.items() if c in SHOW_THROUGH_CATEGORIES]}
 
 
@@ -699,14 +717,18 @@ LAYER_PAIRS = [(b, t) for t in ("womens-tshirt", "pinstripe-blouse", "cropped-te
     [("striped-shirt", "casual-jacket"), ("white-tshirt", "casual-jacket")]
 
 
-def bench_layering(model, bases: dict, people: int, posed_people: int = 3) -> dict:
+def bench_layering(model, bases: dict, people: int, posed_people: int = 3, correctives: bool = False) -> dict:
     """Share of the body covered by two garments where the inner one is outside the outer one,
     before and after ``service.model.layering.layer_outfit`` as ``outfit.glb`` runs it (the
     inner garment pushed inside and skinned like the outer one where covered), on top/bottom
     pairs and jacket over shirt, on held-out people; rest pose, and the page poses on the first
     ``posed_people``: "posed" re-matches closest points on the posed body (a hand on a hip
     counts), "posed_fixed" follows the rest pose's covered points through the pose
-    (``layering.posed_outside``)."""
+    (``layering.posed_outside``). ``correctives``: also the posed figures with both garments'
+    pose-corrective targets at influence 1 (inner rank 0, outer rank 1, the inner one following
+    the outer one where covered, as ``outfit.glb`` makes them): rows "posed_correctives" and "posed_fixed_correctives", before = layered without
+    them (the "after" of "posed" / "posed_fixed"), after = with them."""
+    from service.model import correctives as C
     from service.model import layering as LY
     from service.model import lbs as L
     from service.model import poses as P
@@ -716,6 +738,8 @@ def bench_layering(model, bases: dict, people: int, posed_people: int = 3) -> di
     nb = model.n_body_vertices
     H = heldout_avatars(model)[:people]
     tot = {"rest": [0, 0, 0], "posed": [0, 0, 0], "posed_fixed": [0, 0, 0]}  # both covered, inner outside before, after
+    if correctives:
+        tot.update({"posed_correctives": [0, 0, 0], "posed_fixed_correctives": [0, 0, 0]})
     per = {f"{i} under {o}": [0, 0, 0] for i, o in LAYER_PAIRS}
     t_layer = []
     for h, Xh in enumerate(H):
@@ -723,6 +747,8 @@ def bench_layering(model, bases: dict, people: int, posed_people: int = 3) -> di
         Bv = body.vertices[:nb].astype(np.float64)
         Bn = body.normals.astype(np.float64)
         poses = P.adapted_poses(model, body.vertices) if h < posed_people else {}
+        cbodies = {k: C.posed_body(model, body.vertices, p) for k, p in poses.items()} if correctives else {}
+        rest_body = C.posed_body(model, body.vertices, np.zeros((len(BONES), 3))) if correctives else None
         for inner, outer in LAYER_PAIRS:
             bi, bo = bases[inner][0], bases[outer][0]
             vi = T.try_on(bi, body, 0)[0].astype(np.float64)
@@ -746,6 +772,23 @@ def bench_layering(model, bases: dict, people: int, posed_people: int = 3) -> di
                 acc[0] += len(pairs[0])
                 acc[1] += LY.posed_outside(pairs, a, bi.faces, o, bo.faces, PB, PN)
                 acc[2] += LY.posed_outside(pairs, b, bi.faces, o, bo.faces, PB, PN)
+                if correctives and name in cbodies:
+                    cb = cbodies[name]
+                    po = C.posed_pushes(vo, *so, cb, bo.smoother(), 1, rest=rest_body, faces=bo.faces)[0]
+                    pi = C.posed_pushes(vi2, *si2, cb, bi.smoother(), 0, rest=rest_body, faces=bi.faces)[0]
+                    pi = C.follow_outer(pi, C.cover_map(vi2, vo, bo.faces, Bv, Bn), po, bo.faces)
+                    di, do = C.to_rest(pi, G, *si2), C.to_rest(po, G, *so)
+                    bc, oc = L.skin(vi2 + di, G, *si2), L.skin(vo + do, G, *so)
+                    acc = tot["posed_fixed_correctives"]
+                    acc[0] += len(pairs[0])
+                    acc[1] += LY.posed_outside(pairs, b, bi.faces, o, bo.faces, PB, PN)
+                    acc[2] += LY.posed_outside(pairs, bc, bi.faces, oc, bo.faces, PB, PN)
+                    both, out0 = LY.inner_outside_share(b, o, bo.faces, bi.faces, PB, PN, model.body_faces)
+                    _, out1 = LY.inner_outside_share(bc, oc, bo.faces, bi.faces, PB, PN, model.body_faces)
+                    acc = tot["posed_correctives"]
+                    acc[0] += both
+                    acc[1] += out0
+                    acc[2] += out1
             for key, PB, PN, a, b, o in states:
                 both, out0 = LY.inner_outside_share(a, o, bo.faces, bi.faces, PB, PN, model.body_faces)
                 _, out1 = LY.inner_outside_share(b, o, bo.faces, bi.faces, PB, PN, model.body_faces)
@@ -773,7 +816,8 @@ def bench_clothes_motion(limit: int) -> dict:
 def pose_stretch_catalogue(before: str | None = None) -> dict:
     """Only the pose-stretch rows of :func:`bench_clothes_motion` (the catalogue's bases built
     as at service start). ``before="leg_ramp"`` / ``"limb_side"``: also the bases without
-    ``T.SKIN_LEG_RAMP`` / ``T.SKIN_LIMB_SIDE``, measured alongside."""
+    ``T.SKIN_LEG_RAMP`` / ``T.SKIN_LIMB_SIDE``, measured alongside. ``before="correctives"``:
+    the garments with their pose-corrective morph targets (this) and without (reference)."""
     model = load_body_model()
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
@@ -789,9 +833,78 @@ def pose_stretch_catalogue(before: str | None = None) -> dict:
     t0 = time.perf_counter()
     bases = catalogue_bases(model, ex, EX)
     t_build = time.perf_counter() - t0
-    r = bench_pose_stretch(model, bases, reference)
+    if before == "correctives":
+        reference = bases
+    r = bench_pose_stretch(model, bases, reference, correctives=before == "correctives")
     r["build_bases_s"] = t_build
     return r
+
+
+def correctives_latency(repeats: int = 20, garments: tuple[str, ...] = ("pinstripe-blouse", "casual-jacket",
+                                                                        "business-suit")) -> dict:
+    """The try-on route's in-process work (``scenes.outfit_glb``, one garment, no avatar) without
+    and with ``poses`` (pose-corrective targets), interleaved on 10 customers: "cached" (the
+    same customer and garment again: the targets from the process cache), "targets" (computed;
+    the posed bodies cached on the customer, as from the second garment on) and "cold" (the
+    body posed anew too: a customer's first request); the poses' adaptation (cached per customer
+    by the service) apart. Median wall ms, and the GLB bytes."""
+    from service.application import scenes
+    from service.model import poses as P
+    from service.model.catalogue import load_catalogue
+    from service.records import Garment
+    from service.storage.cache import VersionedLRU
+
+    model = load_body_model()
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    cat = load_catalogue()
+    bodies = customers(model)
+    t0 = time.perf_counter()
+    poses = [P.adapted_poses(model, b.vertices) for b in bodies]
+    adapt = (time.perf_counter() - t0) / len(bodies)
+    out: dict = {"repeats": repeats, "customers": len(bodies), "adapt_poses_ms_mean": 1000 * adapt, "garments": {}}
+    for gid in garments:
+        it = cat.items[gid]
+        basis = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex,
+                                      layout=it.render_layout(), material=it.material)
+        rec = Garment(id=gid, body_model=model.version, owner="bench", name=gid, source="demo",
+                      color=[0.5, 0.5, 0.5, 1.0], layer=0)
+        for i, b in enumerate(bodies):  # warm: bindings, templates
+            scenes.outfit_glb(model, b, [(rec, basis)], None, with_avatar=False)
+        ts: dict = {"plain": [], "cached": [], "targets": [], "cold": []}
+        sizes = {}
+        for r in range(repeats):
+            i = r % len(bodies)
+            for key in ts:
+                if key in ("targets", "cold"):  # the targets computed anew (a new outfit or garment)
+                    scenes._correctives = VersionedLRU(scenes.CORRECTIVES_CACHE_SIZE)
+                if key == "cold":  # and the posed bodies (the customer's first request)
+                    bodies[i]._posed.clear()
+                if key == "cached":  # the same customer and garment asked again
+                    scenes.outfit_glb(model, bodies[i], [(rec, basis)], None, with_avatar=False, poses=poses[i])
+                t0 = time.perf_counter()
+                glb = scenes.outfit_glb(model, bodies[i], [(rec, basis)], None, with_avatar=False,
+                                        poses=None if key == "plain" else poses[i])
+                ts[key].append(time.perf_counter() - t0)
+                sizes[key] = len(glb)
+        med = {k: 1000 * float(np.median(v)) for k, v in ts.items()}
+        out["garments"][gid] = {"vertices": basis.n_vertices, "ms": med,
+                                "added_ms": {k: med[k] - med["plain"] for k in ("cached", "targets", "cold")},
+                                "glb_bytes": sizes}
+    return out
+
+
+def layering_catalogue(people: int = 3, correctives: bool = True) -> dict:
+    """Only the layering rows of :func:`bench_clothes_motion` on ``people`` held-out people (all
+    posed), with the pose correctives' rows (:func:`bench_layering`)."""
+    model = load_body_model()
+    ex = T.example_set(model)
+    bases = catalogue_bases(model, ex, T.example_vertices(model, ex))
+    return bench_layering(model, bases, people=people, posed_people=people, correctives=correctives)
+
+
+def format_layering(y: dict) -> str:
+    return "\n".join(format_clothes_motion({"pose_stretch": None, "layering": y}).splitlines()[1:])
 
 
 def format_pose_stretch(s: dict) -> str:
@@ -821,6 +934,9 @@ def format_pose_stretch(s: dict) -> str:
                     if s.get("reference") else "   show-through ") + \
                 f"{v['show_through_pct']:5.1f} | {v['show_through_160_55_pct']:5.1f} %"
         L.append(row)
+    if s.get("correctives"):
+        L.append(f"  pose correctives (reference: without; this: with): {s['posed_body_ms_median']:.1f} ms per posed "
+                 f"body (once per customer and pose), {s['correctives_ms_median']:.2f} ms per garment and pose (median)")
     if "build_bases_s" in s:
         L.append(f"  building the {len(s['per_garment'])} bases (fits + skin weights): {s['build_bases_s']:.1f} s")
     return "\n".join(L)
@@ -828,11 +944,11 @@ def format_pose_stretch(s: dict) -> str:
 
 def format_clothes_motion(r: dict) -> str:
     y = r["layering"]
-    L = [format_pose_stretch(r["pose_stretch"]),
+    L = [format_pose_stretch(r["pose_stretch"]) if r["pose_stretch"] else "",
          f"\nlayering: body vertices covered by two garments where the inner one is outside the outer "
          f"(goal <= {y['goal_pct']} %), {y['pairs']} pairs, {y['people']} held-out people "
          f"(posed: the 3 page poses on {y['posed_people']}); layer_outfit per pair {y['layer_outfit_ms_median']:.0f} ms median"]
-    for k in ("rest", "posed", "posed_fixed"):
+    for k in [k for k in ("rest", "posed", "posed_fixed", "posed_correctives", "posed_fixed_correctives") if k in y]:
         L.append(f"  {k:<11} {y[k]['both_covered']:>8} covered by both: {y[k]['before_pct']:6.2f} % -> "
                  f"{y[k]['after_pct']:6.2f} %")
     for k, v in y["per_pair_rest"].items():

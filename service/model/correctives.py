@@ -1,0 +1,335 @@
+"""Pose-corrective morph targets: per page pose, rest-space POSITION deltas that keep a skinned
+garment outside the posed body. Pure numpy/scipy.
+
+Plain linear blend skinning pushes some garment vertices inside the body in the page's poses
+(an arm swung back drags the blouse's side into the chest). For each pose (the bone transforms
+G (J, 4, 4) the page applies: the presets adapted to the body, ``service.model.poses``), the
+garment is posed with its own skin weights and:
+
+1. the vertices nearer the posed skin than ``TRIGGER`` (signed distance to the closest point
+   of the posed body without the hands, ``geometry.closest_points_on_mesh``) are pushed out to
+   ``CLEARANCE`` (plus the layer's gap) along the surface normal there, unless that lands them
+   inside another part (the armpit between arm and chest);
+2. the pushes are spread to the neighbours by the garment's smoother, as ``garment.push_out``
+   does at rest, and pushes that would stretch an edge beyond ``STRETCH_LIMIT`` are dropped;
+3. where a body vertex still pokes through a garment triangle between vertices outside the
+   body (coarse garments over a bulging chest), that triangle's vertices are pushed the same
+   way (``BODY_POKES``);
+
+and the posed displacement d is taken back to rest space with the inverse of the vertex's
+blended LBS matrix: glTF (and three.js) add morph deltas before skinning, and skinning is
+linear in the rest position, so skin(v + A^-1 d) = skin(v) + d with A = sum_k w_k
+G_{i_k}[:3, :3] (the blended linear part; Kavan et al. 2008, eq. 1).
+
+The target of pose ``p`` is named ``pose:p``; the page sets its influence to 1 in that pose, 0
+otherwise. Shapes: garment vertices (M, 3) metres, skin (M, 4) + (M, 4), body (V, 3).
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from service.model import garment as G
+from service.model import lbs as L
+from service.model.body import BONES
+from service.model.geometry import (
+    closest_points_on_mesh,
+    face_bounds,
+    vertex_faces,
+    vertex_normals,
+)
+
+TARGET_PREFIX = "pose:"
+# metres: posed garment vertices nearer the posed skin than this are pushed out. Below the try-on's
+# CLEARANCE (3 mm) so that cloth merely pressed a little closer by a pose (most of it) keeps a
+# zero delta: the targets stay sparse
+TRIGGER = 0.001
+# metres: where they are pushed to (plus ``garment.LAYER_GAP`` per layer: an outer garment over
+# the inner one's correction, as at rest)
+CLEARANCE = 0.002
+STRETCH_LIMIT = 1.8  # an edge may be stretched by a push up to this ratio (or its stretch without it): the
+# avatar's own skin stretches 1.79 at p99.9 in these poses. 1.5 kept 2-4x more vertices inside, 2.2 and no
+# limit stretched more (cropped tee, white T-shirt, casual jacket on the 165/105 woman and 200/130 man)
+# step 3: the 200/130 man's chest showed through the pinstripe blouse in front of the arm in the
+# walking step (page screenshots) with no garment vertex inside it: 66 -> 55 body vertices poking
+# through it after steps 1-2, 22 with step 3
+BODY_POKES = True
+POKE_DISTANCE = 0.02  # metres: body vertices this near the posed garment are tested for poking through it
+PREFILTER = 0.02  # metres: closest points only for vertices this near the skin by the push-out's measure
+# (0.005 / 0.01 left 1.5x / 1.3x as many vertices inside as exact everywhere; 0.02 within 5 %)
+STRETCH_PASSES = 3  # rounds of dropping the pushes that stretch an edge beyond that
+MIN_DELTA = 1e-5  # metres: rest deltas shorter than this are left out (0 in the sparse target)
+HAND_WEIGHT = 0.5  # body vertices with more skin weight on the hands are no obstacle: a hand on a hip
+# rests on the cloth (pushing the skirt out over the hand would hide it)
+
+
+@dataclass
+class PosedBody:
+    """One pose of a customer's body: the bone transforms (J, 4, 4), the posed body (Vb, 3)
+    and its unit vertex normals (Vb, 3); the obstacle surface (all but the hands: ``ids`` (K,)
+    body vertices, ``faces`` (F', 3) into them) with a k-d tree, vertex faces and face bounds
+    for ``geometry.closest_points_on_mesh``."""
+
+    transforms: np.ndarray
+    vertices: np.ndarray
+    normals: np.ndarray
+    ids: np.ndarray
+    faces: np.ndarray
+    tree: cKDTree
+    vert_faces: np.ndarray
+    bounds: tuple
+
+
+@functools.lru_cache(maxsize=4)
+def obstacles(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body surface garments are kept outside of, all but the hands: its body vertices
+    (K,), faces (F', 3) into them and ``geometry.vertex_faces`` (K, valence) (once per model)."""
+    nb = model.n_body_vertices
+    idx, w = np.asarray(model.lbs_indices[:nb]), np.asarray(model.lbs_weights[:nb], np.float64)
+    hands = np.isin(idx, [BONES.index("hand_l"), BONES.index("hand_r")])
+    keep = (w * hands).sum(1) <= HAND_WEIGHT
+    F = np.asarray(model.body_faces)
+    F = F[keep[F].all(axis=1)]
+    ids = np.unique(F)
+    remap = np.full(nb, -1, np.int64)
+    remap[ids] = np.arange(len(ids))
+    F = remap[F]
+    return ids, F, vertex_faces(F, len(ids))
+
+
+def posed_body(model, vertices: np.ndarray, pose: np.ndarray) -> PosedBody:
+    """The avatar ``vertices`` (V, 3) in ``pose`` ((17, 3) axis-angle, ``BONES`` order)."""
+    nb = model.n_body_vertices
+    posed = model.forward(pose=pose, vertices=vertices)
+    pb = posed.vertices[:nb]
+    ids, F, vf = obstacles(model)
+    V = pb[ids]
+    return PosedBody(posed.transforms, pb, vertex_normals(pb, model.body_faces).astype(np.float64), ids, F,
+                     cKDTree(V), vf, face_bounds(V, F))
+
+
+def skin_offsets(points: np.ndarray, body: PosedBody, below: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) the signed distance of each point (M, 3) to the obstacle surface of ``body`` (< 0
+    inside; the sign from the surface's interpolated vertex normal at the closest point) and
+    that unit normal (M, 3): the direction to push it out along. With ``below`` (metres): exact
+    only for the points whose offset from their nearest obstacle vertex's tangent plane (the
+    try-on push-out's distance) is below it; the others keep that offset and vertex normal."""
+    p = np.asarray(points, np.float64)
+    V, N = body.vertices[body.ids], body.normals[body.ids]
+    if below is None:
+        todo = np.arange(len(p))
+        along, n = np.empty(len(p)), np.empty((len(p), 3))
+    else:
+        nn = body.tree.query(p)[1]
+        n = N[nn]
+        along = np.einsum("ij,ij->i", p - V[nn], n)
+        todo = np.flatnonzero(along < below)
+        if not len(todo):
+            return along, n
+    face, q, bary = closest_points_on_mesh(p[todo], V, body.faces, tree=body.tree, vert_faces=body.vert_faces,
+                                           bounds=body.bounds)
+    nq = np.einsum("mk,mkj->mj", bary, N[body.faces[face]])
+    nq /= np.maximum(np.linalg.norm(nq, axis=1, keepdims=True), 1e-12)
+    d = p[todo] - q
+    along[todo] = np.sign(np.einsum("ij,ij->i", d, nq)) * np.linalg.norm(d, axis=1)
+    n[todo] = nq
+    return along, n
+
+
+def corrective_deltas(garment: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray, body: PosedBody,
+                      smoother: sp.csc_matrix | None, layer: int = 0,
+                      rest: PosedBody | None = None, faces: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Rest-space deltas (M, 3) float32 that keep the garment (M, 3), skinned with (M, 4) +
+    (M, 4), outside the posed ``body`` once added before skinning, and how many vertices were
+    pushed: :func:`posed_pushes` taken back to rest space (:func:`to_rest`)."""
+    d, count = posed_pushes(garment, skin_idx, skin_w, body, smoother, layer, rest, faces)
+    return to_rest(d, body.transforms, skin_idx, skin_w), count
+
+
+def to_rest(d: np.ndarray, transforms: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray) -> np.ndarray:
+    """Posed displacements (M, 3) as rest-space morph deltas (M, 3) float32: A_i^-1 d_i with A_i
+    the vertex's blended linear part sum_k w_k G_{i_k}[:3, :3] (rows shorter than
+    ``MIN_DELTA`` left 0)."""
+    out = np.zeros(d.shape, np.float32)
+    rows = np.flatnonzero(np.einsum("ij,ij->i", d, d) > MIN_DELTA ** 2)
+    A = L.blend_transforms(transforms, np.asarray(skin_idx)[rows], np.asarray(skin_w)[rows])[:, :3, :3]
+    out[rows] = np.linalg.solve(A, d[rows][:, :, None])[:, :, 0]
+    return out
+
+
+def posed_pushes(garment: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray, body: PosedBody,
+                 smoother: sp.csc_matrix | None, layer: int = 0, rest: PosedBody | None = None,
+                 faces: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """The posed displacement (M, 3) float64 that keeps the garment (M, 3) skinned into
+    ``body``'s pose outside it, and how many vertices were pushed (see the module docstring).
+    ``layer``: the garment's rank in its outfit (clearance + layer x LAYER_GAP). ``rest``: the
+    body unposed; a vertex nearer the skin than the clearance already at rest (an inner garment
+    pushed inside the one over it by ``service.model.layering``) is pushed back no farther out
+    than it was at rest, and only once it is ``CLEARANCE - TRIGGER`` deeper: the rest pose gets
+    no delta and the layers keep their order. ``faces``: the garment's; with them, pushes that
+    would stretch an edge beyond ``STRETCH_LIMIT`` are dropped."""
+    v = np.asarray(garment, np.float64)
+    zero = np.zeros(v.shape)
+    if np.allclose(body.transforms, np.eye(4), atol=1e-12):  # the rest pose: nothing moved
+        return zero, 0
+    clearance, trigger = CLEARANCE + layer * G.LAYER_GAP, TRIGGER + layer * G.LAYER_GAP
+    if rest is not None:
+        at_rest = skin_offsets(v, rest, CLEARANCE + layer * G.LAYER_GAP + PREFILTER)[0]
+        clearance = np.minimum(clearance, np.maximum(at_rest, 0.0))
+        trigger = np.minimum(trigger, at_rest - (CLEARANCE - TRIGGER))
+    pv = L.skin(v, body.transforms, skin_idx, skin_w)
+    along, normal = skin_offsets(pv, body, TRIGGER + layer * G.LAYER_GAP + PREFILTER)
+    bad = np.flatnonzero(along < trigger)
+    if not len(bad):
+        return zero, 0
+    n = normal[bad]
+    need = (clearance if np.isscalar(clearance) else clearance[bad]) - along[bad]  # > 0
+    # pushed out of one part into another (the armpit between arm and chest): left where it is
+    keep = skin_offsets(pv[bad] + need[:, None] * n, body)[0] > 0.0
+    bad, n, need = bad[keep], n[keep], need[keep]
+    edges = None if faces is None else _edges(faces, len(v))
+    for rounds in range(STRETCH_PASSES + 1):
+        if not len(bad):
+            return zero, 0
+        d = _spread(len(pv), bad, need, n, smoother)
+        if edges is None or rounds == STRETCH_PASSES:
+            break
+        # an edge the push stretches beyond STRETCH_LIMIT (and beyond its stretch without it):
+        # a garment vertex squeezed between two parts pushed out of one (the jacket's side
+        # between arm and chest) -- its ends' pushes are dropped
+        a, b = edges[:, 0], edges[:, 1]
+        rest_len = np.linalg.norm(v[a] - v[b], axis=1) + 1e-12
+        before = np.linalg.norm(pv[a] - pv[b], axis=1) / rest_len
+        after = np.linalg.norm(pv[a] + d[a] - pv[b] - d[b], axis=1) / rest_len
+        over = after > np.maximum(before, STRETCH_LIMIT)
+        if not over.any():
+            break
+        drop = np.isin(bad, edges[over].ravel())
+        bad, n, need = bad[~drop], n[~drop], need[~drop]
+    if edges is not None and BODY_POKES:
+        d = d + _poke_pushes(v, pv + d, faces, edges, body, CLEARANCE + layer * G.LAYER_GAP, smoother)
+    return d, len(bad)
+
+
+def _poke_pushes(v, pv, faces, edges, body, clearance, smoother):
+    """Posed displacement (M, 3) of the garment (posed (M, 3)) where body vertices poke through
+    its triangles between vertices outside the body (:func:`body_pokes`), stretch-limited as
+    the vertex pushes."""
+    bad, need, n = body_pokes(pv, faces, body, clearance)
+    if not len(bad):
+        return np.zeros_like(pv)
+    order = np.lexsort((-need, bad))  # per vertex, its largest push
+    bad, need, n = bad[order], need[order], n[order]
+    first = np.r_[True, bad[1:] != bad[:-1]]
+    bad, need, n = bad[first], need[first], n[first]
+    keep = skin_offsets(pv[bad] + need[:, None] * n, body)[0] > 0.0  # not into another part
+    bad, need, n = bad[keep], need[keep], n[keep]
+    a, b = edges[:, 0], edges[:, 1]
+    rest_len = np.linalg.norm(v[a] - v[b], axis=1) + 1e-12
+    before = np.linalg.norm(pv[a] - pv[b], axis=1) / rest_len
+    for rounds in range(STRETCH_PASSES + 1):
+        if not len(bad):
+            return np.zeros_like(pv)
+        d = _spread(len(pv), bad, need, n, smoother)
+        if rounds == STRETCH_PASSES:
+            break
+        after = np.linalg.norm(pv[a] + d[a] - pv[b] - d[b], axis=1) / rest_len
+        over = after > np.maximum(before, STRETCH_LIMIT)
+        if not over.any():
+            break
+        drop = np.isin(bad, edges[over].ravel())
+        bad, n, need = bad[~drop], n[~drop], need[~drop]
+    return d
+
+
+def body_pokes(pv: np.ndarray, faces: np.ndarray, body: PosedBody,
+               clearance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Garment vertices (K,) to push, by how much (K,) and along which unit normal (K, 3), where
+    a posed body vertex pokes through a garment triangle (M, 3) / (F, 3): the body vertex's
+    closest garment point is over it (within 45 degrees of its normal, not on the garment's
+    rim, within ``POKE_DISTANCE``) but nearer than ``TRIGGER`` along the normal or under it;
+    the triangle's three vertices are pushed so that the point is ``clearance`` out."""
+    from service.model.layering import topology
+
+    F = np.asarray(faces, np.int64)
+    X = body.vertices[body.ids]
+    N = body.normals[body.ids]
+    dist0, _ = cKDTree(pv).query(X, distance_upper_bound=POKE_DISTANCE)
+    near = np.flatnonzero(np.isfinite(dist0))
+    empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    if not len(near):
+        return empty
+    face, q, bary = closest_points_on_mesh(X[near], pv, F)
+    off = q - X[near]
+    dist = np.linalg.norm(off, axis=1)
+    s = np.einsum("ij,ij->i", off, N[near])
+    fb = topology(F, len(pv))[1][F[face]]
+    edge_bound = np.stack([fb[:, 1] & fb[:, 2], fb[:, 2] & fb[:, 0], fb[:, 0] & fb[:, 1]], axis=1)
+    rim = ((bary < 1e-3) & edge_bound).any(axis=1) | ((bary > 1 - 1e-3) & fb).any(axis=1)
+    poke = ~rim & (dist < POKE_DISTANCE) & (np.abs(s) > np.cos(np.pi / 4) * dist) & (s < TRIGGER)
+    if not poke.any():
+        return empty
+    return F[face[poke]].reshape(-1), np.repeat(clearance - s[poke], 3), np.repeat(N[near][poke], 3, axis=0)
+
+
+def _spread(m: int, bad: np.ndarray, need: np.ndarray, n: np.ndarray, smoother: sp.csc_matrix | None) -> np.ndarray:
+    """The posed displacement (m, 3) of pushing vertices ``bad`` (K,) by ``need`` (K,) along
+    ``n`` (K, 3): garment.push_out's scheme, each push diffused to the neighbours by the
+    garment's smoother, then each pushed vertex's own push made whole."""
+    d = np.zeros((m, 3))
+    d[bad] = need[:, None] * n
+    if smoother is not None:
+        d = np.asarray(smoother[:, bad] @ d[bad], np.float64)
+        d[bad] += np.maximum(need - np.einsum("ij,ij->i", d[bad], n), 0.0)[:, None] * n
+    return d
+
+
+def _edges(faces: np.ndarray, n: int) -> np.ndarray:
+    """(E, 2) the mesh's edges, from ``layering.topology``'s Laplacian (cached per topology)."""
+    from service.model.layering import topology
+
+    lap = topology(faces, n)[0].tocoo()
+    up = lap.row < lap.col
+    return np.stack([lap.row[up], lap.col[up]], axis=1)
+
+
+def cover_map(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, body: np.ndarray,
+              body_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where an outfit's outer garment (N, 3) covers the inner one (M, 3) on the rest body (V, 3)
+    with its normals, as ``layering.violations`` decides it (the closest outer point inside the
+    outer surface within ``layering.COVER_DISTANCE``, or a rim over the body vertex under it),
+    and those closest points as (face (M,), barycentric (M, 3)). Returns (covered (M,) bool,
+    face, bary)."""
+    from service.model import layering as LY
+
+    O = np.asarray(outer, np.float64)
+    B = np.asarray(body, np.float64)
+    Bn = np.asarray(body_normals, np.float64)
+    tree = cKDTree(B)
+    F = np.asarray(outer_faces, np.int64)
+    on, ob, index, _ = LY.prepare_outer(O, F, B, Bn, tree, LY.topology(F, len(O))[1])
+    _, covered, face, bary = LY.violations(np.asarray(inner, np.float64), O, F, on, ob, B, Bn, tree,
+                                           outer_index=index)
+    return covered, face, bary
+
+
+def follow_outer(d: np.ndarray, cover: tuple[np.ndarray, np.ndarray, np.ndarray], d_outer: np.ndarray,
+                 outer_faces: np.ndarray) -> np.ndarray:
+    """An inner garment's posed pushes (M, 3) with each covered vertex (:func:`cover_map`) moved
+    as the outer garment's point over it (its posed pushes (N, 3) interpolated): the layers
+    keep the order they have posed without correctives (the inner one, skinned like the outer
+    one where covered, stays under it), and the outer one hides what is under it."""
+    covered, face, bary = cover
+    out = np.array(d, np.float64)
+    F = np.asarray(outer_faces, np.int64)
+    out[covered] = np.einsum("mk,mkj->mj", bary[covered], np.asarray(d_outer, np.float64)[F[face[covered]]])
+    return out
+
+
+def target_names(poses) -> list[str]:
+    """The morph target names of poses (their names, in order)."""
+    return [TARGET_PREFIX + name for name in poses]

@@ -1,0 +1,195 @@
+"""Pose-corrective morph targets (issue 11): with the target of the page's pose at influence 1,
+the skinned garment stays outside the posed body; the targets survive a GLB round trip (sparse
+accessors, every compression mode) and the Khronos validator is clean."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from service.application import scenes
+from service.model import correctives as C
+from service.model import lbs as L
+from service.model import poses as P
+from service.model import shape as S
+from service.model import tryon as T
+from service.model.catalogue import load_catalogue
+from service.model.geometry import vertex_faces
+from service.model.gltf import read_glb
+from service.records import Garment
+from tests.bench.tryon import INSIDE_DEPTH, penetration_depths
+from tests.conftest import format_issues
+
+HEAVY = {"gender": "male", "height_cm": 200, "weight_kg": 130}  # the page's screenshots: chest through the blouse
+
+
+def record(name: str, layer: int) -> Garment:
+    return Garment(id=name, body_model="test", owner="test", name=name, source="demo", color=[0.4, 0.5, 0.6, 1.0],
+                   layer=layer)
+
+
+@pytest.fixture(scope="module")
+def setup(model):
+    """The heavy man, his adapted page poses, and the pinstripe blouse and casual jacket (render
+    layouts, materials) tried on him."""
+    ex = T.example_set(model, n=8)
+    EX = T.example_vertices(model, ex)
+    cat = load_catalogue()
+    bases = {}
+    for gid in ("pinstripe-blouse", "casual-jacket"):
+        it = cat.items[gid]
+        bases[gid] = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex,
+                                           layout=it.render_layout(), material=it.material)
+    X = S.avatar_from_measurements(model, HEAVY).vertices
+    body = T.customer_body(model, model.project(X))
+    return bases, body, P.adapted_poses(model, body.vertices)
+
+
+def inside_share(model, v, skin, posed: C.PosedBody, delta=None) -> float:
+    """Share of the garment's vertices more than INSIDE_DEPTH inside the posed body (exact)."""
+    nb = model.n_body_vertices
+    x = np.asarray(v, np.float64) + (0.0 if delta is None else delta)
+    pv = L.skin(x, posed.transforms, *skin)
+    d = penetration_depths(pv, posed.vertices, model.body_faces, cKDTree(posed.vertices),
+                           vertex_faces(model.body_faces, nb))
+    return float((d > INSIDE_DEPTH).mean())
+
+
+def test_correctives_keep_the_blouse_outside_the_heavy_body_walking(model, setup) -> None:
+    bases, body, poses = setup
+    b = bases["pinstripe-blouse"]
+    v = T.try_on(b, body)[0]
+    posed = C.posed_body(model, body.vertices, poses["walking"])
+    delta, pushed = C.corrective_deltas(v, b.skin_idx, b.skin_w, posed, b.smoother(), faces=b.faces)
+    before = inside_share(model, v, (b.skin_idx, b.skin_w), posed)
+    after = inside_share(model, v, (b.skin_idx, b.skin_w), posed, delta)
+    assert pushed > 0 and before > 0.004, before  # the problem is there: 0.77 % measured
+    assert after < 0.003 and after < 0.35 * before, (before, after)
+    # sparse: most of the garment has no delta, and no spike (at most a few cm)
+    moved = np.linalg.norm(delta, axis=1)
+    assert (moved > 0).mean() < 0.4 and moved.max() < 0.05
+    # the rest pose needs none
+    rest = C.posed_body(model, body.vertices, poses["a-pose"])
+    assert not np.any(C.corrective_deltas(v, b.skin_idx, b.skin_w, rest, b.smoother())[0])
+
+
+def test_posed_delta_maps_back_exactly(model, setup) -> None:
+    """skin(v + delta) = the pushed-out posed garment: the inverse blended matrix is right."""
+    bases, body, poses = setup
+    b = bases["casual-jacket"]
+    v = T.try_on(b, body)[0].astype(np.float64)
+    posed = C.posed_body(model, body.vertices, poses["arms-down"])
+    d, _ = C.posed_pushes(v, b.skin_idx, b.skin_w, posed, b.smoother(), faces=b.faces)
+    delta = C.to_rest(d, posed.transforms, b.skin_idx, b.skin_w)
+    got = L.skin(v + delta, posed.transforms, b.skin_idx, b.skin_w) - L.skin(v, posed.transforms, b.skin_idx, b.skin_w)
+    keep = np.linalg.norm(d, axis=1) > C.MIN_DELTA
+    assert keep.sum() > 10 and np.abs(got[keep] - d[keep]).max() < 1e-5
+
+
+@pytest.mark.parametrize("compression", [None, "quantize", "meshopt"])
+def test_outfit_glb_carries_the_pose_targets(model, setup, compression,
+                                             validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    bases, body, poses = setup
+    worn = [(record("blouse", 0), bases["pinstripe-blouse"]), (record("jacket", 1), bases["casual-jacket"])]
+    plain = scenes.outfit_glb(model, body, worn, compression, with_avatar=True)
+    data = scenes.outfit_glb(model, body, worn, compression, with_avatar=True, poses=poses)
+    report = validate_glb(data)
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, format_issues(report)
+    out, ref = read_glb(data), read_glb(plain)
+    names = [f"pose:{p}" for p in poses]
+    for m, r, (_, b) in zip(out["meshes"][-2:], ref["meshes"][-2:], worn):
+        assert m["target_names"] == names and m["morph_weights"] == [0.0] * len(names)
+        assert np.allclose(m["positions"], r["positions"], atol=1e-4)  # the same garment under them
+        t = m["targets"]
+        assert t.shape == (len(names), len(b.render_vertex), 3)
+        assert not np.any(t[names.index("pose:a-pose")])
+        assert np.abs(t[names.index("pose:walking")]).max() > 0.002
+    acc = out["json"]["accessors"]
+    prim = out["json"]["meshes"][-1]["primitives"][0]
+    assert all("sparse" in acc[tg["POSITION"]] or "bufferView" not in acc[tg["POSITION"]] for tg in prim["targets"])
+    assert len(data) < len(plain) + 0.5 * sum(4 * 12 * len(b.render_vertex) for _, b in worn)  # sparse: < half dense
+    # the avatar has none; without poses nothing changes
+    assert out["meshes"][0]["targets"] is None and all(m["targets"] is None for m in ref["meshes"])
+
+
+def test_round_trip_values(model, setup) -> None:
+    """The deltas read back from the GLB (plain float) are the ones computed, gathered to the
+    render vertices."""
+    bases, body, poses = setup
+    g = (record("blouse", 0), bases["pinstripe-blouse"])
+    out = read_glb(scenes.outfit_glb(model, body, [g], None, with_avatar=False, poses=poses))
+    b = g[1]
+    v = T.try_on(b, body)[0]
+    bodies = scenes.posed_bodies(model, body, poses)
+    for k, name in enumerate(poses):
+        d = C.corrective_deltas(v, b.skin_idx, b.skin_w, bodies[name], b.smoother(), rest=bodies[scenes.REST],
+                                faces=b.faces)[0]
+        assert np.allclose(out["meshes"][0]["targets"][k], d[np.asarray(b.render_vertex)], atol=1e-7)
+
+
+def test_outfit_correctives_keep_the_layer_order(model, setup) -> None:
+    """The blouse under the jacket on the heavy man, the three page poses: with both garments'
+    targets at 1 (as outfit.glb makes them), the blouse is outside the jacket over no more of
+    the rest pose's doubly covered body than without them (``layering.posed_outside``), and
+    without following the jacket (each garment corrected alone) it would be outside more."""
+    from service.model import layering as LY
+    from service.model.body import BONES
+    from service.model.geometry import vertex_normals
+
+    bases, body, poses = setup
+    nb = model.n_body_vertices
+    bi, bo = bases["pinstripe-blouse"], bases["casual-jacket"]
+    Bv, Bn = body.vertices[:nb].astype(np.float64), body.normals.astype(np.float64)
+    vi, vo = T.try_on(bi, body, 0)[0], T.try_on(bo, body, 1)[0]
+    (vi, vo), (si, so) = LY.layer_outfit([(vi, bi.faces), (vo, bo.faces)], Bv, Bn,
+                                         skins=[(bi.skin_idx, bi.skin_w), (bo.skin_idx, bo.skin_w)], n_joints=len(BONES))
+    vi, vo = (np.asarray(x, np.float32).astype(np.float64) for x in (vi, vo))  # as outfit.glb keeps them
+    pairs = LY.layered_pairs(vi, bi.faces, vo, bo.faces, Bv, Bn)
+    out = read_glb(scenes.outfit_glb(model, body, [(record("blouse", 0), bi), (record("jacket", 1), bo)], None,
+                                     with_avatar=False, poses=poses))
+    names = out["meshes"][0]["target_names"]
+    rest = C.posed_body(model, body.vertices, np.zeros((len(BONES), 3)))
+    cover = C.cover_map(vi, vo, bo.faces, Bv, Bn)
+    counts = np.zeros(3, int)
+    for name in ("walking", "arms-down", "hands-on-hips"):
+        posed = C.posed_body(model, body.vertices, poses[name])
+        G, PB = posed.transforms, posed.vertices
+        PN = vertex_normals(PB, model.body_faces).astype(np.float64)
+        po = C.posed_pushes(vo, *so, posed, bo.smoother(), 1, rest=rest, faces=bo.faces)[0]
+        pi = C.posed_pushes(vi, *si, posed, bi.smoother(), 0, rest=rest, faces=bi.faces)[0]
+        di, do = C.to_rest(C.follow_outer(pi, cover, po, bo.faces), G, *si), C.to_rest(po, G, *so)
+        alone = C.to_rest(pi, G, *si)
+        k = names.index(f"pose:{name}")
+        # each welded vertex's first render vertex
+        served = [out["meshes"][j]["targets"][k][np.unique(np.asarray(b.render_vertex), return_index=True)[1]]
+                  for j, b in ((0, bi), (1, bo))]
+        assert np.allclose(served[0], di, atol=1e-6) and np.allclose(served[1], do, atol=1e-6)
+        for c, (a, o) in enumerate(((vi, vo), (vi + di, vo + do), (vi + alone, vo + do))):
+            counts[c] += LY.posed_outside(pairs, L.skin(a, G, *si), bi.faces, L.skin(o, G, *so), bo.faces, PB, PN)
+    none, served, alone = counts
+    print("posed_outside none / served / alone:", counts, "of", 3 * len(pairs[0]))
+    assert served <= none + 0.002 * len(pairs[0]) * 3, counts
+    assert alone > served, counts
+
+
+def test_body_pokes_through_the_blouse_are_pushed_out(model, setup, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The page's screenshot: the heavy man's chest through the pinstripe blouse in front of the
+    arm in the walking step, with hardly a blouse vertex inside him (the skin pokes through
+    triangles between them). Step 3 (``BODY_POKES``) pushes those triangles out: far fewer body
+    vertices poke through than with steps 1-2 alone."""
+    bases, body, poses = setup
+    b = bases["pinstripe-blouse"]
+    v = T.try_on(b, body)[0].astype(np.float64)
+    posed = C.posed_body(model, body.vertices, poses["walking"])
+    rest = C.posed_body(model, body.vertices, np.zeros((17, 3)))
+    counts = {}
+    for on in (False, True):
+        monkeypatch.setattr(C, "BODY_POKES", on)
+        d = C.corrective_deltas(v, b.skin_idx, b.skin_w, posed, b.smoother(), rest=rest, faces=b.faces)[0]
+        pv = L.skin(v + d, posed.transforms, b.skin_idx, b.skin_w)
+        counts[on] = len(C.body_pokes(pv, b.faces, posed, 0.0)[0]) // 3
+    none = len(C.body_pokes(L.skin(v, posed.transforms, b.skin_idx, b.skin_w), b.faces, posed, 0.0)[0]) // 3
+    assert counts[True] < 0.6 * counts[False] and counts[False] <= none, (none, counts)
