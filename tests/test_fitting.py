@@ -221,6 +221,20 @@ def test_a_part_of_the_scan_far_from_the_body_is_unexplained(model):
     assert fig["unexplained_share"] >= PC.UNEXPLAINED_SHARE and fig["farthest_scan_point_mm"] > 450, fig
 
 
+def _bench_clothed_scan_at_45(model):
+    """Held-out avatar 2 (a man in a work suit) as the fitting bench scans it in the clothed
+    conditions at 45 degrees: (person, scan); skips without the MakeHuman clothes."""
+    from tests.bench import fitting as BF
+    from tests.bench.common import heldout_people
+
+    if not SS.default_clothes_dir().is_dir():
+        pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
+    person = heldout_people(model, 5)[4]
+    return person, SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
+                                person["gender"], clothed=True, point_cloud=False, n_points=BF.N_POINTS,
+                                noise_mm=BF.NOISE_MM, max_pose_deg=45, clothes_dir=SS.default_clothes_dir())
+
+
 @pytest.mark.slow
 def test_a_wrong_fit_of_a_scanner_scan_at_45_degrees_is_refused(model):
     """Issue 12: a wrong minimum is refused, never returned. Held-out avatar 2 in a work suit,
@@ -230,14 +244,8 @@ def test_a_wrong_fit_of_a_scanner_scan_at_45_degrees_is_refused(model):
     body 120.9 mm off (point to surface), the stature 32 cm short; now the fit either comes
     within 10 mm or fails saying that part of the scan is not explained."""
     from tests.bench import fitting as BF
-    from tests.bench.common import heldout_people
 
-    if not SS.default_clothes_dir().is_dir():
-        pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
-    person = heldout_people(model, 5)[4]
-    scan = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
-                        person["gender"], clothed=True, point_cloud=False, n_points=BF.N_POINTS,
-                        noise_mm=BF.NOISE_MM, max_pose_deg=45, clothes_dir=SS.default_clothes_dir())
+    person, scan = _bench_clothed_scan_at_45(model)
     scan = SS.degrade(scan, ("holes", "cut_head", "scanner_floor"), np.random.default_rng([BF.SEED, 11, person["index"]]))
     try:
         fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
@@ -343,14 +351,8 @@ def test_fit_clothed_mesh_in_a_45_degree_pose(model):
     clothes' outer surface (``refine_bare_iterations`` 0) this scan came out 7.0 mm off (point
     to surface), the stature 5.0 cm short; with it 3.7 mm and 2.7 cm."""
     from tests.bench import fitting as BF
-    from tests.bench.common import heldout_people
 
-    if not SS.default_clothes_dir().is_dir():
-        pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
-    person = heldout_people(model, 5)[4]
-    scan = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
-                        person["gender"], clothed=True, point_cloud=False, n_points=BF.N_POINTS,
-                        noise_mm=BF.NOISE_MM, max_pose_deg=45, clothes_dir=SS.default_clothes_dir())
+    person, scan = _bench_clothed_scan_at_45(model)
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
     ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
     assert ev["p2s_mm"] < 5.0, ev["p2s_mm"]

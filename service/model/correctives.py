@@ -192,26 +192,37 @@ def posed_pushes(garment: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray, 
     keep = skin_offsets(pv[bad] + need[:, None] * n, body)[0] > 0.0
     bad, n, need = bad[keep], n[keep], need[keep]
     edges = None if faces is None else _edges(faces, len(v))
-    for rounds in range(STRETCH_PASSES + 1):
-        if not len(bad):
-            return zero, 0
-        d = _spread(len(pv), bad, need, n, smoother)
-        if edges is None or rounds == STRETCH_PASSES:
-            break
-        # an edge the push stretches beyond STRETCH_LIMIT (and beyond its stretch without it):
-        # a garment vertex squeezed between two parts pushed out of one (the jacket's side
-        # between arm and chest) -- its ends' pushes are dropped
+    d, pushed = _spread_within_stretch(v, pv, bad, need, n, smoother, edges)
+    if not pushed:
+        return zero, 0
+    if edges is not None and BODY_POKES:
+        d = d + _poke_pushes(v, pv + d, faces, edges, body, CLEARANCE + layer * G.LAYER_GAP, smoother)
+    return d, pushed
+
+
+def _spread_within_stretch(v: np.ndarray, pv: np.ndarray, bad: np.ndarray, need: np.ndarray, n: np.ndarray,
+                           smoother: sp.csc_matrix | None, edges: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """The posed displacement (M, 3) of the pushes (``_spread``) of the garment (rest v, posed
+    pv (M, 3)), and how many pushes were kept: with ``edges`` (E, 2), an edge the pushes stretch
+    beyond STRETCH_LIMIT (and beyond its stretch without them) -- a garment vertex squeezed
+    between two parts pushed out of one (the jacket's side between arm and chest) -- has its
+    ends' pushes dropped, up to STRETCH_PASSES times."""
+    if edges is not None:
         a, b = edges[:, 0], edges[:, 1]
         rest_len = np.linalg.norm(v[a] - v[b], axis=1) + 1e-12
         before = np.linalg.norm(pv[a] - pv[b], axis=1) / rest_len
+    for rounds in range(STRETCH_PASSES + 1):
+        if not len(bad):
+            return np.zeros_like(pv), 0
+        d = _spread(len(pv), bad, need, n, smoother)
+        if edges is None or rounds == STRETCH_PASSES:
+            break
         after = np.linalg.norm(pv[a] + d[a] - pv[b] - d[b], axis=1) / rest_len
         over = after > np.maximum(before, STRETCH_LIMIT)
         if not over.any():
             break
         drop = np.isin(bad, edges[over].ravel())
         bad, n, need = bad[~drop], n[~drop], need[~drop]
-    if edges is not None and BODY_POKES:
-        d = d + _poke_pushes(v, pv + d, faces, edges, body, CLEARANCE + layer * G.LAYER_GAP, smoother)
     return d, len(bad)
 
 
@@ -228,22 +239,7 @@ def _poke_pushes(v, pv, faces, edges, body, clearance, smoother):
     bad, need, n = bad[first], need[first], n[first]
     keep = skin_offsets(pv[bad] + need[:, None] * n, body)[0] > 0.0  # not into another part
     bad, need, n = bad[keep], need[keep], n[keep]
-    a, b = edges[:, 0], edges[:, 1]
-    rest_len = np.linalg.norm(v[a] - v[b], axis=1) + 1e-12
-    before = np.linalg.norm(pv[a] - pv[b], axis=1) / rest_len
-    for rounds in range(STRETCH_PASSES + 1):
-        if not len(bad):
-            return np.zeros_like(pv)
-        d = _spread(len(pv), bad, need, n, smoother)
-        if rounds == STRETCH_PASSES:
-            break
-        after = np.linalg.norm(pv[a] + d[a] - pv[b] - d[b], axis=1) / rest_len
-        over = after > np.maximum(before, STRETCH_LIMIT)
-        if not over.any():
-            break
-        drop = np.isin(bad, edges[over].ravel())
-        bad, n, need = bad[~drop], n[~drop], need[~drop]
-    return d
+    return _spread_within_stretch(v, pv, bad, need, n, smoother, edges)[0]
 
 
 def body_pokes(pv: np.ndarray, faces: np.ndarray, body: PosedBody,
