@@ -543,6 +543,8 @@ def format_result(r: dict) -> str:
     row("  stature |error| median cm", [_f(c["before"]["stature_abs_err_cm"]["median"])
                                         for c in conds.values()])
     row("  worst cm", [_f(c["before"]["stature_worst_cm"]) for c in conds.values()])
+    row("  time per fit, median s", [_f(c["before"]["seconds"]["median"]) for c in conds.values()])
+    row("    p90 s", [_f(c["before"]["seconds"]["p90"]) for c in conds.values()])
     row("refused (not a person / outside population)", [str(c["refused_as_not_person"]) for c in conds.values()],
         "goal: 0 (false rejections)")
     row("refused (part of the scan not explained)", [str(c.get("refused_as_not_fitted", 0)) for c in conds.values()],
