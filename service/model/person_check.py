@@ -29,7 +29,10 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+from service.model.landmarks import knn_graph
 
 # -- before the fit: separate bodies -----------------------------------------------------------
 VOXEL_MIN_M = 0.03  # voxel edge for the components (at least; coarser for sparse scans)
@@ -145,10 +148,6 @@ def unexplained_part(points: np.ndarray, body: np.ndarray) -> tuple[str | None, 
     points (P, 3) farther than ``UNEXPLAINED_M`` from the fitted posed body (V, 3), model frame,
     floor points left out. A cluster holding ``UNEXPLAINED_SHARE`` of the scan is a limb (or an
     object held) the fit did not place: the fit is wrong, however well the rest matches."""
-    from scipy.sparse.csgraph import connected_components
-
-    from service.model.landmarks import knn_graph
-
     d, above = scan_to_body(points, body)
     if above.sum() >= 0.5 * len(d):
         points, d = points[above], d[above]
