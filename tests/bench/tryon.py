@@ -595,7 +595,8 @@ def catalogue_bases(model, ex, EX) -> dict:
     return out
 
 
-def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correctives: bool = False) -> dict:
+def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correctives: bool = False,
+                       ref_switch: str | None = None) -> dict:
     """99.9th-percentile edge stretch (posed / rest length) of every garment in the page's four
     poses (adapted to each body) on the five bodies: nearest-vertex skin weights (before) vs the
     inpainted transfer (after); beside it the avatar's own skin, the garment's stretch relative
@@ -608,7 +609,9 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correc
     way (e.g. the previous skin weights), measured alongside ("ref_*" keys). ``correctives``: the
     garments posed with their pose-corrective morph target at influence 1
     (``service.model.correctives``, as ``?pose_correctives=1`` serves them; the "ref_*" keys
-    without), and the time to compute them."""
+    without), and the time to compute them. ``ref_switch``: the reference ("ref_*", the same
+    bases) posed with its corrective targets too, computed with that switch of
+    ``service.model.correctives`` off (e.g. ``"STRAIN_LIMITING"``)."""
     from service.model import correctives as C
     from service.model import lbs as L
     from service.model import poses as P
@@ -642,6 +645,7 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correc
             tree = cKDTree(pb)
             pn = None
             delta = {k: 0.0 for k in bases}
+            ref_delta = {k: 0.0 for k in bases}
             if correctives:
                 t0 = time.perf_counter()
                 cb = C.posed_body(model, body.vertices, pose)
@@ -651,11 +655,20 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correc
                     delta[k] = C.corrective_deltas(fits[k], b.skin_idx, b.skin_w, cb, b.smoother(), 0,
                                                    rest=rest_body, faces=b.faces)[0].astype(np.float64)
                     t_corr.append(time.perf_counter() - t0)
+                    if ref_switch:
+                        keep = getattr(C, ref_switch)
+                        setattr(C, ref_switch, False)
+                        try:
+                            ref_delta[k] = C.corrective_deltas(fits[k], b.skin_idx, b.skin_w, cb, b.smoother(), 0,
+                                                               rest=rest_body, faces=b.faces)[0].astype(np.float64)
+                        finally:
+                            setattr(C, ref_switch, keep)
             for k, (b, _, _) in bases.items():
                 for pre, bb in (("", b), ("ref_", (reference or {}).get(k, (None,))[0])):
                     if bb is None:
                         continue
-                    pv = L.skin(fits[k] + (delta[k] if pre == "" else 0.0), posed.transforms, bb.skin_idx, bb.skin_w)
+                    pv = L.skin(fits[k] + (delta[k] if pre == "" else ref_delta[k]), posed.transforms, bb.skin_idx,
+                                bb.skin_w)
                     per[k][pre + "inside"] += int((penetration_depths(pv, pb, Fb, tree, vf) > INSIDE_DEPTH).sum())
                     if pre == "":
                         per[k]["n"] += len(pv)
@@ -705,7 +718,7 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correc
             "median_after_relative": float(np.median([v["after_relative"] for v in garments.values()])),
             "median_gap_change_mm_before": float(np.median([v["gap_change_mm_before"] for v in garments.values()])),
             "median_gap_change_mm_after": float(np.median([v["gap_change_mm_after"] for v in garments.values()])),
-            "reference": reference is not None, "correctives": correctives,
+            "reference": reference is not None, "correctives": correctives, "ref_switch": ref_switch,
             "correctives_ms_median": 1000 * float(np.median(t_corr)) if t_corr else None,
             "posed_body_ms_median": 1000 * float(np.median(t_posed)) if t_posed else None,
             "show_through": [k for k, (_, c, _) in bases.items() if c in SHOW_THROUGH_CATEGORIES]}
@@ -817,7 +830,8 @@ def pose_stretch_catalogue(before: str | None = None) -> dict:
     """Only the pose-stretch rows of :func:`bench_clothes_motion` (the catalogue's bases built
     as at service start). ``before="leg_ramp"`` / ``"limb_side"``: also the bases without
     ``T.SKIN_LEG_RAMP`` / ``T.SKIN_LIMB_SIDE``, measured alongside. ``before="correctives"``:
-    the garments with their pose-corrective morph targets (this) and without (reference)."""
+    the garments with their pose-corrective morph targets (this) and without (reference);
+    ``"strain_limit"``: with them, and with them computed without their strain limiting."""
     model = load_body_model()
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
@@ -833,9 +847,11 @@ def pose_stretch_catalogue(before: str | None = None) -> dict:
     t0 = time.perf_counter()
     bases = catalogue_bases(model, ex, EX)
     t_build = time.perf_counter() - t0
-    if before == "correctives":
+    ref_switch = {"strain_limit": "STRAIN_LIMITING"}.get(before or "")
+    if before == "correctives" or ref_switch:
         reference = bases
-    r = bench_pose_stretch(model, bases, reference, correctives=before == "correctives")
+    r = bench_pose_stretch(model, bases, reference, correctives=before == "correctives" or bool(ref_switch),
+                           ref_switch=ref_switch)
     r["build_bases_s"] = t_build
     return r
 
@@ -846,9 +862,11 @@ def correctives_latency(repeats: int = 20, garments: tuple[str, ...] = ("pinstri
     and with ``poses`` (pose-corrective targets), interleaved on 10 customers: "cached" (the
     same customer and garment again: the targets from the process cache), "targets" (computed;
     the posed bodies cached on the customer, as from the second garment on) and "cold" (the
-    body posed anew too: a customer's first request); the poses' adaptation (cached per customer
-    by the service) apart. Median wall ms, and the GLB bytes."""
+    body posed anew too: a customer's first request), and "targets_no_strain_limit" (computed
+    without the correctives' step 4, ``C.STRAIN_LIMITING``: its cost); the poses' adaptation
+    (cached per customer by the service) apart. Median wall ms, and the GLB bytes."""
     from service.application import scenes
+    from service.model import correctives as C
     from service.model import poses as P
     from service.model.catalogue import load_catalogue
     from service.records import Garment
@@ -871,13 +889,14 @@ def correctives_latency(repeats: int = 20, garments: tuple[str, ...] = ("pinstri
                       color=[0.5, 0.5, 0.5, 1.0], layer=0)
         for i, b in enumerate(bodies):  # warm: bindings, templates
             scenes.outfit_glb(model, b, [(rec, basis)], None, with_avatar=False)
-        ts: dict = {"plain": [], "cached": [], "targets": [], "cold": []}
+        ts: dict = {"plain": [], "cached": [], "targets": [], "targets_no_strain_limit": [], "cold": []}
         sizes = {}
         for r in range(repeats):
             i = r % len(bodies)
             for key in ts:
-                if key in ("targets", "cold"):  # the targets computed anew (a new outfit or garment)
-                    scenes._correctives = VersionedLRU(scenes.CORRECTIVES_CACHE_SIZE)
+                C.STRAIN_LIMITING = key != "targets_no_strain_limit"  # step 4 of the correctives off: its cost
+                if key in ("targets", "targets_no_strain_limit", "cold"):  # the targets computed anew (a new
+                    scenes._correctives = VersionedLRU(scenes.CORRECTIVES_CACHE_SIZE)  # outfit or garment)
                 if key == "cold":  # and the posed bodies (the customer's first request)
                     bodies[i]._posed.clear()
                 if key == "cached":  # the same customer and garment asked again
@@ -889,7 +908,8 @@ def correctives_latency(repeats: int = 20, garments: tuple[str, ...] = ("pinstri
                 sizes[key] = len(glb)
         med = {k: 1000 * float(np.median(v)) for k, v in ts.items()}
         out["garments"][gid] = {"vertices": basis.n_vertices, "ms": med,
-                                "added_ms": {k: med[k] - med["plain"] for k in ("cached", "targets", "cold")},
+                                "added_ms": {k: med[k] - med["plain"] for k in ("cached", "targets",
+                                                                                 "targets_no_strain_limit", "cold")},
                                 "glb_bytes": sizes}
     return out
 
@@ -935,7 +955,8 @@ def format_pose_stretch(s: dict) -> str:
                 f"{v['show_through_pct']:5.1f} | {v['show_through_160_55_pct']:5.1f} %"
         L.append(row)
     if s.get("correctives"):
-        L.append(f"  pose correctives (reference: without; this: with): {s['posed_body_ms_median']:.1f} ms per posed "
+        ref = f"with, computed with {s['ref_switch']} off" if s.get("ref_switch") else "without"
+        L.append(f"  pose correctives (reference: {ref}; this: with): {s['posed_body_ms_median']:.1f} ms per posed "
                  f"body (once per customer and pose), {s['correctives_ms_median']:.2f} ms per garment and pose (median)")
     if "build_bases_s" in s:
         L.append(f"  building the {len(s['per_garment'])} bases (fits + skin weights): {s['build_bases_s']:.1f} s")
