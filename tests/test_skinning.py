@@ -41,9 +41,10 @@ def grid(nx: int, ny: int, z: float = 0.0, size: float = 1.0) -> tuple[np.ndarra
     return V, F
 
 
-def reference_transfer(G, GF, B, BF, idx, w, J, max_distance, max_angle_deg, k):
+def reference_transfer(G, GF, B, BF, idx, w, J, max_distance, max_angle_deg, k, screening=SW.SCREENING):
     """Slow and obvious: closest point over every body triangle in a loop, a dense solve of the
-    constrained Dirichlet problem (KKT, edges weighted 1 / length^2), top-k by sorting each row."""
+    constrained (and screened) Dirichlet problem (KKT, edges weighted 1 / length^2), top-k by
+    sorting each row."""
     Wb = np.zeros((len(B), J))
     for i in range(len(B)):
         for j, x in zip(idx[i], w[i]):
@@ -77,8 +78,10 @@ def reference_transfer(G, GF, B, BF, idx, w, J, max_distance, max_angle_deg, k):
     kn = np.flatnonzero(rel)
     C = np.zeros((len(kn), M))
     C[np.arange(len(kn)), kn] = 1
-    K = np.block([[2 * Lap, C.T], [C, np.zeros((len(kn), len(kn)))]])
-    sol = np.linalg.solve(K, np.vstack([np.zeros((M, J)), W[kn]]))[:M]
+    # screened toward the closest-point matches on the unknown rows: + s d sum_u |W_u - W0_u|^2
+    Pu = np.diag((~np.isin(np.arange(M), kn)).astype(float)) * screening * np.abs(np.diag(Lap)).mean()
+    K = np.block([[2 * Lap + 2 * Pu, C.T], [C, np.zeros((len(kn), len(kn)))]])
+    sol = np.linalg.solve(K, np.vstack([2 * Pu @ W, W[kn]]))[:M]
     out_i, out_w = [], []
     for row in sol:
         order = sorted(range(J), key=lambda j: -row[j])[:k]
@@ -230,27 +233,78 @@ def test_leg_ramp_splits_the_legs_by_side_below_the_crotch(model) -> None:
     assert 0.4 < wide[0, th_l] < 0.8 and 0.0 < wide[0, th_r] < 0.4
 
 
-def _catalogue_basis_without(model, garment_id: str, switch: str):
-    """A catalogue garment's basis built with the ``tryon`` skinning switch ``switch`` off, and
-    with it as it is: (old, new)."""
+def test_screened_inpainting_matches_the_dense_minimiser() -> None:
+    """``inpaint(..., screening=s)`` solves min tr(W^T L W) + s d sum_u |W_u - W0_u|^2 over the
+    unknown rows (d the mean diagonal of L): checked against the normal equations solved dense
+    on a 6-vertex path, and between the two limits (s = 0: the harmonic interpolation; large s:
+    the closest-point matches W0 themselves)."""
+    F = np.array([[i, i + 1, i + 1] for i in range(5)])
+    Lap = SW.uniform_laplacian(F, 6).toarray()
+    W = np.array([[1.0, 0.0], [0.2, 0.8], [0.1, 0.9], [0.0, 1.0], [0.5, 0.5], [0.0, 1.0]])  # rows 1-4: W0
+    known = np.array([1, 0, 0, 0, 0, 1], bool)
+    u, k = np.flatnonzero(~known), np.flatnonzero(known)
+    d = np.abs(np.diag(Lap)).mean()
+    for s in (0.0, 0.05, 0.5):
+        got = SW.inpaint(W, known, Lap, screening=s)
+        A = Lap[np.ix_(u, u)] + s * d * np.eye(len(u))
+        ref = np.linalg.solve(A, -Lap[np.ix_(u, k)] @ W[k] + s * d * W[u])
+        assert np.allclose(got[u], ref, atol=1e-6) and np.array_equal(got[k], W[k]), s
+    harmonic = SW.inpaint(W, known, Lap)
+    assert np.allclose(harmonic[:, 0], [1, 0.8, 0.6, 0.4, 0.2, 0], atol=1e-6)
+    assert np.allclose(SW.inpaint(W, known, Lap, screening=1e6)[u], W[u], atol=1e-4)
+
+
+def test_a_loose_jackets_front_does_not_follow_the_arms(model) -> None:
+    """The casual jacket hangs 3-4 cm off the torso, so few of its torso vertices have a
+    reliable closest-point match, and plain inpainting spread the sleeves' arm weight over its
+    front (0.17 on average over the cloth whose closest body point has no arm weight): in the
+    page's arms-down pose its hem rose with the arms and the trunks under it, skinned like it,
+    were pulled into the thighs. Screened inpainting (``SW.SCREENING``) keeps that cloth on the
+    torso's bones."""
+    old, new = _catalogue_basis_without(model, "casual-jacket", "SKIN_SCREENING")
+    nb = model.n_body_vertices
+    arm = [i for i, n in enumerate(BONES) if n.startswith(("upper_arm", "forearm", "hand"))]
+    Wb = SW.dense_weights(model.lbs_indices[:nb], model.lbs_weights[:nb], len(BONES))
+    g = np.asarray(new.g, np.float64)
+    Wcp = SW._closest_point_match(g, np.asarray(new.faces, np.int64), model.mean[:nb], model.body_faces, Wb,
+                                  SW.MAX_DISTANCE, SW.MAX_ANGLE_DEG)[0]
+    torso = Wcp[:, arm].sum(1) < 0.02
+
+    def arm_weight(b):
+        W = np.zeros((b.n_vertices, len(BONES)))
+        np.add.at(W, (np.arange(b.n_vertices)[:, None], np.asarray(b.skin_idx)), np.asarray(b.skin_w))
+        return W[torso][:, arm].sum(1)
+
+    before, after = arm_weight(old), arm_weight(new)
+    print("torso cloth arm weight, mean / > 0.1:", before.mean(), (before > 0.1).sum(), after.mean(), (after > 0.1).sum())
+    assert torso.sum() > 500 and before.mean() > 0.1, before.mean()
+    assert after.mean() < 0.04 and (after > 0.1).sum() < 0.1 * torso.sum(), (after.mean(), (after > 0.1).sum())
+
+
+def _catalogue_basis_without(model, garment_id: str, switch: str | tuple[str, ...]):
+    """A catalogue garment's basis built with the ``tryon`` skinning switch ``switch`` (or each
+    of several) off, and with them as they are: (old, new)."""
     from service.model.catalogue import load_catalogue
 
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
     it = {i.id: i for i in load_catalogue().garments()}[garment_id]
     fits = np.stack([it.fit_to(E) for E in EX])
-    keep = getattr(T, switch)
+    switches = (switch,) if isinstance(switch, str) else switch
+    keep = {k: getattr(T, k) for k in switches}
     try:
-        setattr(T, switch, False)
+        for k in switches:
+            setattr(T, k, False)
         old = T.build_garment_basis(model, fits, it.faces, ex)
     finally:
-        setattr(T, switch, keep)
+        for k, v in keep.items():
+            setattr(T, k, v)
     return old, T.build_garment_basis(model, fits, it.faces, ex)
 
 
 @pytest.fixture(scope="module")
 def pencil_skirt(model):
-    return _catalogue_basis_without(model, "pencil-skirt", "SKIN_LEG_RAMP")
+    return _catalogue_basis_without(model, "pencil-skirt", ("SKIN_LEG_RAMP", "SKIN_SCREENING"))
 
 
 def test_pencil_skirt_stays_closed_in_the_walking_step(model, pencil_skirt) -> None:
@@ -258,7 +312,8 @@ def test_pencil_skirt_stays_closed_in_the_walking_step(model, pencil_skirt) -> N
     front opened over the forward thigh (the inpainted weights mixed the thighs over the thighs
     themselves): the body showed through at 3.9 % of the body vertices under it (outside the
     skirt, the skirt's rest points followed through the pose). With the left/right ramp below
-    the crotch 0.0 %; and no edge of it tears (largest stretch 1.57)."""
+    the crotch 0.0 %; and no edge of it tears (largest stretch 1.67; the pose correctives'
+    strain limiting brings it to 1.4)."""
     from tests.bench.tryon import covered_points, show_through
 
     X = S.avatar_from_measurements(model, FIVE_BODIES["160/55 woman"]).vertices
@@ -276,7 +331,7 @@ def test_pencil_skirt_stays_closed_in_the_walking_step(model, pencil_skirt) -> N
         stretch = P.edge_stretch(v, pv, basis.faces)
     assert share[0] > SHOW_THROUGH_TORN  # the measure sees the slit of the previous weights
     assert share[1] < SHOW_THROUGH_CLOSED, share
-    assert stretch.max() < 1.6
+    assert stretch.max() < 1.7  # 1.57 before the screening (skin_weights.SCREENING), 1.67 with it
 
 
 @pytest.fixture(scope="module")

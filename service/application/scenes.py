@@ -3,7 +3,6 @@ clothing basis. Shapes follow ``service.model``: avatar vertices (V, 3) metres, 
 vertices (M, 3), faces (F, 3)."""
 from __future__ import annotations
 
-import functools
 import hashlib
 import io
 import json
@@ -12,7 +11,6 @@ from typing import Any
 import numpy as np
 
 from service.model import correctives, gltf
-from service.model import garment as G
 from service.model.body import BONES, BodyModel
 from service.model.geometry import vertex_normals
 from service.model.layering import layer_outfit
@@ -219,7 +217,7 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     garment_meshes = [look_mesh(basis, rec, v, n, template, sk)
                       for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
     if poses:
-        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses, under)
+        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses)
     meshes += garment_meshes
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
@@ -248,41 +246,21 @@ def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarr
     return hit
 
 
-@functools.lru_cache(maxsize=8)
-def _smoother(faces: bytes, n: int):
-    """The push-out smoother (``garment.laplacian_smoother``) of a look mesh (faces as int64
-    bytes, n vertices), once per process and mesh."""
-    return G.laplacian_smoother(np.frombuffer(faces, np.int64).reshape(-1, 3), n)
-
-
 def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: CustomerBody,
                          bases: list[GarmentBasis], worn: list[np.ndarray],
-                         skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray],
-                         under: dict[str, Any] | None = None) -> None:
+                         skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray]) -> None:
     """Give an outfit's garment scene meshes (:func:`look_mesh` of ``worn`` (M_i, 3) skinned with
     ``skins``, or the bases' own skin; inner first) one morph target per pose, ``pose:<name>``:
     rest-space deltas that keep each garment outside the posed body
     (``correctives.posed_pushes``; outer layers with more clearance), an inner garment moved as
     the garment over it where covered (``correctives.follow_outer``: the layers keep their
-    order), gathered into the render layout, stored sparse. ``under``: the look's base layer
-    mesh (``underwear``, layered under the garments and skinned like them where covered), the
-    innermost layer: it gets its targets too (under a jacket in the arms-down pose its sides,
-    skinned like the jacket's hem, were pulled into the thighs). Cached per process by the
-    digest of everything they are made of (the same customer and outfit asked again)."""
+    order), gathered into the render layout, stored sparse. Cached per process by the digest of
+    everything they are made of (the same customer and outfit asked again)."""
     sk = [(b.skin_idx, b.skin_w) if s is None else s for b, s in zip(bases, skins)]
-    faces = [np.asarray(b.faces) for b in bases]
-    smoothers = [b.smoother() for b in bases]
-    ranks = list(range(len(bases)))
-    worn = list(worn)
-    if under is not None:  # the innermost layer, with the first garment's clearance (covered, it follows it)
-        worn.insert(0, np.asarray(under["vertices"]))
-        sk.insert(0, (under["vertex_joints"], under["vertex_weights"]))
-        faces.insert(0, np.asarray(under["faces"]))
-        smoothers.insert(0, _smoother(np.ascontiguousarray(under["faces"], np.int64).tobytes(), len(worn[0])))
-        ranks.insert(0, 0)
     bodies = posed_bodies(model, body, poses)
     h = hashlib.sha1(json.dumps(sorted(bodies)).encode())
-    for a in (*worn, *[x for pair in sk for x in pair], *faces, *[bodies[k].transforms for k in sorted(bodies)]):
+    for a in (*worn, *[x for pair in sk for x in pair], *[b.faces for b in bases],
+              *[bodies[k].transforms for k in sorted(bodies)]):
         a = np.ascontiguousarray(a)
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
@@ -291,28 +269,24 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
     if deltas is None:
         deltas = [np.zeros((len(poses), len(v), 3), np.float32) for v in worn]
         nb = model.n_body_vertices
-        covers = [correctives.cover_map(worn[i], worn[i + 1], faces[i + 1], body.vertices[:nb], body.normals)
+        covers = [correctives.cover_map(worn[i], worn[i + 1], bases[i + 1].faces, body.vertices[:nb], body.normals)
                   for i in range(len(worn) - 1)]
         for k, name in enumerate(poses):
             above = None  # the posed pushes of the garment over this one
             for i in range(len(worn) - 1, -1, -1):  # outermost first
-                d, _ = correctives.posed_pushes(worn[i], *sk[i], bodies[name], smoothers[i], ranks[i],
-                                                rest=bodies[REST], faces=faces[i])
+                d, _ = correctives.posed_pushes(worn[i], *sk[i], bodies[name], bases[i].smoother(), i,
+                                                rest=bodies[REST], faces=np.asarray(bases[i].faces))
                 if above is not None:
-                    d = correctives.follow_outer(d, covers[i], above, faces[i + 1])
+                    d = correctives.follow_outer(d, covers[i], above, bases[i + 1].faces)
                 deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
                 above = d
         for d in deltas:
             d.setflags(write=False)
         _correctives.put(key, None, deltas)
-    names = correctives.target_names(poses)
-    if under is not None:
-        under.update(targets=deltas[0], target_names=names, sparse_targets=True)
-        deltas = deltas[1:]
     for mesh, d, basis in zip(meshes, deltas, bases):
         if basis.has_layout:
             d = np.take(d, np.asarray(basis.render_vertex), axis=1)
-        mesh.update(targets=d, target_names=names, sparse_targets=True)
+        mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
 def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None) -> bytes:

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.model import garment as G
+from service.model import skin_weights as SW
 from service.model.body import BONES
 from service.model.catalogue import Material, RenderLayout, Texture
 from service.model.geometry import face_incidence, mesh_edges, row_dot, vertex_normals
@@ -52,10 +53,14 @@ SKIN_LEG_RAMP = True
 # step 1's release on the limb side of steep inpainted edges (skin_weights.release_limb_side):
 # the tops' armpit seams stretched up to 5.3x in the page's poses without it
 SKIN_LIMB_SIDE = True
+# inpainting screened toward the closest-point matches (skin_weights.SCREENING): a loose jacket's
+# front took the sleeves' arm weight without it, and its hem rose with the arms
+SKIN_SCREENING = True
 # the version of the skin weights a basis carries (meta "skinning"; absent: 1): bases built by an
 # older version get their weights recomputed (:func:`refresh_skinning`) when next served.
-# 2: step 4, the legs' ramp; 3: the limb side of steep inpainted edges released (armpits)
-SKINNING_VERSION = 3
+# 2: step 4, the legs' ramp; 3: the limb side of steep inpainted edges released (armpits);
+# 4: the inpainting screened toward the closest-point matches (loose tops' fronts)
+SKINNING_VERSION = 4
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
     n = min(n or EXAMPLES["n"], model.n_components)
@@ -273,7 +278,8 @@ def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarr
                                  rest_lengths=shortest,
                                  legs=leg_frame(body0, model.joints(model.mean), list(BONES))
                                  if SKIN_LEG_RAMP else None,
-                                 parents=model.bone_parents if SKIN_LIMB_SIDE else None)
+                                 parents=model.bone_parents if SKIN_LIMB_SIDE else None,
+                                 screening=SW.SCREENING if SKIN_SCREENING else 0.0)
 
 
 def basis_digest(basis: GarmentBasis) -> str:

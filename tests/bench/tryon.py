@@ -836,7 +836,7 @@ def pose_stretch_catalogue(before: str | None = None) -> dict:
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
     reference = None
-    switch = {"leg_ramp": "SKIN_LEG_RAMP", "limb_side": "SKIN_LIMB_SIDE"}.get(before or "")
+    switch = {"leg_ramp": "SKIN_LEG_RAMP", "limb_side": "SKIN_LIMB_SIDE", "screening": "SKIN_SCREENING"}.get(before or "")
     if switch:
         keep = getattr(T, switch)
         setattr(T, switch, False)
