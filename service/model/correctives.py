@@ -229,37 +229,48 @@ def limit_strain(rest: np.ndarray, posed: np.ndarray, edges: np.ndarray, body: P
     outside the posed body, or as far out as they were (an inner layer's vertex nearer the skin
     stays where it was put). Vertices on no over-stretched edge do not move."""
     x = np.array(posed, np.float64)
-    a, b = edges[:, 0], edges[:, 1]
-    limit = STRAIN_LIMIT * np.linalg.norm(rest[a] - rest[b], axis=1)
     m = len(x)
-    floor = None
+    limit_all = STRAIN_LIMIT * np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+    floor = np.full(m, np.nan)  # how far out each vertex may be kept: the clearance or where it was
+    reach = float(np.max(clearance)) + PREFILTER
     start = x.copy()  # where the vertices were at the last body check
+    sub = None  # the edges worked on between body checks: those at a vertex that moved or is on an over-stretched edge
     for k in range(STRAIN_ITERATIONS):
+        if sub is None:  # a full check of every edge (at the start and after each body check)
+            length = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)
+            hot = np.zeros(m, bool)
+            hot[edges[length > limit_all * (1 + 1e-3)].ravel()] = True
+            hot |= np.einsum("ij,ij->i", x - posed, x - posed) > 0.0
+            ring = hot[edges[:, 0]] | hot[edges[:, 1]]
+            hot[edges[ring].ravel()] = True  # and their neighbours: the ends of their edges may move
+            sub = np.flatnonzero(hot[edges[:, 0]] | hot[edges[:, 1]])
+            a, b, limit = edges[sub, 0], edges[sub, 1], limit_all[sub]
         e = x[b] - x[a]
         length = np.linalg.norm(e, axis=1)
         over = np.flatnonzero(length > limit * (1 + 1e-3))
         if len(over):
             c = (0.5 * (1.0 - limit[over] / length[over]))[:, None] * e[over]
-            dx = np.zeros_like(x)
-            np.add.at(dx, a[over], c)
-            np.add.at(dx, b[over], -c)
-            cnt = np.bincount(np.r_[a[over], b[over]], minlength=m)
+            ends = np.r_[a[over], b[over]]
+            dx = np.stack([np.bincount(ends, np.r_[c[:, j], -c[:, j]], minlength=m) for j in range(3)], axis=1)
+            cnt = np.bincount(ends, minlength=m)
             moved = np.flatnonzero(cnt)
             x[moved] += STRAIN_RELAXATION * dx[moved] / cnt[moved, None]
         if len(over) and (k + 1) % STRAIN_BODY_EVERY and k + 1 < STRAIN_ITERATIONS:
             continue
-        if floor is None:  # how far out each vertex may be kept: the clearance or where it was
-            at = skin_offsets(np.asarray(posed, np.float64), body, float(np.max(clearance)) + PREFILTER)[0]
-            floor = np.minimum(np.broadcast_to(clearance, (m,)), at)
         step = x - start
         moved = np.flatnonzero(np.einsum("ij,ij->i", step, step) > 0.0)
-        off, n = skin_offsets(x[moved], body, float(np.max(clearance)) + PREFILTER)
+        new = moved[np.isnan(floor[moved])]
+        if len(new):
+            floor[new] = np.minimum(np.broadcast_to(clearance, (m,))[new],
+                                    skin_offsets(np.asarray(posed, np.float64)[new], body, reach)[0])
+        off, n = skin_offsets(x[moved], body, reach)
         # back out along the surface normal, by no more than the rounds moved it: a closest point
         # that jumped to another part (the vertex between arm and chest) does not throw it across
         push = np.minimum(floor[moved] - off, np.linalg.norm(step[moved], axis=1))
         inside = push > 0
         x[moved[inside]] += push[inside, None] * n[inside]
         start = x.copy()
+        sub = None
         if not len(over) and not inside.any():  # no edge over the limit, and none pulled the
             break  # garment into the body since the last check
     return x
