@@ -196,19 +196,24 @@ def test_body_pokes_through_the_blouse_are_pushed_out(model, setup, monkeypatch:
     assert counts[True] < 0.6 * counts[False] and counts[False] <= none, (none, counts)
 
 
+def on_the_heavy_woman(model, garment_id: str):
+    """A catalogue garment's basis (8 examples) tried on the 165 cm / 105 kg woman: (basis,
+    customer body, garment vertices (M, 3) float64, her unposed :class:`C.PosedBody`)."""
+    ex = T.example_set(model, n=8)
+    EX = T.example_vertices(model, ex)
+    it = load_catalogue().items[garment_id]
+    b = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex)
+    X = S.avatar_from_measurements(model, {"gender": "female", "height_cm": 165, "weight_kg": 105}).vertices
+    body = T.customer_body(model, model.project(X))
+    return b, body, T.try_on(b, body)[0].astype(np.float64), C.posed_body(model, body.vertices, np.zeros((17, 3)))
+
+
 def test_body_pokes_through_the_jeans_at_rest_are_pushed_out(model) -> None:
     """The page's A-pose (the rest pose): the 165 cm / 105 kg woman's skin showed through the
     women's jeans (screenshot ``body-w165-105-outfit1``): no jeans vertex is inside her, but 36
     body vertices poke through the triangles between them. The rest pose's target pushes those
     triangles out (step 3 alone; no vertex push at rest)."""
-    ex = T.example_set(model, n=8)
-    EX = T.example_vertices(model, ex)
-    it = load_catalogue().items["womens-jeans"]
-    b = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex)
-    X = S.avatar_from_measurements(model, {"gender": "female", "height_cm": 165, "weight_kg": 105}).vertices
-    body = T.customer_body(model, model.project(X))
-    v = T.try_on(b, body)[0].astype(np.float64)
-    rest = C.posed_body(model, body.vertices, np.zeros((17, 3)))
+    b, body, v, rest = on_the_heavy_woman(model, "womens-jeans")
     before = len(C.body_pokes(v, b.faces, rest, 0.0)[0]) // 3
     d, pushed = C.corrective_deltas(v, b.skin_idx, b.skin_w, rest, b.smoother(), rest=rest, faces=b.faces)
     after = len(C.body_pokes(v + d, b.faces, rest, 0.0)[0]) // 3
@@ -251,15 +256,8 @@ def test_strain_limiting_keeps_the_cropped_tee_from_tearing_open(model, monkeypa
     and hardly more of the tee is inside the posed body than without it."""
     from service.model.geometry import mesh_edges
 
-    ex = T.example_set(model, n=8)
-    EX = T.example_vertices(model, ex)
-    it = load_catalogue().items["cropped-tee"]
-    b = T.build_garment_basis(model, np.stack([it.fit_to(E) for E in EX]), it.faces, ex)
-    X = S.avatar_from_measurements(model, {"gender": "female", "height_cm": 165, "weight_kg": 105}).vertices
-    body = T.customer_body(model, model.project(X))
+    b, body, v, rest = on_the_heavy_woman(model, "cropped-tee")
     poses = P.adapted_poses(model, body.vertices)
-    v = T.try_on(b, body)[0].astype(np.float64)
-    rest = C.posed_body(model, body.vertices, np.zeros((17, 3)))
     e = mesh_edges(b.faces)
     r = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
     for name in ("walking", "hands-on-hips"):
