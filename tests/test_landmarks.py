@@ -141,9 +141,7 @@ def test_landmarks_pick_the_facing_of_a_turned_bent_body(model):
     its spine and chest bent 27 and 43 degrees. After ICP alone a body facing 45 degrees off
     scores a hair better than the right facing; only the landmark hypotheses, tried on each of
     the best coarse candidates, tell them apart. On the best candidate alone the fit came out
-    mirrored (arm length +20 cm) and was refused as outside the population (measured with the
-    initialisation's distances per template vertex, ``area_weighted`` off; per area the best
-    candidate alone is not refused)."""
+    mirrored (arm length +20 cm) and was refused as outside the population."""
     from tests.bench import fitting as BF
     from tests.bench.common import heldout_people
 
@@ -154,7 +152,7 @@ def test_landmarks_pick_the_facing_of_a_turned_bent_body(model):
                         max_pose_deg=45)
     with pytest.raises(F.FitError, match="outside the population"):
         F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
-                   params=F.FitParams(landmark_candidates=1, area_weighted=False))
+                   params=F.FitParams(landmark_candidates=1))
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
     row = BF.evaluate(model, scan, fit, surface)
     assert row["p2s_mm"] < 2.0 and abs(row["measurements"]["arm_length_cm"]) < 2.0, row
