@@ -242,7 +242,9 @@ def test_a_wrong_fit_of_a_scanner_scan_at_45_degrees_is_refused(model):
     fitting bench's scanner condition): the fit puts the left arm over the head where the scan's
     points forward. Before ``person_check.unexplained_part`` it was returned as a customer's
     body 120.9 mm off (point to surface), the stature 32 cm short; now the fit either comes
-    within 10 mm or fails saying that part of the scan is not explained."""
+    within 10 mm or fails saying that part of the scan is not explained (with the
+    initialisation's distances per area and the clothed posture anchored it is fitted: 4.6 mm
+    on the bench, where it was refused)."""
     from tests.bench import fitting as BF
 
     person, scan = _bench_clothed_scan_at_45(model)
@@ -357,3 +359,96 @@ def test_fit_clothed_mesh_in_a_45_degree_pose(model):
     ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
     assert ev["p2s_mm"] < 5.0, ev["p2s_mm"]
     assert abs(ev["stature_err_cm"]) < 4.0, ev["stature_err_cm"]
+
+
+def test_vertex_areas_and_area_weighted_trimmed_mean(model, rig):
+    """The template's vertex areas sum to its surface area and are far from uniform (the hands'
+    and the head's vertices are dense: per vertex they would outweigh the legs); the weighted
+    trimmed mean keeps the smallest values holding ``keep`` of the weight."""
+    from service.model.nonrigid import trimmed_mean
+
+    faces = rig.faces
+    v = rig.mean[faces]
+    total = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()
+    assert abs(rig.area.sum() - total) < 1e-9 * total
+    hand = rig.W[:, 7] > 0.5  # hand_l
+    thigh = rig.W[:, 11] > 0.5  # thigh_l
+    assert hand.sum() > thigh.sum() and rig.area[hand].sum() < 0.5 * rig.area[thigh].sum()
+    d = np.array([1.0, 2.0, 3.0, 100.0])
+    assert trimmed_mean(d, 0.75) == 2.0 == trimmed_mean(d, 0.75, weights=np.ones(4))
+    w = np.array([1.0, 1.0, 8.0, 1.0])
+    assert trimmed_mean(d, 0.95, weights=w) == (1 + 2 + 24) / 10  # 10 of 11 within 95 %
+    assert trimmed_mean(d, 0.9, weights=w) == 1.5  # the heavy 3 would pass 90 %: left out
+
+
+def test_posture_anchor_pulls_each_bone_back(model, rig):
+    """``_anchor_terms``: Gauss-Newton steps on the anchor term alone bring every bone's local
+    rotation (the root's too) back to the anchored posture; at the anchor the gradient is 0."""
+    s = _random_state(model, rig, 7)
+    anchor = s.rot.copy()
+    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 97))
+    p = F._pose_model(rig, s, sub)
+    H, g = F._anchor_terms(rig, s, p, F.ALL_BONES, anchor, 2.0)
+    assert np.abs(g).max() < 1e-9
+    s.rot = axis_angle_to_matrix(np.random.default_rng(8).normal(size=(17, 3)) * 0.3) @ anchor
+    for _ in range(6):
+        p = F._pose_model(rig, s, sub)
+        H, g = F._anchor_terms(rig, s, p, F.ALL_BONES, anchor, 2.0)
+        H[:3, :3] += np.eye(3)  # the translation is free of the term
+        F._apply_pose(rig, s, p, F.ALL_BONES, -np.linalg.solve(H, g))
+    from service.model.lbs import matrix_to_axis_angle
+
+    left = np.linalg.norm(matrix_to_axis_angle(np.einsum("bji,bjk->bik", anchor, s.rot)), axis=1)
+    assert left.max() < 1e-4, left
+
+
+def _bench_scanner_scan(model, index: int, max_pose_deg: float):
+    """Held-out avatar ``index`` as the fitting bench scans it in the "scanner" condition (a
+    random MakeHuman suit, holes, a cut head top, a scanner's floor): (person, scan)."""
+    from tests.bench import fitting as BF
+    from tests.bench.common import heldout_people
+
+    if not SS.default_clothes_dir().is_dir():
+        pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
+    person = next(p for p in heldout_people(model, 12) if p["index"] == index)
+    scan = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
+                        person["gender"], clothed=True, point_cloud=False, n_points=BF.N_POINTS,
+                        noise_mm=BF.NOISE_MM, max_pose_deg=max_pose_deg, clothes_dir=SS.default_clothes_dir())
+    return person, SS.degrade(scan, ("holes", "cut_head", "scanner_floor"),
+                              np.random.default_rng([BF.SEED, 11, person["index"]]))
+
+
+@pytest.mark.slow
+def test_a_hand_over_a_hole_is_not_folded_onto_the_hip(model):
+    """Issue 12, a wrong fit the person check does not see: held-out avatar 39 (a woman in a
+    sports suit), scanner output, a pose up to 20 degrees, a hole over part of her right hand.
+    Scored per template vertex (the hands hold 12 % of them each, 2 % of the area), the hand off
+    the scan cost more than the scan's own hand left unexplained, and the limb search folded the
+    forearm onto the hip: 27.7 mm off (point to surface), the hand 20 cm from the truth, no scan
+    point 0.22 m from the body (not refused). With the initialisation's distances per area and
+    the clothed refinement held to the posture of the clothes' outer surface: 4.9 mm."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scanner_scan(model, 39, 20)
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
+    ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
+    assert ev["p2s_mm"] < 8.0, ev
+    assert ev["worst_joint"][1] < 60.0, ev["worst_joint"]
+
+
+@pytest.mark.slow
+def test_a_scanner_scan_bent_forward_is_fitted_facing_the_right_way(model):
+    """Issue 12, a wrong fit the person check does not see: held-out avatar 1 (a man in a casual
+    suit), scanner output, a pose up to 45 degrees (bent forward ~70 degrees, an arm up). The
+    fit came back facing the wrong way, 48 mm off (point to surface), a hand 1.2 m from the truth
+    and yet no scan point 0.15 m from the body. Now it faces the scan's way and comes within
+    8 mm (7.3 mm measured): the right facing wins the initialisation once its distances count
+    per area, and the clothed refinement and Alg. 1 keep the posture of the clothes' outer
+    surface where the clothing weights leave a limb without data (a hand drifted 10 cm)."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scanner_scan(model, 1, 45)
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
+    ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
+    assert ev["p2s_mm"] < 8.0 and ev["joints_mm"] < 25.0, ev
+    assert ev["worst_joint"][1] < 80.0, ev["worst_joint"]

@@ -112,7 +112,9 @@ def test_aiming_puts_the_effectors_on_reachable_targets(model, rig):
 @pytest.mark.slow
 def test_landmarks_free_a_limb_from_a_wrong_minimum(model):
     """A clothed held-out scan at 45 degrees whose raised leg ICP alone fits with the other leg
-    (fitting bench: clothed_mesh, avatar 37): the landmark hypotheses find it."""
+    (fitting bench: clothed_mesh, avatar 37): the landmark hypotheses find it. Measured with the
+    initialisation's distances per template vertex (``area_weighted`` off): per area, ICP alone
+    finds the leg as well (1.7 mm), and the default fit is checked too."""
     from tests.bench import fitting as BF
     from tests.bench.common import heldout_people, shared_data_dir
 
@@ -126,9 +128,11 @@ def test_landmarks_free_a_limb_from_a_wrong_minimum(model):
         # without the landmarks the wrong minimum is refused (part of the scan not explained):
         # that fit is measured with the person check off
         fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True,
-                         params=F.FitParams(landmark_init=lm, person_check=lm))
+                         params=F.FitParams(landmark_init=lm, person_check=lm, area_weighted=False))
         err[lm] = BF.evaluate(model, scan, fit, surface)["p2s_mm"]
     assert err[True] < 15.0 and err[True] < 0.5 * err[False], err
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
+    assert BF.evaluate(model, scan, fit, surface)["p2s_mm"] < 15.0
 
 
 @pytest.mark.slow

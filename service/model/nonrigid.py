@@ -118,10 +118,18 @@ def nearest_correspondences(points: np.ndarray, point_normals: np.ndarray, tree:
     return j, d, ok
 
 
-def trimmed_mean(d: np.ndarray, keep: float = 0.9) -> float:
-    """Mean of the smallest ``keep`` fraction of ``d`` (robust to outliers)."""
-    d = np.sort(np.asarray(d))
-    return float(d[: max(1, int(keep * len(d)))].mean())
+def trimmed_mean(d: np.ndarray, keep: float = 0.9, weights: np.ndarray | None = None) -> float:
+    """Mean of the smallest ``keep`` fraction of ``d`` (n,) (robust to outliers); with
+    ``weights`` (n,) >= 0 the weighted mean of the smallest values holding ``keep`` of the
+    total weight (e.g. the surface area each template vertex stands for)."""
+    d = np.asarray(d, np.float64)
+    if weights is None:
+        d = np.sort(d)
+        return float(d[: max(1, int(keep * len(d)))].mean())
+    order = np.argsort(d)
+    d, w = d[order], np.asarray(weights, np.float64)[order]
+    n = max(1, int(np.searchsorted(np.cumsum(w), keep * w.sum(), side="right")))
+    return float(np.average(d[:n], weights=w[:n]) if w[:n].sum() > 0 else d[:n].mean())
 
 
 # -- Gauss-Newton ---------------------------------------------------------------------------------

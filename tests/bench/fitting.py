@@ -121,9 +121,13 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     landmark hypotheses tried on the best coarse candidate only, not on each of the best 3) or
     ``refine_bare`` (clothed scans refined with the clothing weights from the start, no
     posture-first refinement on the clothes' outer surface: ``FitParams(refine_bare_iterations=0)``)
-    or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
+    or ``wrong_fit`` (issue 12's wrong fits: the initialisation's distances per template vertex,
+    not per area, and no pull of a clothed fit's posture towards the posture of the clothes'
+    outer surface) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
     from service.model.fitting import FitParams
 
+    if kind == "wrong_fit":
+        return FitParams(area_weighted=False, clothed_posture_anchor=0.0, alg1_posture_anchor=0.0)
     if kind == "refine_bare":
         return FitParams(refine_bare_iterations=0)
     if kind == "blas_threads":
