@@ -14,7 +14,10 @@ garment is posed with its own skin weights and:
    does at rest, and pushes that would stretch an edge beyond ``STRETCH_LIMIT`` are dropped;
 3. where a body vertex still pokes through a garment triangle between vertices outside the
    body (coarse garments over a bulging chest), that triangle's vertices are pushed the same
-   way (``BODY_POKES``);
+   way (``BODY_POKES``), kept only if fewer body vertices poke through afterwards;
+4. every edge stretched beyond ``STRAIN_LIMIT`` x its rest length is shortened, the strain
+   spread over the neighbouring cloth, the body kept out (:func:`limit_strain`, Provot's strain
+   limiting; ``STRAIN_LIMITING``);
 
 and the posed displacement d is taken back to rest space with the inverse of the vertex's
 blended LBS matrix: glTF (and three.js) add morph deltas before skinning, and skinning is
@@ -63,7 +66,7 @@ PREFILTER = 0.02  # metres: closest points only for vertices this near the skin 
 # (0.005 / 0.01 left 1.5x / 1.3x as many vertices inside as exact everywhere; 0.02 within 5 %)
 STRETCH_PASSES = 3  # rounds of dropping the pushes that stretch an edge beyond that
 MIN_DELTA = 1e-5  # metres: rest deltas shorter than this are left out (0 in the sparse target)
-# step 4: where skinning stretches cloth more than woven cloth gives (an edge between the arm and
+# step 4 (limit_strain): where skinning stretches cloth more than woven cloth gives (an edge between the arm and
 # the torso in the arms-down and hands-on-hips poses, bunched cloth pulled open), its edges are
 # shortened back to this ratio of their rest length, the strain spread to their neighbours
 STRAIN_LIMIT = 1.4
