@@ -262,6 +262,8 @@ def limit_strain(rest: np.ndarray, posed: np.ndarray, edges: np.ndarray, body: P
             continue
         step = x - start
         moved = np.flatnonzero(np.einsum("ij,ij->i", step, step) > 0.0)
+        if not len(moved):  # nothing over the limit from the start: no body query at all
+            break
         new = moved[np.isnan(floor[moved])]
         if len(new):
             floor[new] = np.minimum(np.broadcast_to(clearance, (m,))[new],

@@ -449,9 +449,8 @@ def transfer_skin_weights(vertices: np.ndarray, faces: np.ndarray, body_vertices
     n_comp, labels = connected_components(L, directed=False)
     reliable = _keep_one_per_component(reliable, labels, n_comp, distance)
     if parents is not None:
-        reliable = _keep_one_per_component(release_limb_side(X, faces, W, reliable, L, parents, screening=screening),
-                                           labels, n_comp,
-                                           distance)
+        released = release_limb_side(X, faces, W, reliable, L, parents, screening=screening)
+        reliable = _keep_one_per_component(released, labels, n_comp, distance)
     if test_transforms is None or len(test_transforms) == 0:
         Wi = inpaint(W, reliable, L, screening)
         return top_k(Wi if legs is None else ramp_legs(X, faces, Wi, legs), k)
