@@ -123,11 +123,14 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     posture-first refinement on the clothes' outer surface: ``FitParams(refine_bare_iterations=0)``)
     or ``wrong_fit`` (issue 12's wrong fits: the initialisation's distances per template vertex,
     not per area, and no pull of a clothed fit's posture towards the posture of the clothes'
-    outer surface) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
+    outer surface) or ``clothed_prior`` (a clothed scan's clothing-aware refinement and Alg. 1
+    with the bare scans' shape prior, not ``FitParams.clothed_shape_prior``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
     from service.model.fitting import FitParams
 
     if kind == "wrong_fit":
         return FitParams(area_weighted=False, clothed_posture_anchor=0.0, alg1_posture_anchor=0.0)
+    if kind == "clothed_prior":
+        return FitParams(clothed_shape_prior=None)
     if kind == "refine_bare":
         return FitParams(refine_bare_iterations=0)
     if kind == "blas_threads":
@@ -284,7 +287,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed,
                                                       params=BEFORE_PARAMS(cond.before)), surface)
                 row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"],
-                                 "seconds": time.perf_counter() - t1}
+                                 "measurements": prev["measurements"], "seconds": time.perf_counter() - t1}
             except Exception as exc:  # noqa: BLE001
                 row["before"] = {"error": f"{type(exc).__name__}: {exc}"[:200]}
             row.update({"avatar": person["index"], "gender": person["gender"], "seconds": seconds,
@@ -331,7 +334,11 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                                            for x in r if x["before"].get("error") != "RuntimeError: not measured in this condition"]),
                 "stature_abs_err_cm": _stats([abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]]),
                 "stature_worst_cm": max((abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]),
-                                        default=None)},
+                                        default=None),
+                "measurements_mae": {a: (float(np.mean([abs(x["before"]["measurements"][a]) for x in r
+                                                        if "measurements" in x["before"]]))
+                                         if any("measurements" in x["before"] for x in r) else None)
+                                     for a in M.ATTRIBUTES[1:]}},
             "refused_as_not_person": sum(("not a person" in f["error"]) or ("outside the population" in f["error"])
                                          for f in failures[name]),
             "refused_as_not_fitted": sum("could not be fitted to the whole scan" in f["error"] for f in failures[name]),
@@ -547,6 +554,8 @@ def format_result(r: dict) -> str:
     row("  stature |error| median cm", [_f(c["before"]["stature_abs_err_cm"]["median"])
                                         for c in conds.values()])
     row("  worst cm", [_f(c["before"]["stature_worst_cm"]) for c in conds.values()])
+    for attr in ("waist_cm", "weight_kg"):
+        row(f"  {attr} mean |error|", [_f(c["before"].get("measurements_mae", {}).get(attr)) for c in conds.values()])
     row("  time per fit, median s", [_f(c["before"]["seconds"]["median"]) for c in conds.values()])
     row("    p90 s", [_f(c["before"]["seconds"]["p90"]) for c in conds.values()])
     row("refused (not a person / outside population)", [str(c["refused_as_not_person"]) for c in conds.values()],
