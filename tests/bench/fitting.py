@@ -123,12 +123,15 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     posture-first refinement on the clothes' outer surface: ``FitParams(refine_bare_iterations=0)``)
     or ``wrong_fit`` (issue 12's wrong fits: the initialisation's distances per template vertex,
     not per area, and no pull of a clothed fit's posture towards the posture of the clothes'
-    outer surface) or ``clothed_prior`` (a clothed scan's clothing-aware refinement and Alg. 1
+    outer surface) or ``bone_smoothness`` (the refinement's and Eq. 3's pull of every bone towards
+    its parent's rotation at 0.1, not 0.02) or ``clothed_prior`` (a clothed scan's clothing-aware refinement and Alg. 1
     with the bare scans' shape prior, not ``FitParams.clothed_shape_prior``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
     from service.model.fitting import FitParams
 
     if kind == "wrong_fit":
         return FitParams(area_weighted=False, clothed_posture_anchor=0.0, alg1_posture_anchor=0.0)
+    if kind == "bone_smoothness":
+        return FitParams(bone_smoothness=0.1)
     if kind == "clothed_prior":
         return FitParams(clothed_shape_prior=None)
     if kind == "refine_bare":
