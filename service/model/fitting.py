@@ -139,9 +139,11 @@ class FitParams:
     # are not the scanner's noise but the cloth's stand-off, ~1-3 cm under a suit, and with 5 mm
     # the body grew into it: held-out men at 45 degrees came out 15-26 kg heavier in loose suits
     # (waist +9-21 cm). 2 cm (fitting bench, 12 avatars, 45 degrees, against 5 mm in the same
-    # run): body error clothed mesh 3.08 -> 2.97 mm, scanner 3.75 -> 3.54 mm, better on 36 of
-    # the 45 scans both fitted (worse by <= 0.13 mm on 7), waist mean |error| 7.3 -> 6.1 cm;
-    # two loose-clothes scans refused before (a calf outside the population) are fitted. Only
+    # run, bone smoothness 0.1): body error clothed mesh 3.08 -> 2.97 mm, scanner 3.75 -> 3.54
+    # mm, better on 36 of the 45 scans both fitted (worse by <= 0.13 mm on 7), waist mean
+    # |error| 7.3 -> 6.1 cm; two loose-clothes scans refused before (a calf outside the
+    # population) are fitted. With smoothness 0.02 (6 clothed scans rechecked): 0.02-0.20 mm
+    # better on 4 of 5, waists 1.9-2.2 cm smaller on 3 men, one refusal turned into a fit. Only
     # after the posture is found: a 5 cm prior from the initialisation on turned held-out
     # avatar 1's bent torso wrong (6.6 -> 14.6 mm); 5 cm here made women 0.1-0.2 mm worse.
     # None: ``shape_prior`` throughout
