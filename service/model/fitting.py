@@ -142,8 +142,8 @@ class FitParams:
     # run, bone smoothness 0.1): body error clothed mesh 3.08 -> 2.97 mm, scanner 3.75 -> 3.54
     # mm, better on 36 of the 45 scans both fitted (worse by <= 0.13 mm on 7), waist mean
     # |error| 7.3 -> 6.1 cm; two loose-clothes scans refused before (a calf outside the
-    # population) are fitted. With smoothness 0.02 (6 clothed scans rechecked): 0.02-0.20 mm
-    # better on 4 of 5, waists 1.9-2.2 cm smaller on 3 men, one refusal turned into a fit. Only
+    # population) are fitted. With smoothness 0.02 (6 clothed scans rechecked): 0.05-0.20 mm
+    # better on 4 of 5 (0.02 worse), waists 0.3-2.2 cm smaller on 3 men, a refusal now fitted. Only
     # after the posture is found: a 5 cm prior from the initialisation on turned held-out
     # avatar 1's bent torso wrong (6.6 -> 14.6 mm); 5 cm here made women 0.1-0.2 mm worse.
     # None: ``shape_prior`` throughout
