@@ -354,14 +354,15 @@ def test_fit_clothed_mesh_in_a_45_degree_pose(model):
     to surface), the stature 5.0 cm short; with it 3.7 mm and 2.7 cm. With the pull of each bone
     towards its parent's rotation (Eq. 3's smoothness, also a pull towards the rest pose) at 0.1
     the knee's bend inside the trouser leg was underestimated and the legs came out short
-    (clothed prior on: 3.24 mm, stature -2.16 cm); at 0.02: 2.59 mm and -0.95 cm."""
+    (clothed prior on: 3.24 mm, stature -2.16 cm); at 0.02 after the posture-first stage
+    (``FitParams.bone_smoothness``, ``bare_smoothness``): 2.94 mm and -1.73 cm."""
     from tests.bench import fitting as BF
 
     person, scan = _bench_clothed_scan_at_45(model)
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
     ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
-    assert ev["p2s_mm"] < 3.0, ev["p2s_mm"]
-    assert abs(ev["stature_err_cm"]) < 1.5, ev["stature_err_cm"]
+    assert ev["p2s_mm"] < 3.1, ev["p2s_mm"]
+    assert abs(ev["stature_err_cm"]) < 2.0, ev["stature_err_cm"]
 
 
 
@@ -372,7 +373,8 @@ def test_the_body_does_not_fill_a_loose_suit(model):
     jacket. Held-out avatar 0 (a man in a casual suit, 45 degrees, the clothed-mesh condition of
     the fitting bench): with the clothed scans' prior (``FitParams.clothed_shape_prior``, 2 cm,
     once the posture is found) the waist came out +14.5 cm against +16.4 cm, 15.6 -> 14.7 kg too
-    heavy, 3.20 -> 3.02 mm off (point to surface). Still far too big: see the README."""
+    heavy, 3.20 -> 3.02 mm off (point to surface), measured with the bone smoothness 0.02 in every
+    stage. Still far too big: see the README."""
     from dataclasses import replace
 
     from tests.bench import fitting as BF
@@ -393,6 +395,28 @@ def test_the_body_does_not_fill_a_loose_suit(model):
     assert ev["prior"]["measurements"]["weight_kg"] < ev["none"]["measurements"]["weight_kg"], ev
     assert ev["prior"]["p2s_mm"] < ev["none"]["p2s_mm"] + 0.05, ev
 
+
+
+@pytest.mark.slow
+def test_a_bent_forward_clothed_cloud_is_not_folded(model):
+    """Issue 12: held-out avatar 1 (bent forward ~70 degrees, an arm up, a casual suit and
+    shoes) as the fitting bench's clothed point cloud at 45 degrees. With the bone smoothness
+    0.02 in the posture-first stage too, the fit folded into a wrong minimum the person check
+    does not see: 28.4 mm off (point to surface), the head 13 cm from the truth, the rest body
+    17.7 cm short. With 0.1 in that stage (``FitParams.bare_smoothness``): 6.2 mm."""
+    from tests.bench import fitting as BF
+    from tests.bench.common import heldout_people
+
+    if not SS.default_clothes_dir().is_dir():
+        pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
+    person = next(p for p in heldout_people(model, 12) if p["index"] == 1)
+    scan = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
+                        person["gender"], clothed=True, point_cloud=True, n_points=BF.N_POINTS,
+                        noise_mm=BF.NOISE_MM, max_pose_deg=45, clothes_dir=SS.default_clothes_dir())
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
+    ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
+    assert ev["p2s_mm"] < 9.0 and ev["worst_joint"][1] < 80.0, ev
+    assert abs(ev["stature_err_cm"]) < 4.0, ev["stature_err_cm"]
 
 def test_vertex_areas_and_area_weighted_trimmed_mean(model, rig):
     """The template's vertex areas sum to its surface area and are far from uniform (the hands'
@@ -475,14 +499,14 @@ def test_a_scanner_scan_bent_forward_is_fitted_facing_the_right_way(model):
     suit), scanner output, a pose up to 45 degrees (bent forward ~70 degrees, an arm up). The
     fit came back facing the wrong way, 48 mm off (point to surface), a hand 1.2 m from the truth
     and yet no scan point 0.15 m from the body. Now it faces the scan's way and comes within
-    9 mm (7.3 mm measured with bone smoothness 0.1, 8.1 mm with 0.02): the right facing wins the
-    initialisation once its distances count per area, and the clothed refinement and Alg. 1
-    keep the posture of the clothes' outer surface where the clothing weights leave a limb
-    without data (a hand drifted 10 cm)."""
+    8 mm (7.3 mm measured; 6.3 mm with the lower bone smoothness after the posture-first
+    stage): the right facing wins the initialisation once its distances count per area, and the
+    clothed refinement and Alg. 1 keep the posture of the clothes' outer surface where the
+    clothing weights leave a limb without data (a hand drifted 10 cm)."""
     from tests.bench import fitting as BF
 
     _, scan = _bench_scanner_scan(model, 1, 45)
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
     ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
-    assert ev["p2s_mm"] < 9.0 and ev["joints_mm"] < 25.0, ev
+    assert ev["p2s_mm"] < 8.0 and ev["joints_mm"] < 25.0, ev
     assert ev["worst_joint"][1] < 80.0, ev["worst_joint"]
