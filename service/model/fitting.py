@@ -114,13 +114,13 @@ class FitParams:
     # Eq. 3: neighbouring-bone smoothness omega sum ||theta_b - theta_parent(b)||^2 with theta the
     # local (relative) rotations, i.e. also a pull towards the rest pose (in the refinement too).
     # Issue 12: raising it to 3 tripled the body error (1.0 -> 2.8 mm bare, 3.1 -> 8.2 mm
-    # clothed). Lowering it from 0.1 to 0.02 (fitting bench, 12 avatars at 45 degrees, same run):
-    # the pull had straightened bent knees and spines and the rest body came out short (43 of 48
-    # clothed scans); body error unclothed 1.16 -> 0.71 mm, clothed mesh 2.97 -> 2.14, scanner
-    # 3.54 -> 3.11, loose clothes 3.51 -> 2.94 mm, the rest-pose stature median 0.49 -> 0.22,
-    # 0.72 -> 0.42, 1.01 -> 0.62, 0.72 -> 0.33 cm; but the waist under clothes 6.1 -> 7.1 cm mean
-    # |error|, and a hand over a hole (held-out avatar 39, scanner, 20 degrees) 4.2 -> 6.7 mm.
-    # The joint limits and, for clothed scans, the posture anchors hold the pose instead
+    # clothed). Lowering it from 0.1 to 0.02 (fitting bench, 12 avatars at 45 degrees, same run,
+    # ``bare_smoothness`` 0.1): the pull had straightened bent knees and spines and the rest body
+    # came out short (43 of 48 clothed scans); body error unclothed 1.16 -> 0.71 mm, clothed mesh
+    # 2.97 -> 2.57, clothed cloud 2.82 -> 2.49, scanner 3.54 -> 3.30, loose clothes 3.51 -> 3.29
+    # mm (57 of 60 scans better), the rest-pose stature median 0.49 -> 0.22, 0.72 -> 0.51,
+    # 0.61 -> 0.41, 1.01 -> 0.81, 0.72 -> 0.55 cm; the weight under clothes 0.4-1.1 kg further
+    # off. The joint limits and, for clothed scans, the posture anchors hold the pose instead
     bone_smoothness: float = 0.02
     # ... but 0.1 in a clothed scan's posture-first stage (the clothes' outer surface fitted as
     # skin, ``refine_bare_iterations``), which finds the posture the later stages are anchored
