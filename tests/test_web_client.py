@@ -82,6 +82,12 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
     assert out["dressed"]["bones"] == BONES
     assert out["dressed"]["customer"] and out["storedId"] == out["dressed"]["customer"]
     assert out["dressedCanvas"]["colours"] > 10
+    # until the body's adapted poses arrive the page poses with the plain directions, every
+    # corrective (made for the adapted poses) at 0
+    assert out["poseSourceHeld"] == "directions"
+    assert len(out["correctivesHeld"]) == 2, out["correctivesHeld"]
+    for influences in out["correctivesHeld"].values():
+        assert influences and not any(influences.values()), influences
     # each garment carries one pose-corrective target per preset; the current pose's at 1
     for key, pose in (("correctivesWalking", "walking"), ("correctivesHips", "hands-on-hips")):
         got = out[key]

@@ -123,6 +123,11 @@ try {
   if (!tops.length || !bottoms.length) throw new Error(`no top and bottom among ${garments.map((g) => g.name)}`);
   const outfits = [[tops[0], bottoms[0]], [tops[1] || tops[0], bottoms[1] || bottoms[0]]];
   out.outfits = outfits.map((o) => o.map((g) => g.name));
+  // the body's adapted poses (GET .../poses) held back until the outfit is worn: meanwhile the
+  // page poses with the plain directions, and the correctives (made for the adapted poses) stay 0
+  let releasePoses;
+  const posesHeld = new Promise((r) => { releasePoses = r; });
+  await page.route('**/v1/customers/*/poses', async (route) => { await posesHeld; await route.continue(); });
   await wear(page, [outfits[0][0].id]);
   await wear(page, outfits[0].map((g) => g.id));
   out.dressed = await page.evaluate(() => ({
@@ -134,6 +139,11 @@ try {
   out.storedId = await page.evaluate(() => localStorage.getItem('tryon.customerId'));
   const token = await page.evaluate(() => localStorage.getItem('tryon.customerToken'));
   out.storedToken = Boolean(token);
+  out.poseSourceHeld = await page.evaluate(() => window.__tryon.poseSource);
+  out.correctivesHeld = await page.evaluate(() => window.__tryon.poseCorrectives());
+  releasePoses();
+  await page.waitForFunction(() => window.__tryon.poseSource === 'body', null, { timeout: 60000 });
+  await page.unroute('**/v1/customers/*/poses');
   // the garments' pose-corrective targets follow the pose: the current one's at 1, the others at 0
   out.correctivesWalking = await page.evaluate(() => window.__tryon.poseCorrectives());
   await page.click('#poses button[data-pose=hands-on-hips]');

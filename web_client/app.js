@@ -344,6 +344,9 @@ function customerPoses() {
 // Pose-corrective morph targets (outfit.glb?pose_correctives=1): a garment may carry one target
 // per preset, `pose:<name>`, that keeps it outside the body in that pose; the current pose's at
 // influence 1, the others at 0. Meshes without them (the avatar, older GLBs) are left alone.
+// The targets are made for the body's adapted poses (GET /v1/customers/{id}/poses), so while the
+// page poses with the plain directions (the adapted ones not arrived yet) every target is at 0:
+// name null.
 let correctivesOn = true; // off: every pose target at 0 (hook.setCorrectives, to compare)
 function setPoseCorrectives(name) {
   for (const m of meshes()) {
@@ -354,7 +357,9 @@ function setPoseCorrectives(name) {
     }
   }
 }
-hook.setCorrectives = (on) => { correctivesOn = Boolean(on); setPoseCorrectives(state.pose); render(); };
+hook.setCorrectives = (on) => {
+  correctivesOn = Boolean(on); setPoseCorrectives(hook.poseSource === 'body' ? state.pose : null); render();
+};
 // {mesh name: {target name: influence}} of the meshes that have pose-corrective targets
 hook.poseCorrectives = () => Object.fromEntries(meshes().filter((m) => m.morphTargetDictionary
   && Object.keys(m.morphTargetDictionary).some((k) => k.startsWith('pose:'))).map((m) => [m.name,
@@ -363,7 +368,6 @@ hook.poseCorrectives = () => Object.fromEntries(meshes().filter((m) => m.morphTa
 function applyPose(name) {
   state.pose = name; hook.pose = name;
   if (!current) return;
-  setPoseCorrectives(name);
   // Every bone of that name (the outfit scene shares one skeleton; if a garment carried its
   // own copy of the joints it gets the same rotations).
   for (const [b, q] of rest) b.quaternion.copy(q);
@@ -380,11 +384,13 @@ function applyPose(name) {
       for (const b of byName.get(boneName)) b.quaternion.copy(rest.get(b)).multiply(q);
     }
     hook.poseSource = 'body';
+    setPoseCorrectives(name);
     current.updateMatrixWorld(true);
     render();
     return;
   }
   hook.poseSource = 'directions';
+  setPoseCorrectives(null);
   const targets = presetTargets(name);
   const a = new THREE.Vector3(), c = new THREE.Vector3(), pq = new THREE.Quaternion(), wq = new THREE.Quaternion();
   for (const boneName of PRESETS?.order || []) {
