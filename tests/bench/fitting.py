@@ -31,8 +31,9 @@
    surface patches of 4-9 cm radius), ``cut_head`` (everything above a plane 4 cm under the
    head top dropped), ``floor_disc`` (a dense disc of floor points under the feet, a point
    cloud), ``room_floor`` (a 3.2 m square of a room's floor around an unclothed point cloud:
-   wider than a person, so the unit is told after the floor is found) and ``scanner`` (a clothed mesh with holes, a cut head top and a scanner's noisy,
-   tilted floor); their "before" is the same scan fitted without the scan cleaning
+   wider than a person, so the unit is told after the floor is found), ``scanner`` (a clothed mesh with holes, a cut head top and a scanner's noisy,
+   tilted floor) and ``scanner_minimal`` (the same three on a bare mesh: a body scanner's output
+   of a person in minimal clothing, fitted as unclothed); their "before" is the same scan fitted without the scan cleaning
    (``FitParams(scan_cleanup=False)``), same run.
 
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
@@ -100,6 +101,9 @@ CONDITIONS = (
     Condition("floor_disc", False, True, degrade=("floor_disc",), before="scan_cleanup"),
     Condition("scanner", True, False, degrade=("holes", "cut_head", "scanner_floor"), before="scan_cleanup"),
     Condition("room_floor", False, True, degrade=("room_floor",), before="scan_cleanup"),
+    # what a body scanner gives: the person in minimal clothing (bare here), the mesh with holes,
+    # a cut head top and the scanner's floor; fitted as unclothed
+    Condition("scanner_minimal", False, False, degrade=("holes", "cut_head", "scanner_floor"), before="scan_cleanup"),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
@@ -125,13 +129,17 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     not per area, and no pull of a clothed fit's posture towards the posture of the clothes'
     outer surface) or ``bone_smoothness`` (the refinement's and Eq. 3's pull of every bone towards
     its parent's rotation at 0.1, not 0.02) or ``clothed_prior`` (a clothed scan's clothing-aware refinement and Alg. 1
-    with the bare scans' shape prior, not ``FitParams.clothed_shape_prior``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
+    with the bare scans' shape prior, not ``FitParams.clothed_shape_prior``) or ``refine_holes`` (the refinement's ICP pulling template vertices over a hole to its rim,
+    a bare scan's normals rejected beyond the coarse stage's 60 degrees: no
+    ``FitParams.refine_hole_reject``, no ``refine_normal_reject_deg``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
     from service.model.fitting import FitParams
 
     if kind == "wrong_fit":
         return FitParams(area_weighted=False, clothed_posture_anchor=0.0, alg1_posture_anchor=0.0)
     if kind == "bone_smoothness":
         return FitParams(bone_smoothness=0.1)
+    if kind == "refine_holes":
+        return FitParams(refine_hole_reject=False, refine_normal_reject_deg=None)
     if kind == "clothed_prior":
         return FitParams(clothed_shape_prior=None)
     if kind == "refine_bare":
