@@ -443,6 +443,32 @@ def test_adapted_poses_keep_arms_out_of_the_torso(model, body) -> None:
             assert len(inside) == 0, (body, name, side, len(inside))
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("body", ["165/105 woman", "200/130 man"])
+def test_the_fast_arm_check_agrees_with_the_exhaustive_one(model, body) -> None:
+    """``arm_vertices_inside`` without ``exhaustive`` (arm points near the torso searched,
+    deepest first, stopping at the first confirmed batch) finds an arm vertex inside the torso
+    or thighs exactly when the exhaustive winding-number check over the same points does, for
+    every page pose at the extra abductions the adaptation tries (colliding and not)."""
+    X = S.avatar_from_measurements(model, FIVE_BODIES[body]).vertices
+    spec = P.presets()
+    J = model.joints(X)
+    outcomes = set()
+    for name, p in spec["poses"].items():
+        for side in "lr":
+            pts = P.arm_points(model, X, side)[::3]
+            for extra in (0.0, 6.0, 12.0, 30.0):
+                tg = P.abducted(P.targets(p), side, extra)
+                pose = P.pose_from_directions(J, model.bone_parents, tg, spec["order"], spec["child"])
+                posed = model.forward(pose=pose, vertices=X).vertices
+                fast = P.arm_vertices_inside(model, posed, pts, side)
+                slow = P.arm_vertices_inside(model, posed, pts, side, exhaustive=True)
+                assert (len(fast) > 0) == (len(slow) > 0), (body, name, side, extra, len(fast), len(slow))
+                assert set(fast) <= set(slow)
+                outcomes.add(len(slow) > 0)
+    assert outcomes == {True, False}  # both kinds of case were checked
+
+
 # -- layering ----------------------------------------------------------------------------------------
 def cylinder(radius, y0, y1, n_around=40, n_up=20):
     a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)

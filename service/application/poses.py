@@ -1,7 +1,8 @@
 """The page's pose presets adapted to a customer's body (``GET /v1/customers/{id}/poses``).
 
 The adaptation (``service.model.poses.adapted_poses``: more shoulder abduction until no arm
-vertex is inside the torso or thighs) takes a few seconds on 2 cores, so results are kept per
+vertex is inside the torso or thighs) takes ~0.5 s per body in process (seconds over HTTP on a
+loaded 2-core machine), so results are kept per
 (body model, weights) in a small LRU shared by the process (also read by the try-on's pose
 correctives: the same poses the page applies)."""
 from __future__ import annotations

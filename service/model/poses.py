@@ -37,6 +37,7 @@ ARM_POINT_MIN_WEIGHT = 0.95  # an arm vertex: at least this much weight on one a
 TORSO_MAX_ARM_WEIGHT = 0.02  # a torso vertex: at most this much on either arm
 UPPER_ARM_SKIP = 0.6  # upper-arm vertices this close to the shoulder (x upper-arm length) are not tested:
 # the armpit presses on the chest when the arm comes down, on heavy bodies flesh on flesh
+NEAR_TORSO_M = 0.04  # arm points farther than this from every torso vertex are not searched first
 CONFIRM_BATCH = 8  # candidates confirmed by winding number at a time (deepest first)
 
 
@@ -166,7 +167,8 @@ def arm_points(model, vertices: np.ndarray, side: str) -> np.ndarray:
 def arm_vertices_inside(model, posed: np.ndarray, points: np.ndarray, side: str, *,
                         exhaustive: bool = False) -> np.ndarray:
     """The arm points (indices into the body) of a posed body (>= n_body, 3) that are inside the
-    torso or thighs. Candidates: behind the closest torso triangle (face-normal sign); each is
+    torso or thighs. Candidates: within ``NEAR_TORSO_M`` of a torso vertex and behind the
+    closest torso triangle (face-normal sign); each is
     confirmed by its generalised winding number with respect to the posed body surface without
     that arm's faces (> 1/2: inside the torso or thighs). With
     ``exhaustive`` every arm point is checked by winding number (slow; the tests' reference);
@@ -179,11 +181,20 @@ def arm_vertices_inside(model, posed: np.ndarray, points: np.ndarray, side: str,
         cand = np.arange(len(points))
     else:
         TV, TF = X[lab["torso_vertices"]], lab["torso_faces"]
-        face, q, _ = closest_points_on_mesh(probe, TV, TF, tree=cKDTree(TV), vert_faces=vertex_faces(TF, len(TV)))
+        tree = cKDTree(TV)
+        # only arm points near the torso's surface can be the first inside it: an arm entering
+        # the torso has points just behind the surface (the arm's own vertex spacing), so "any"
+        # is decided among them; the far ones skip the closest-point search (most of its cost)
+        near = np.flatnonzero(np.isfinite(tree.query(probe, distance_upper_bound=NEAR_TORSO_M)[0]))
+        if not len(near):
+            return np.zeros(0, np.int64)
+        face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=vertex_faces(TF, len(TV)))
         tri = TV[TF[face]]
         fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        cand = np.flatnonzero(np.einsum("ij,ij->i", probe - q, fn) < 0)
-        cand = cand[np.argsort(-np.linalg.norm(probe[cand] - q[cand], axis=1))]  # deepest first
+        behind = np.einsum("ij,ij->i", probe[near] - q, fn) < 0
+        depth = np.linalg.norm(probe[near] - q, axis=1)
+        order = np.flatnonzero(behind)
+        cand = near[order[np.argsort(-depth[order])]]  # deepest first
     found = []
     for s in range(0, len(cand), CONFIRM_BATCH):  # stop at the first batch that confirms any
         c = cand[s:s + CONFIRM_BATCH]
