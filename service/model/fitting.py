@@ -22,7 +22,8 @@ Stages:
    which shape and posture trade (a longer bone bent more) to the scan's minimum: the rest-pose
    body does not absorb posture (issue 12). As in Alg. 1, the refinement does not pull the
    template into a scan's holes (``refine_hole_reject``), and on a bare scan it pairs only
-   surfaces whose normals are within 30 degrees (``refine_normal_reject_deg``). A clothed scan is first refined as if bare
+   surfaces whose normals are within 30 degrees (``refine_normal_reject_deg``). A clothed scan
+   is first refined as if bare
    (``refine_bare_iterations``: the posture of the clothes' outer surface), then with the
    clothing weights (issue 12: limbs left in a wrong posture by the initialisation otherwise
    hide inside loose clothes), each bone held towards the posture of that first stage where the
@@ -210,9 +211,9 @@ class FitParams:
     # body scanner's mesh (bare, 8 holes, the head top cut 4 cm down, 20 degrees): held-out
     # avatar 41's face is in a hole; even started at the truth, the refinement tipped her head
     # back 27 degrees and grew it (stature +3.2 cm); from the initialisation +3.8 cm and 5.5 mm,
-    # with 30 degrees (and ``refine_hole_reject``) +0.96 cm and 3.6 mm. Clothed scans keep 60 degrees: the clothes' normals
-    # are not the body's, and at 30 held-out avatar 1 in a loose suit (45 degrees) went 4.9 ->
-    # 11.5 mm. None: ``coarse_normal_reject_deg``
+    # with 30 degrees (and ``refine_hole_reject``) +0.96 cm and 3.6 mm. Clothed scans keep 60
+    # degrees: the clothes' normals are not the body's, and at 30 held-out avatar 1 in a loose
+    # suit (45 degrees) went 4.9 -> 11.5 mm. None: ``coarse_normal_reject_deg``
     refine_normal_reject_deg: float | None = 30.0
     refine_iterations: int = 24
     # issue 12, clothed scans in poses up to 45 degrees: the initialisation can leave limbs 15-50

@@ -37,7 +37,7 @@ ARM_POINT_MIN_WEIGHT = 0.95  # an arm vertex: at least this much weight on one a
 TORSO_MAX_ARM_WEIGHT = 0.02  # a torso vertex: at most this much on either arm
 UPPER_ARM_SKIP = 0.6  # upper-arm vertices this close to the shoulder (x upper-arm length) are not tested:
 # the armpit presses on the chest when the arm comes down, on heavy bodies flesh on flesh
-NEAR_TORSO_M = 0.04  # arm points farther than this from every torso vertex are not searched first
+NEAR_TORSO_M = 0.04  # the fast check skips arm points farther than this from every torso vertex
 CONFIRM_BATCH = 8  # candidates confirmed by winding number at a time (deepest first)
 
 
