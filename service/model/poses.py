@@ -191,9 +191,9 @@ def arm_vertices_inside(model, posed: np.ndarray, points: np.ndarray, side: str,
         face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=vertex_faces(TF, len(TV)))
         tri = TV[TF[face]]
         fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        behind = np.einsum("ij,ij->i", probe[near] - q, fn) < 0
-        depth = np.linalg.norm(probe[near] - q, axis=1)
-        order = np.flatnonzero(behind)
+        off = probe[near] - q
+        order = np.flatnonzero(np.einsum("ij,ij->i", off, fn) < 0)  # behind the closest triangle
+        depth = np.linalg.norm(off, axis=1)
         cand = near[order[np.argsort(-depth[order])]]  # deepest first
     found = []
     for s in range(0, len(cand), CONFIRM_BATCH):  # stop at the first batch that confirms any
