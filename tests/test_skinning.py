@@ -593,3 +593,63 @@ def test_poses_route(client: TestClient) -> None:
     # a heavy body: arms down needs more abduction than the preset's direction
     arm = np.array(poses["arms-down"]["upper_arm_l"])
     assert np.linalg.norm(arm) > 0
+
+
+def test_adapted_poses_are_computed_once_for_every_process(client: TestClient, monkeypatch) -> None:
+    """The poses' adaptation (~0.5 s of CPU per body) runs once per body for the whole service:
+    its result is stored (a process with an empty LRU -- another server process, or this one
+    after a restart -- reads it), concurrent first requests compute it once (a cross-process
+    lock), a malformed stored entry is computed again, and deleting the customer drops it."""
+    import json
+    import threading
+
+    from service.application import poses as AP
+
+    ctx = client.app.state.context
+    calls = []
+    real = AP.adapted_poses
+
+    def counted(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(AP, "adapted_poses", counted)
+    c = client.post("/v1/customers", json={"measurements": {"gender": "male", "height_cm": 178,
+                                                             "weight_kg": 92}}).json()
+    auth = {"Authorization": f"Bearer {c['token']}"}
+    record = ctx.customers.repo.get(c["id"])
+    key = AP.store_key(ctx.customers.repo.prefix, ctx.model.version, record.weights)
+    conn = ctx.customers.repo.conn
+
+    def other_process() -> None:
+        AP._cache.clear()  # what another server process (or a restarted one) has in memory
+
+    other_process()
+    first = client.get(f"/v1/customers/{c['id']}/poses", headers=auth).json()
+    assert len(calls) == 1
+    assert json.loads(conn.get(key)) == first and 0 < conn.ttl(key) <= AP.POSES_TTL_S
+    other_process()
+    assert client.get(f"/v1/customers/{c['id']}/poses", headers=auth).json() == first
+    assert len(calls) == 1  # read from the store, the same values
+
+    # concurrent first requests in two "processes" (threads with no LRU hit): computed once
+    conn.delete(key)
+    other_process()
+    got: list = []
+    threads = [threading.Thread(target=lambda: got.append(AP.record_poses(ctx.customers, record))) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 2 and got == [first, first]
+
+    # a malformed entry is not served: computed again and replaced
+    for bad in (b"{not json", json.dumps({"walking": {"pelvis": [0.0, 0.0]}}).encode()):
+        conn.set(key, bad)
+        other_process()
+        assert client.get(f"/v1/customers/{c['id']}/poses", headers=auth).json() == first
+        assert json.loads(conn.get(key)) == first
+    assert len(calls) == 4
+
+    assert client.delete(f"/v1/customers/{c['id']}", headers=auth).status_code == 204
+    assert conn.get(key) is None

@@ -260,6 +260,10 @@ class CustomerService:
         self.ctx.meshes.delete(cid)
         self.ctx.editing.forget(cid)
         self.bodies.drop(cid)
+        if record.weights:
+            from service.application.poses import forget_poses  # it builds on this module
+
+            forget_poses(self, record)
 
     # -- the fitting job ---------------------------------------------------------------------
     def run_fit(self, cid: str, progress: Progress) -> dict[str, Any]:

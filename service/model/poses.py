@@ -38,6 +38,9 @@ TORSO_MAX_ARM_WEIGHT = 0.02  # a torso vertex: at most this much on either arm
 UPPER_ARM_SKIP = 0.6  # upper-arm vertices this close to the shoulder (x upper-arm length) are not tested:
 # the armpit presses on the chest when the arm comes down, on heavy bodies flesh on flesh
 NEAR_TORSO_M = 0.04  # the fast check skips arm points farther than this from every torso vertex
+# the adaptation's version: bump it when a change here alters the poses it returns (stored
+# adapted poses are keyed by it, with the presets and the body, see service.application.poses)
+ADAPTATION_VERSION = 1
 CONFIRM_BATCH = 8  # candidates confirmed by winding number at a time (deepest first)
 
 

@@ -4,7 +4,8 @@ Keys (prefix ``TRYON_REDIS_PREFIX``, default ``tryon:``): ``customer:<id>`` and 
 (JSON), ``scan:<customer id>`` (an uploaded scan waiting for its fitting job, bytes, expiring),
 ``garment-upload:<garment id>`` (a draped garment waiting for its build job, bytes, expiring),
 ``garments`` (sorted set id -> creation time: the catalogue index), ``demo:<name>`` (the id of
-a demo garment), ``lock:<name>``. Every call is one Redis round trip (pipelines and MGET);
+a demo garment), ``lock:<name>``; ``poses:<digest>`` (a body's adapted page poses, JSON, expiring:
+:mod:`service.application.poses`). Every call is one Redis round trip (pipelines and MGET);
 :func:`fetch` reads a customer and garments together, once.
 """
 from __future__ import annotations
