@@ -29,6 +29,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
                 "garments from one draped mesh: auto-fit to the examples vs .mhclo references"),
     "editing": ("tests.bench.editing", "run", "format",
                 "clothed-avatar editing: forward error, update time, elbow-twist volume"),
+    "page": ("tests.bench.page", "run", "format_result",
+             "the page's first dressed view of new customers over HTTP (outfit with pose correctives, /poses)"),
     "load": ("tests.bench.load", "run", "format_result",
              "mixed traffic at 80 req/s against a default tryon serve: p50/p99, errors, memory (--limit: seconds)"),
 }
