@@ -125,9 +125,9 @@ def run(limit: int = 0, repeats: int = 0) -> dict:
 
 
 def format_result(r: dict) -> str:
-    lines = [f"the page's first dressed view of a new customer over HTTP: {r['customers']} held-out people, "
-             f"default `tryon serve` ({r['server_processes']} processes), client on the same machine; "
-             f"load average {r['machine_load_avg'][0]:.1f} -> {r['machine_load_avg'][1]:.1f}",
+    lines = [(f"the page's first dressed view of a new customer over HTTP: {r['customers']} held-out people, "
+              f"default `tryon serve` ({r['server_processes']} processes), client on the same machine; "
+              f"load average {r['machine_load_avg'][0]:.1f} -> {r['machine_load_avg'][1]:.1f}"),
              f"  {'step':<15}{'median ms':>10}{'p90 ms':>10}{'max ms':>10}"]
     for k, v in r["steps"].items():
         lines.append(f"  {k:<15}{v['median_ms']:>10.0f}{v['p90_ms']:>10.0f}{v['max_ms']:>10.0f}")
