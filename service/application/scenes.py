@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -179,7 +180,8 @@ def layered_outfit(layers: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
 
 def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
                compression: str | None, with_avatar: bool = True, look: Look | None = None,
-               template: bool = True, cache: bool = True, poses: dict[str, np.ndarray] | None = None) -> bytes:
+               template: bool = True, cache: bool = True,
+               poses: dict[str, np.ndarray] | Callable[[], dict[str, np.ndarray] | None] | None = None) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
@@ -187,7 +189,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     same layers were layered on the same body before (:func:`layered_outfit`; False: always
     layered, for benchmarks). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
     body): each garment also gets one pose-corrective morph target per pose
-    (:func:`add_pose_correctives`)."""
+    (:func:`add_pose_correctives`); or a function returning them, called once the outfit is
+    layered (the poses' adaptation may be under way in another server process meanwhile)."""
     meshes = avatar_meshes(model, body.vertices, body.normals, look, template) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
@@ -216,6 +219,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
                 normals[i] = basis.normals(worn[i])
     garment_meshes = [look_mesh(basis, rec, v, n, template, sk)
                       for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
+    if callable(poses):
+        poses = poses()
     if poses:
         add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses)
     meshes += garment_meshes

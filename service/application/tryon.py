@@ -36,8 +36,12 @@ class TryOnService:
                            [(g.id, basis.etag() or g.etag) for g, basis in loaded])
 
     def _page_poses(self, record, on: bool):
-        """The page's poses adapted to the customer (cached per body), when ``on``."""
-        return _poses.pose_arrays(_poses.record_poses(self.ctx.customers, record)) if on else None
+        """The page's poses adapted to the customer (cached per body), when ``on``: a function
+        that gets them, for ``scenes.outfit_glb`` to call once the outfit is layered. The page
+        asks for ``/poses`` together with its first outfit: when the two requests reach
+        different server processes, one adapts the poses while the other layers the outfit,
+        then waits for them (``poses.record_poses``' lock) instead of adapting them first."""
+        return (lambda: _poses.pose_arrays(_poses.record_poses(self.ctx.customers, record))) if on else None
 
     def garment_glb(self, cid: str, gid: str, creds: Credentials, compression: str | None,
                     if_none_match: list[str] | None = None, pose_correctives: bool = False) -> tuple[bytes | None, str]:
