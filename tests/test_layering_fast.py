@@ -1,6 +1,7 @@
 """The outfit layering's fast path (issue 11, outfit.glb latency) gives the reference's results:
 closest points on a mesh with candidate faces pruned by a distance bound
-(``geometry.PRUNE_CANDIDATES``), and ``layering.layer_outfit`` with its per-outer and
+(``geometry.PRUNE_CANDIDATES``) and in compiled code (``geometry.COMPILED``: the numba kernels
+of ``service.model.kernels``, also the winding numbers), and ``layering.layer_outfit`` with its per-outer and
 per-topology reuse and near-only rim checks against the plain per-pair passes. Tolerance:
 1e-9 m on vertices, 1e-6 on skin weights (measured: bitwise equal)."""
 from __future__ import annotations
@@ -28,11 +29,53 @@ def test_pruned_closest_points_equal_the_reference(monkeypatch: pytest.MonkeyPat
                    V[:200],  # on vertices: several faces tie
                    rng.normal(0, 0.5, (300, 3)),  # far away
                    [[0.315, 0.0, 0.0]]])
+    compiled = Gm.closest_points_on_mesh(P, V, F)
+    monkeypatch.setattr(Gm, "COMPILED", False)
     fast = Gm.closest_points_on_mesh(P, V, F)
     monkeypatch.setattr(Gm, "PRUNE_CANDIDATES", False)
     ref = Gm.closest_points_on_mesh(P, V, F)
-    for a, b in zip(fast, ref):
+    ties = 0
+    for i in range(len(P)):  # the reference's own tie rule, checked: of equally near faces, the first around
+        t = V[F]  # the k nearest vertices wins (a point on a vertex ties all the faces around it)
+        d = Gm.squared_norms(Gm.closest_point_on_triangles(P[i], t[:, 0], t[:, 1], t[:, 2]) - P[i])
+        ties += int((d == d[ref[0][i]]).sum() > 1)
+    assert ties >= 200
+    for a, b, c in zip(compiled, fast, ref):
+        assert np.array_equal(a, c) and np.array_equal(b, c)
+
+
+@pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="numba is not installed")
+def test_compiled_closest_points_equal_numpy_on_the_body(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On the body mesh (25k faces), points near and on the skin and far from it: the compiled
+    kernel picks the same faces, ties included, and the same closest points, bit for bit."""
+    from service.model.body import load_body_model
+
+    model = load_body_model()
+    nb = model.n_body_vertices
+    X = model.vertices(np.zeros(model.n_components))[:nb].astype(np.float64)
+    rng = np.random.default_rng(5)
+    P = np.vstack([X[rng.integers(0, nb, 3000)] + rng.normal(0, 0.01, (3000, 3)), X[::40],
+                   rng.normal(0, 1.0, (200, 3))])
+    compiled = Gm.closest_points_on_mesh(P, X, model.body_faces)
+    monkeypatch.setattr(Gm, "COMPILED", False)
+    ref = Gm.closest_points_on_mesh(P, X, model.body_faces)
+    for a, b in zip(compiled, ref):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="numba is not installed")
+def test_compiled_winding_numbers_equal_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
+    m = trimesh.creation.icosphere(subdivisions=3)
+    rng = np.random.default_rng(4)
+    far = rng.normal(0, 0.6, (400, 3))
+    far = far[np.abs(np.linalg.norm(far, axis=1) - 1) > 0.05][:300]  # clear of the faceted surface
+    P = np.vstack([far, m.vertices[:50] * 0.999, m.vertices[:50] * 1.001])
+    compiled = Gm.winding_numbers(P, m.vertices, m.faces)
+    monkeypatch.setattr(Gm, "COMPILED", False)
+    ref = Gm.winding_numbers(P, m.vertices, m.faces)
+    assert np.abs(compiled - ref).max() <= 1e-12
+    inside = np.linalg.norm(P, axis=1) < 1
+    assert np.array_equal(compiled > 0.5, ref > 0.5) and (compiled > 0.5).sum() == inside.sum() > 100
 
 
 def reference_layer_outfit(garments, body, body_normals, skins, n_joints):

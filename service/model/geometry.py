@@ -10,6 +10,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from service.model import kernels
+
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
     """Unique undirected edges (E, 2), each as (low, high)."""
@@ -24,6 +26,12 @@ def face_incidence(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     f = np.asarray(faces, np.int64)
     return sp.csr_matrix((np.ones(f.size, np.float32), (f.reshape(-1), np.repeat(np.arange(len(f)), 3))),
                          shape=(n_vertices, len(f)))
+
+
+def squared_norms(a: np.ndarray) -> np.ndarray:
+    """Squared lengths (...,) of vectors (..., 3), summed x, y, z in that order (the compiled
+    kernels' order: einsum's may differ in the last bit, which decides ties between faces)."""
+    return a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]
 
 
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -54,12 +62,19 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_ma
     return (n64 / np.sqrt(np.einsum("ij,ij->i", n64, n64))[:, None]).astype(np.float32)
 
 
+COMPILED = True  # winding_numbers, closest_points_on_mesh: the compiled kernels (service.model.kernels) where numba is there
+
+
 def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:
     """Generalised winding numbers (P,) of points (P, 3) with respect to a closed triangle
     mesh: ~1 inside, ~0 outside (Jacobson et al. 2013; solid angles by Van Oosterom and
-    Strackee). Exact and robust, O(P F): use it to confirm a few candidate points."""
+    Strackee). Exact and robust, O(P F): use it to confirm a few candidate points. With
+    ``COMPILED`` (and numba there): ``kernels.winding_numbers``, ~5x faster, equal to ~1e-15."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces)
+    if COMPILED and kernels.AVAILABLE:
+        return kernels.winding_numbers(np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3)),
+                                       np.ascontiguousarray(V), np.ascontiguousarray(F, np.int64))
     out = np.empty(len(points))
     for s in range(0, len(points), chunk):
         p = np.asarray(points[s:s + chunk], np.float64)[:, None, :]
@@ -122,8 +137,8 @@ def barycentric(p, a, b, c):
 
 
 PRUNE_CANDIDATES = True  # closest_points_on_mesh: skip candidate faces that cannot be the closest (same results)
-PRUNE_SLACK = 1e-9  # relative slack on the pruning bound (rounding of the bound itself)
-PRUNE_SLACK_SQ = 1e-18  # squared metres: absolute slack (a point on a vertex ties its faces at 0)
+PRUNE_SLACK = kernels.PRUNE_SLACK  # relative slack on the pruning bound (rounding of the bound itself)
+PRUNE_SLACK_SQ = kernels.PRUNE_SLACK_SQ  # squared metres: absolute slack (a point on a vertex ties its faces at 0)
 
 
 def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, k: int = 8,
@@ -136,13 +151,24 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
 
     With ``PRUNE_CANDIDATES``, a candidate face is evaluated only when a lower bound of its
     distance (:func:`face_distance_bounds`) is within the distance to the nearest vertex that has
-    a face (an upper bound of the answer): the same faces win, ties included, at ~1/4 the work."""
+    a face (an upper bound of the answer): the same faces win, ties included, at ~1/4 the work.
+    With ``COMPILED`` (and numba there), the same search one point at a time in compiled code
+    (``kernels.closest_faces``: the same results, ~3x faster)."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     p = np.asarray(points, np.float64).reshape(-1, 3)
     tree = tree if tree is not None else cKDTree(V)
     vert_faces = vert_faces if vert_faces is not None else vertex_faces(F, len(V))
     d1, nn = tree.query(p, k=k)
+    if COMPILED and kernels.AVAILABLE and PRUNE_CANDIDATES:
+        c, n, r = bounds if bounds is not None else face_bounds(V, F)
+        face, q = kernels.closest_faces(np.ascontiguousarray(p), np.ascontiguousarray(V), np.ascontiguousarray(F),
+                                        np.ascontiguousarray(nn.reshape(len(p), -1), np.int64),
+                                        np.ascontiguousarray(vert_faces, np.int64),
+                                        np.ascontiguousarray(c, np.float64), np.ascontiguousarray(n, np.float64),
+                                        np.ascontiguousarray(r, np.float64))
+        t = V[F[face]]
+        return face, q, barycentric(q, t[:, 0], t[:, 1], t[:, 2])
     raw = vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1)
     if PRUNE_CANDIDATES:
         return _closest_pruned(p, V, F, raw, np.asarray(d1).reshape(len(p), -1), np.asarray(nn).reshape(len(p), -1),
@@ -150,7 +176,7 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     cand, valid = _unique_rows(raw)
     tri = V[F[cand]]  # (P, C, 3, 3)
     q = closest_point_on_triangles(p[:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
-    d = np.where(valid, np.einsum("pci,pci->pc", q - p[:, None], q - p[:, None]), np.inf)
+    d = np.where(valid, squared_norms(q - p[:, None]), np.inf)
     j = np.argmin(d, axis=1)
     r = np.arange(len(p))
     face = cand[r, j]
@@ -204,7 +230,7 @@ def _closest_pruned(p, V, F, raw, d1, nn, vert_faces, bounds):
     tri = V[F[fc]]  # (N, 3, 3)
     pr = p[rows]
     q = closest_point_on_triangles(pr, tri[:, 0], tri[:, 1], tri[:, 2])
-    d = np.where(valid[rows, cols], np.einsum("ni,ni->n", q - pr, q - pr), np.inf)
+    d = np.where(valid[rows, cols], squared_norms(q - pr), np.inf)
     starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     is_min = d == np.minimum.reduceat(d, starts)[np.repeat(np.arange(P), np.diff(np.r_[starts, len(rows)]))]
     m = np.flatnonzero(is_min)

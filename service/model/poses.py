@@ -148,8 +148,9 @@ def _labels(model) -> dict:
     # inside the torso and ~0 outside (the hole at the shoulder is far from the tested points),
     # whatever the arm does to itself (a bent elbow overlapping its own upper arm)
     without = {s: F[~(arm_w[s][F] > 0.5).all(axis=1)] for s in ARM_BONES}
-    return {"arm_w": arm_w, "main": main, "torso_vertices": used, "torso_faces": remap[torso_faces],
-            "without_arm": without}
+    tf = remap[torso_faces]
+    return {"arm_w": arm_w, "main": main, "torso_vertices": used, "torso_faces": tf,
+            "torso_vertex_faces": vertex_faces(tf, len(used)), "without_arm": without}
 
 
 def arm_points(model, vertices: np.ndarray, side: str) -> np.ndarray:
@@ -191,7 +192,7 @@ def arm_vertices_inside(model, posed: np.ndarray, points: np.ndarray, side: str,
         near = np.flatnonzero(np.isfinite(tree.query(probe, distance_upper_bound=NEAR_TORSO_M)[0]))
         if not len(near):
             return np.zeros(0, np.int64)
-        face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=vertex_faces(TF, len(TV)))
+        face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=lab["torso_vertex_faces"])
         tri = TV[TF[face]]
         fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         off = probe[near] - q

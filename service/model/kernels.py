@@ -1,0 +1,160 @@
+"""Compiled inner loops (numba) of the geometry helpers that every try-on, outfit, pose
+adaptation and fit spends most of its time in. Each kernel computes exactly what its numpy
+reference in ``service.model.geometry`` computes (the same float operations in the same order,
+so the same results bit for bit; the tests compare them), one query point at a time with no
+temporaries. ``AVAILABLE`` is False where numba cannot be imported: callers then use the numpy
+path. Compiled once per machine (numba's on-disk cache next to this file, or
+``NUMBA_CACHE_DIR``), loaded in ~0.1 s by each process (:func:`warm`)."""
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+try:  # pragma: no branch - numba is a dependency; the fallback is for platforms without its wheels
+    if os.environ.get("TRYON_NO_KERNELS"):
+        raise ImportError("TRYON_NO_KERNELS is set")
+    import numba
+    AVAILABLE = True
+except ImportError as e:  # pragma: no cover
+    numba = None
+    AVAILABLE = False
+    log.info("numba kernels off (%s): the numpy paths are used", e)
+
+PRUNE_SLACK = 1e-9  # the same slack as geometry's pruning (rounding of the bound itself)
+PRUNE_SLACK_SQ = 1e-18
+
+
+def _jit(fn):
+    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(fn) if AVAILABLE else fn
+
+
+@_jit
+def _closest_on_triangle(px, py, pz, V, F, f):
+    """Ericson's closest point on triangle f (Real-Time Collision Detection 5.1.5), as
+    ``geometry.closest_point_on_triangles`` evaluates it (its region order, its arithmetic)."""
+    i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
+    a0, a1, a2 = V[i0, 0], V[i0, 1], V[i0, 2]
+    b0, b1, b2 = V[i1, 0], V[i1, 1], V[i1, 2]
+    c0, c1, c2 = V[i2, 0], V[i2, 1], V[i2, 2]
+    ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
+    ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
+    ap0, ap1, ap2 = px - a0, py - a1, pz - a2
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    bp0, bp1, bp2 = px - b0, py - b1, pz - b2
+    d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
+    d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+    cp0, cp1, cp2 = px - c0, py - c1, pz - c2
+    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
+    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    if d1 <= 0 and d2 <= 0:  # vertex a
+        return a0 + ab0 * 0.0 + ac0 * 0.0, a1 + ab1 * 0.0 + ac1 * 0.0, a2 + ab2 * 0.0 + ac2 * 0.0
+    if d3 >= 0 and d4 <= d3:  # vertex b
+        return b0, b1, b2
+    if d6 >= 0 and d5 <= d6:  # vertex c
+        return c0, c1, c2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:  # edge ab
+        v = d1 / (d1 - d3)
+        return a0 + ab0 * v + ac0 * 0.0, a1 + ab1 * v + ac1 * 0.0, a2 + ab2 * v + ac2 * 0.0
+    if vb <= 0 and d2 >= 0 and d6 <= 0:  # edge ac
+        w = d2 / (d2 - d6)
+        return a0 + ab0 * 0.0 + ac0 * w, a1 + ab1 * 0.0 + ac1 * w, a2 + ab2 * 0.0 + ac2 * w
+    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:  # edge bc
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return b0 + (c0 - b0) * t, b1 + (c1 - b1) * t, b2 + (c2 - b2) * t
+    den = 1.0 / (va + vb + vc)  # inside
+    v = vb * den
+    w = vc * den
+    return a0 + ab0 * v + ac0 * w, a1 + ab1 * v + ac1 * w, a2 + ab2 * v + ac2 * w
+
+
+@_jit
+def closest_faces(p, V, F, nn, vert_faces, c, n, r):
+    """The nearest of each point's candidate faces and the closest point on it: points p (P, 3)
+    float64, mesh V (V, 3) float64 and F (F, 3) int64; the candidates are the faces around each
+    point's nearest vertices nn (P, k) int64, ``vert_faces`` (V, valence) int64 (-1 padded), in
+    the order of ``vert_faces[nn].reshape(P, -1)``, whose first appearance wins ties (a face
+    appears around up to 3 of the vertices); the faces' bounding disks
+    (``geometry.face_bounds``: c (F, 3), n (F, 3), r (F,)). A candidate whose distance lower
+    bound (``geometry.face_distance_bounds``) exceeds the best distance so far cannot win and
+    is skipped. Returns (face (P,) int64, closest points (P, 3) float64); a row with no
+    candidate gets face 0 (as the numpy path's padding)."""
+    P, k = nn.shape
+    C = vert_faces.shape[1]
+    face = np.empty(P, np.int64)
+    q = np.empty((P, 3))
+    for i in range(P):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        best = np.inf
+        bf = -1
+        bx = by = bz = 0.0
+        for m in range(k * C):
+            f = vert_faces[nn[i, m // C], m % C]
+            if f < 0:
+                continue
+            ux, uy, uz = px - c[f, 0], py - c[f, 1], pz - c[f, 2]
+            pd = ux * n[f, 0] + uy * n[f, 1] + uz * n[f, 2]
+            pd2 = pd * pd
+            ip = ux * ux + uy * uy + uz * uz - pd2
+            e = (np.sqrt(ip) if ip > 0.0 else 0.0) - r[f]
+            lb = pd2 + (e * e if e > 0.0 else 0.0)
+            if lb > best * (1 + PRUNE_SLACK) + PRUNE_SLACK_SQ:
+                continue
+            x, y, z = _closest_on_triangle(px, py, pz, V, F, f)
+            dx, dy, dz = x - px, y - py, z - pz
+            d = dx * dx + dy * dy + dz * dz
+            if d < best:  # strict: of equally near faces, the first in raw wins
+                best, bf, bx, by, bz = d, f, x, y, z
+        if bf < 0:
+            bf = 0
+            bx, by, bz = _closest_on_triangle(px, py, pz, V, F, 0)
+        face[i] = bf
+        q[i, 0], q[i, 1], q[i, 2] = bx, by, bz
+    return face, q
+
+
+@_jit
+def winding_numbers(p, V, F):
+    """Generalised winding numbers (P,) of points p (P, 3) float64 with respect to the closed
+    triangle mesh V (V, 3) float64, F (F, 3) int64: the solid angles of Van Oosterom and
+    Strackee summed over the faces, / 4 pi, as ``geometry.winding_numbers`` (its per-face
+    terms; the sum over faces in order, where numpy's is pairwise: equal to ~1e-15)."""
+    P = p.shape[0]
+    out = np.empty(P)
+    for i in range(P):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        total = 0.0
+        for f in range(F.shape[0]):
+            i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
+            a0, a1, a2 = V[i0, 0] - px, V[i0, 1] - py, V[i0, 2] - pz
+            b0, b1, b2 = V[i1, 0] - px, V[i1, 1] - py, V[i1, 2] - pz
+            c0, c1, c2 = V[i2, 0] - px, V[i2, 1] - py, V[i2, 2] - pz
+            la = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            lb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            lc = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            num = a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
+            den = (la * lb * lc + (a0 * b0 + a1 * b1 + a2 * b2) * lc + (b0 * c0 + b1 * c1 + b2 * c2) * la
+                   + (c0 * a0 + c1 * a1 + c2 * a2) * lb)
+            total += np.arctan2(num, den)
+        out[i] = total / (2 * np.pi)
+    return out
+
+
+def warm() -> None:
+    """Compile (or load from the on-disk cache) every kernel for the argument types the
+    service passes, so that no request pays for it."""
+    if not AVAILABLE:
+        return
+    V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    F = np.array([[0, 1, 2]], np.int64)
+    c = V.mean(axis=0, keepdims=True)
+    closest_faces(np.zeros((1, 3)), V, F, np.zeros((1, 1), np.int64), np.zeros((3, 1), np.int64), c,
+                  np.array([[0.0, 0.0, 1.0]]), np.ones(1))
+    winding_numbers(np.zeros((1, 3)), V, F)
