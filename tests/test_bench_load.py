@@ -1,5 +1,6 @@
-"""`tryon bench load` and `tryon bench page` run (slow tier): short, light runs against a default
-`tryon serve`, which uses one server process per core; every request answered 2xx."""
+"""`tryon bench load`, `tryon bench page` and `tryon bench kernels` run (slow tier): short, light
+runs (the first two against a default `tryon serve`, which uses one server process per core;
+every request answered 2xx)."""
 from __future__ import annotations
 
 import os
@@ -30,3 +31,21 @@ def test_bench_page_smoke() -> None:
     assert r["errors"] == [], text
     assert set(r["steps"]) == set(page.STEPS) and all(v["n"] == 2 for v in r["steps"].values()), text
     assert "first_view" in text
+
+
+def test_bench_kernels_smoke() -> None:
+    """`tryon bench kernels` on two customers (one of each gender): every row timed both ways,
+    and every output of the compiled kernels equal to the numpy path's (closest points, adapted
+    poses, both outfits' GLB bytes; winding numbers to 1e-12)."""
+    from service.model import kernels as K
+    from tests.bench import kernels
+
+    if not K.AVAILABLE:
+        pytest.skip("the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+    r = kernels.run(limit=2)
+    text = kernels.format_result(r)
+    assert set(r["rows"]) == {"closest_points", "winding_numbers", "adapt_poses", "first_outfit", "second_outfit"}
+    for k, v in r["rows"].items():
+        assert v["compiled_ms"] > 0 and v["numpy_ms"] > 0, text
+        assert v["identical"] is (None if k == "winding_numbers" else True), text
+    assert r["rows"]["winding_numbers"]["max_abs_diff"] <= 1e-12, text

@@ -44,7 +44,7 @@ def test_pruned_closest_points_equal_the_reference(monkeypatch: pytest.MonkeyPat
         assert np.array_equal(a, c) and np.array_equal(b, c)
 
 
-@pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="numba is not installed")
+@pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
 def test_compiled_closest_points_equal_numpy_on_the_body(monkeypatch: pytest.MonkeyPatch) -> None:
     """On the body mesh (25k faces), points near and on the skin and far from it: the compiled
     kernel picks the same faces, ties included, and the same closest points, bit for bit."""
@@ -63,7 +63,7 @@ def test_compiled_closest_points_equal_numpy_on_the_body(monkeypatch: pytest.Mon
         assert np.array_equal(a, b)
 
 
-@pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="numba is not installed")
+@pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
 def test_compiled_winding_numbers_equal_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
     m = trimesh.creation.icosphere(subdivisions=3)
     rng = np.random.default_rng(4)

@@ -31,6 +31,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
                 "clothed-avatar editing: forward error, update time, elbow-twist volume"),
     "page": ("tests.bench.page", "run", "format_result",
              "the page's first dressed view of new customers over HTTP (outfit with pose correctives, /poses)"),
+    "kernels": ("tests.bench.kernels", "run", "format_result",
+                "the compiled geometry kernels vs the numpy paths, same run: closest points, poses, outfits"),
     "load": ("tests.bench.load", "run", "format_result",
              "mixed traffic at 80 req/s against a default tryon serve: p50/p99, errors, memory (--limit: seconds)"),
 }
