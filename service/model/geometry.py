@@ -186,7 +186,10 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
 
 def face_bounds(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each triangle's bounding disk: centroids (F, 3), unit normals (F, 3) (0 when degenerate)
-    and radii (F,) (the largest vertex distance from the centroid)."""
+    and radii (F,) (the largest vertex distance from the centroid). With ``COMPILED`` (and numba
+    there): ``kernels.face_bounds`` (equal up to rounding; these only prune candidates)."""
+    if COMPILED and kernels.AVAILABLE:
+        return kernels.face_bounds(np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64))
     tri = vertices[faces]  # (F, 3, 3)
     c = tri.mean(axis=1)
     r = np.sqrt(np.einsum("fki,fki->fk", tri - c[:, None], tri - c[:, None]).max(axis=1))
