@@ -42,6 +42,8 @@ def test_pruned_closest_points_equal_the_reference(monkeypatch: pytest.MonkeyPat
     assert ties >= 200
     for a, b, c in zip(compiled, fast, ref):
         assert np.array_equal(a, c) and np.array_equal(b, c)
+    empty = Gm.closest_points_on_mesh(np.zeros((0, 3)), V, F)  # no points: empty answers, both paths
+    assert [x.shape for x in empty] == [(0,), (0, 3), (0, 3)]
 
 
 @pytest.mark.skipif(not Gm.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")

@@ -157,6 +157,8 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     p = np.asarray(points, np.float64).reshape(-1, 3)
+    if not len(p):
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
     tree = tree if tree is not None else cKDTree(V)
     vert_faces = vert_faces if vert_faces is not None else vertex_faces(F, len(V))
     d1, nn = tree.query(p, k=k)
