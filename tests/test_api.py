@@ -129,6 +129,17 @@ def test_avatar_glb(client: httpx.Client, validate_glb: Callable[[bytes], dict[s
     doc = glb["json"]
     assert [doc["nodes"][j]["name"] for j in doc["skins"][0]["joints"]] == list(BONES)
     assert np.all(np.isfinite(pos))
+    # compressed as the page asks for it (and as every GLB route takes it): the same avatar in
+    # far fewer bytes, validator-clean; positions within the quantization grid of the plain ones
+    mo = _post(client, {"gender": "male", "height_cm": 180.0}, headers={"Accept": GLB},
+               params={"compression": "meshopt"})
+    assert mo.status_code == 200 and mo.content[:4] == b"glTF", mo.text
+    report = validate_glb(mo.content)
+    assert report["issues"]["numErrors"] == 0, format_issues(report)
+    assert "EXT_meshopt_compression" in read_glb(mo.content)["json"]["extensionsUsed"]
+    assert len(mo.content) < 0.7 * len(r.content)
+    assert np.abs(read_glb(mo.content)["positions"] - pos).max() < 1e-3
+    assert _post(client, {"height_cm": 180.0}, headers={"Accept": GLB}, params={"compression": "zip"}).status_code == 422
 
 
 def test_accept_json_preferred_or_default(client: httpx.Client) -> None:

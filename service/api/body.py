@@ -32,14 +32,15 @@ async def get_body_model_info(model: BodyModelDep) -> BodyModelResponse:
                         **R.JSON_BODY, **R.RATE_LIMITED})
 def create_avatar(request: AvatarRequest, model: BodyModelDep,
                   accept: Annotated[str | None, Header()] = None, hair: Hair = None,
-                  underwear: Underwear = True) -> Any:
+                  underwear: Underwear = True, compression: Compression = None) -> Any:
     """Fit an avatar to the given measurements; the attributes not given are estimated. As GLB:
     the skinned body (node ``avatar``) with ``eyes``, ``eyebrows``, ``hair`` and ``underwear``
-    nodes, like ``GET /v1/customers/{cid}/avatar.glb`` (``hair`` and ``underwear`` choose)."""
+    nodes, like ``GET /v1/customers/{cid}/avatar.glb`` (``hair`` and ``underwear`` choose;
+    ``compression`` as on every GLB route)."""
     avatar = avatars.from_measurements(model, dict(request.measurements))
     if R.wants_glb(accept):
         look = looks.resolve(looks.gender_of(avatar.measurements), hair, underwear)
-        return R.glb(scenes.avatar_glb(model, avatar.vertices, look=look))
+        return R.glb(scenes.avatar_glb(model, avatar.vertices, compression, look=look))
     return AvatarResponse(weights=[float(w) for w in np.asarray(avatar.weights).ravel()],
                           measurements={k: (v if isinstance(v, str) else float(v))
                                         for k, v in avatar.measurements.items()},
