@@ -239,6 +239,21 @@ def test_basis_glb_and_etag(server: Server, validate_glb: Callable[[bytes], dict
         assert r.status_code == 200 and r.headers["etag"] != etag
         valid_glb(validate_glb, r.content)
     assert_422(server.client.get(url, params={"compression": "draco"}), ["query", "compression"])
+    # the page's thumbnails: the mean garment alone (components=0), meshopt: the same mean shape in
+    # a fraction of the bytes, its own ETag; 2 rows: 2 targets; more rows than the basis has: all
+    full = read_glb(server.client.get(url, params={"compression": "meshopt"}).content)
+    r = server.client.get(url, params={"compression": "meshopt", "components": 0})
+    assert r.status_code == 200 and r.headers["etag"] not in (etag, server.client.get(url, params={"compression": "meshopt"}).headers["etag"])
+    mean = valid_glb(validate_glb, r.content)
+    assert "targets" not in mean["json"]["meshes"][0]["primitives"][0]
+    assert np.array_equal(mean["positions"], full["positions"]) and len(r.content) < len(server.client.get(url).content) / 5
+    assert server.client.get(url, params={"compression": "meshopt", "components": 0},
+                             headers={"If-None-Match": r.headers["etag"]}).status_code == 304
+    two = read_glb(server.client.get(url, params={"components": 2}).content)
+    assert len(two["json"]["meshes"][0]["primitives"][0]["targets"]) == 2
+    r = server.client.get(url, params={"components": 1000})
+    assert r.status_code == 200 and r.headers["etag"] == etag  # as many as there are: the whole basis
+    assert_422(server.client.get(url, params={"components": -1}), ["query", "components"])
 
 
 def test_outfit(server: Server, validate_glb: Callable[[bytes], dict[str, Any]]) -> None:

@@ -456,8 +456,8 @@ async function buildHair() {
 
 // Every GLB the page shows is asked for meshopt-compressed (EXT_meshopt_compression over
 // KHR_mesh_quantization, decoded by three.js's MeshoptDecoder): about half the bytes of the
-// plain GLB (a tee and jeans outfit with the avatar 1.75 -> 0.91 MB; the catalogue's bases for
-// the thumbnails 19.7 -> 7.9 MB), which is most of what a shopper on a phone waits for.
+// plain GLB (a tee and jeans outfit with the avatar 1.75 -> 0.91 MB), which is most of what a
+// shopper on a phone waits for.
 const GLB_COMPRESSION = 'meshopt';
 function compressed(url) {
   return `${url}${url.includes('?') ? '&' : '?'}compression=${GLB_COMPRESSION}`;
@@ -898,7 +898,8 @@ function buildCatalogue() {
   }
 }
 
-// One small offscreen renderer draws each garment's clothing basis once into an <img>.
+// One small offscreen renderer draws each garment's mean shape once into an <img> (basis.glb
+// without its morph targets: a fraction of the bytes).
 async function thumbnails() {
   const size = 96;
   const r = new THREE.WebGLRenderer({ antialias: true, alpha: true, preserveDrawingBuffer: true });
@@ -906,7 +907,7 @@ async function thumbnails() {
   const cam = new THREE.PerspectiveCamera(30, 1, 0.01, 20);
   for (const g of state.garments) {
     try {
-      const gltf = await loader.loadAsync(compressed(`/v1/garments/${g.id}/basis.glb`));
+      const gltf = await loader.loadAsync(compressed(`/v1/garments/${g.id}/basis.glb?components=0`)); // the mean garment alone
       const s = new THREE.Scene();
       s.add(new THREE.HemisphereLight(0xffffff, 0x666666, 2), gltf.scene);
       const light = new THREE.DirectionalLight(0xffffff, 1.5); light.position.set(1, 2, 3); s.add(light);

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
 
 from service.api import responses as R
@@ -109,11 +109,15 @@ def delete_garment(gid: str, retailer: RetailerDep, garments: GarmentsDep) -> Re
 @router.get("/v1/garments/{gid}/basis.glb", response_class=Response,
             responses={**R.CUSTOMER_GLB_RESPONSE, 200: {**R.GLB_RESPONSE[200], "headers": R.ETAG}, **R.NOT_MODIFIED})
 def garment_basis_glb(gid: str, garments: GarmentsDep, if_none_match: IfNoneMatchDep,
-                      compression: Compression = None) -> Response:
+                      compression: Compression = None,
+                      components: Annotated[int | None, Query(
+                          ge=0, le=1000, description="at most this many basis rows as morph targets "
+                          "(the first ones); 0: the mean garment alone (a preview or thumbnail)")] = None
+                      ) -> Response:
     """The clothing basis: the mean garment with one morph target per basis row (a viewer
     applies the customer's weights as morph weights). Strong ``ETag``; honours
     ``If-None-Match``."""
-    data, etag = garments.basis_glb(gid, compression, if_none_match)
+    data, etag = garments.basis_glb(gid, compression, if_none_match, components)
     headers = {"ETag": etag, "Cache-Control": f"public, max-age={BASIS_MAX_AGE}"}
     if data is None:
         return Response(status_code=304, headers=headers)

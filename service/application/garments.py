@@ -117,16 +117,19 @@ class GarmentService:
         log.info("garment %s: skin weights recomputed (skinning version %s)", record.id, fresh.meta["skinning"])
         return updated, fresh
 
-    def basis_glb(self, gid: str, compression: str | None,
-                  if_none_match: list[str] | None = None) -> tuple[bytes | None, str]:
-        """The clothing basis as GLB and its strong ETag (quoted); ``None`` bytes when one of
-        ``if_none_match`` (quoted tags, or ``*``) matches: not modified."""
+    def basis_glb(self, gid: str, compression: str | None, if_none_match: list[str] | None = None,
+                  components: int | None = None) -> tuple[bytes | None, str]:
+        """The clothing basis as GLB (its first ``components`` rows as morph targets; None: all)
+        and its strong ETag (quoted); ``None`` bytes when one of ``if_none_match`` (quoted tags,
+        or ``*``) matches: not modified."""
         record, basis = self.require_ready(self.repo.get(gid), gid)
+        rows = len(basis.B)
+        n = rows if components is None else min(components, rows)
         tag = basis.etag() or record.etag
-        etag = f'"{tag}-{compression}"' if compression else f'"{tag}"'
+        etag = '"' + "-".join([tag, *([compression] if compression else []), *([f"c{n}"] if n < rows else [])]) + '"'
         if scenes.etag_matches(etag, if_none_match):
             return None, etag
-        return scenes.basis_glb(basis, record, compression), etag
+        return scenes.basis_glb(basis, record, compression, n), etag
 
     def example(self, example_id: str) -> np.ndarray:
         """An example avatar's vertices (V, 3) (404 unknown)."""

@@ -294,9 +294,10 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
         mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
-def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None) -> bytes:
-    """The mean garment with the clothing basis rows as morph targets."""
-    B, g, faces, uv = np.asarray(basis.B), np.asarray(basis.g), np.asarray(basis.faces), None
+def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None, components: int | None = None) -> bytes:
+    """The mean garment with the clothing basis rows (the first ``components``; None: all; 0:
+    none, the mean garment alone) as morph targets."""
+    B, g, faces, uv = np.asarray(basis.B)[:components], np.asarray(basis.g), np.asarray(basis.faces), None
     if basis.has_layout:  # split at the UV seams
         idx = np.asarray(basis.render_vertex)
         B, g, faces, uv = B[:, idx], g[idx], np.asarray(basis.render_faces), np.asarray(basis.render_uv)
