@@ -802,6 +802,7 @@ function changed() {
   if (state.scan) { sendScanEdit(); return; } // a scan is reshaped live, never re-created
   if (state.customerId) state.customerStale = true;
   clearTimeout(timer);
+  hook.busy = true; // a refresh is due: the avatar shown is not yet the one entered
   timer = setTimeout(refresh, DEBOUNCE_MS);
 }
 
@@ -834,6 +835,7 @@ function setCustomer(id, token) {
 let generation = 0;
 async function refresh() {
   clearTimeout(timer);
+  timer = null;
   if (state.scan) { // hair on a scan customer: the fitted body views only
     if (state.view !== 'scan') { try { await loadScanBody(state.view); } catch (err) { showError(err); } }
     return;
@@ -864,7 +866,7 @@ async function refresh() {
     clearErrors();
     showError(err);
   } finally {
-    if (gen === generation) { hook.busy = false; $('#loading').hidden = true; }
+    if (gen === generation) { hook.busy = timer !== null; $('#loading').hidden = true; } // another refresh due?
   }
 }
 
