@@ -351,7 +351,12 @@ def body_pokes(pv: np.ndarray, faces: np.ndarray, body: PosedBody,
     F = np.asarray(faces, np.int64)
     X = body.vertices[body.ids]
     N = body.normals[body.ids]
-    dist0, _ = cKDTree(pv).query(X, distance_upper_bound=POKE_DISTANCE)
+    # a point within POKE_DISTANCE of a triangle is within that plus the triangle's longest edge
+    # of one of its vertices: a body vertex under the middle of a coarse garment's triangle (the
+    # MakeHuman jeans' edges are ~4 cm) is tested too
+    tri = pv[F]
+    reach = POKE_DISTANCE + float(np.sqrt(max(((tri[:, k] - tri[:, (k + 1) % 3]) ** 2).sum(1).max() for k in range(3))))
+    dist0, _ = cKDTree(pv).query(X, distance_upper_bound=reach)
     near = np.flatnonzero(np.isfinite(dist0))
     empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
     if not len(near):
