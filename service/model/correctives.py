@@ -356,16 +356,18 @@ def body_pokes(pv: np.ndarray, faces: np.ndarray, body: PosedBody,
     # MakeHuman jeans' edges are ~4 cm) is tested too
     tri = pv[F]
     reach = POKE_DISTANCE + float(np.sqrt(max(((tri[:, k] - tri[:, (k + 1) % 3]) ** 2).sum(1).max() for k in range(3))))
-    dist0, _ = cKDTree(pv).query(X, distance_upper_bound=reach)
+    tree = cKDTree(pv)
+    dist0, _ = tree.query(X, distance_upper_bound=reach)
     near = np.flatnonzero(np.isfinite(dist0))
     empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
     if not len(near):
         return empty
-    face, q, bary = closest_points_on_mesh(X[near], pv, F)
+    _, boundary, vert_faces = topology(F, len(pv))
+    face, q, bary = closest_points_on_mesh(X[near], pv, F, tree=tree, vert_faces=vert_faces)
     off = q - X[near]
     dist = np.linalg.norm(off, axis=1)
     s = np.einsum("ij,ij->i", off, N[near])
-    fb = topology(F, len(pv))[1][F[face]]
+    fb = boundary[F[face]]
     edge_bound = np.stack([fb[:, 1] & fb[:, 2], fb[:, 2] & fb[:, 0], fb[:, 0] & fb[:, 1]], axis=1)
     rim = ((bary < 1e-3) & edge_bound).any(axis=1) | ((bary > 1 - 1e-3) & fb).any(axis=1)
     poke = ~rim & (dist < POKE_DISTANCE) & (np.abs(s) > np.cos(np.pi / 4) * dist) & (s < TRIGGER)
