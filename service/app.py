@@ -17,7 +17,7 @@ from service.api import responses as R
 from service.api.schemas import attribute_ranges, document_measurements
 from service.api.middleware import BackPressureMiddleware, BodySizeLimitMiddleware, MethodsMiddleware
 from service.application.context import Context
-from service.model import kernels, shape
+from service.model import shape
 from service.model.body import load_body_model
 from service.settings import Settings, get_settings
 from service.storage.redis import die_with_parent
@@ -53,7 +53,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
         model = load_body_model(settings.body_model_path)
         shape.precompute(model)  # the per-model data of measurements -> avatar, built once
-        kernels.warm()  # the compiled geometry kernels loaded (or compiled once) before any request
         log.info("body model %s loaded from %s (%d components)", model.version, model.path, model.n_components)
         ctx = Context.open(settings, model)
         app.state.body_model = model

@@ -2,37 +2,67 @@
 adaptation and fit spends most of its time in. Each kernel computes exactly what its numpy
 reference in ``service.model.geometry`` computes (the same float operations in the same order,
 so the same results bit for bit; the tests compare them), one query point at a time with no
-temporaries. ``AVAILABLE`` is False where numba cannot be imported: callers then use the numpy
-path. Compiled once per machine (numba's on-disk cache next to this file, or
-``NUMBA_CACHE_DIR``), loaded in ~0.1 s by each process (:func:`warm`)."""
+temporaries. ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is
+set): callers then use the numpy path.
+
+numba is imported and the kernels compiled on a process's first use (:func:`_compiled`), not
+at import: they cost ~105 MB of memory per process (numba ~54 MB, LLVM and the loaded code
+~51 MB), which a process that never needs them (one that only reads uploads, a CLI) does not
+pay. Compiled once per machine into numba's on-disk cache (next to this file, or
+``NUMBA_CACHE_DIR``; the Docker image compiles them at build time, :func:`warm`), then loaded in
+~0.2 s."""
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
+import threading
+from types import SimpleNamespace
 
 import numpy as np
 
 log = logging.getLogger(__name__)
 
-try:  # pragma: no branch - numba is a dependency; the fallback is for platforms without its wheels
-    if os.environ.get("TRYON_NO_KERNELS"):
-        raise ImportError("TRYON_NO_KERNELS is set")
-    import numba
-    AVAILABLE = True
-except ImportError as e:  # pragma: no cover
-    numba = None
-    AVAILABLE = False
-    log.info("numba kernels off (%s): the numpy paths are used", e)
-
+AVAILABLE = not os.environ.get("TRYON_NO_KERNELS") and importlib.util.find_spec("numba") is not None
 PRUNE_SLACK = 1e-9  # the same slack as geometry's pruning (rounding of the bound itself)
 PRUNE_SLACK_SQ = 1e-18
+JIT_OPTIONS = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+_compiled_kernels: SimpleNamespace | None = None
+_load_lock = threading.Lock()
 
 
-def _jit(fn):
-    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(fn) if AVAILABLE else fn
+def _compiled() -> SimpleNamespace:
+    """The compiled kernels (numba dispatchers), made on the first call in the process."""
+    global _compiled_kernels
+    if _compiled_kernels is None:
+        with _load_lock:
+            if _compiled_kernels is None:
+                import numba
+
+                jit = numba.njit(**JIT_OPTIONS)
+                # the helper first: the kernels that call it resolve it from this module's
+                # globals when they are compiled
+                globals()["_closest_on_triangle"] = jit(_closest_on_triangle)
+                _compiled_kernels = SimpleNamespace(closest_faces=jit(_closest_faces), face_bounds=jit(_face_bounds),
+                                                    winding_numbers=jit(_winding_numbers))
+    return _compiled_kernels
 
 
-@_jit
+def closest_faces(p, V, F, nn, vert_faces, c, n, r):
+    """Compiled :func:`_closest_faces`."""
+    return _compiled().closest_faces(p, V, F, nn, vert_faces, c, n, r)
+
+
+def face_bounds(V, F):
+    """Compiled :func:`_face_bounds`."""
+    return _compiled().face_bounds(V, F)
+
+
+def winding_numbers(p, V, F):
+    """Compiled :func:`_winding_numbers`."""
+    return _compiled().winding_numbers(p, V, F)
+
+
 def _closest_on_triangle(px, py, pz, V, F, f):
     """Ericson's closest point on triangle f (Real-Time Collision Detection 5.1.5), as
     ``geometry.closest_point_on_triangles`` evaluates it (its region order, its arithmetic)."""
@@ -75,8 +105,7 @@ def _closest_on_triangle(px, py, pz, V, F, f):
     return a0 + ab0 * v + ac0 * w, a1 + ab1 * v + ac1 * w, a2 + ab2 * v + ac2 * w
 
 
-@_jit
-def closest_faces(p, V, F, nn, vert_faces, c, n, r):
+def _closest_faces(p, V, F, nn, vert_faces, c, n, r):
     """The nearest of each point's candidate faces and the closest point on it: points p (P, 3)
     float64, mesh V (V, 3) float64 and F (F, 3) int64; the candidates are the faces around each
     point's nearest vertices nn (P, k) int64, ``vert_faces`` (V, valence) int64 (-1 padded), in
@@ -120,8 +149,7 @@ def closest_faces(p, V, F, nn, vert_faces, c, n, r):
     return face, q
 
 
-@_jit
-def face_bounds(V, F):
+def _face_bounds(V, F):
     """Each triangle's bounding disk, as ``geometry.face_bounds``: centroids (F, 3), unit
     normals (F, 3) (0 when degenerate), radii (F,) (the largest vertex distance from the
     centroid). Only ever a pruning bound (``closest_faces`` skips a face whose bound exceeds
@@ -148,8 +176,7 @@ def face_bounds(V, F):
     return c, n, r
 
 
-@_jit
-def winding_numbers(p, V, F):
+def _winding_numbers(p, V, F):
     """Generalised winding numbers (P,) of points p (P, 3) float64 with respect to the closed
     triangle mesh V (V, 3) float64, F (F, 3) int64: the solid angles of Van Oosterom and
     Strackee summed over the faces, / 4 pi, as ``geometry.winding_numbers`` (its per-face
@@ -177,7 +204,8 @@ def winding_numbers(p, V, F):
 
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel for the argument types the
-    service passes, so that no request pays for it."""
+    service passes: the Docker build runs it, so that no process of the image compiles them
+    (a process loads them on first use)."""
     if not AVAILABLE:
         return
     V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
