@@ -61,7 +61,6 @@ STRETCH_LIMIT = 1.8  # an edge may be stretched by a push up to this ratio (or i
 # walking step (page screenshots) with no garment vertex inside it: 66 -> 55 body vertices poking
 # through it after steps 1-2, 22 with step 3
 BODY_POKES = True
-POKE_ROUNDS = 1  # rounds of step 3 (each pushes the triangles still poked through)
 POKE_DISTANCE = 0.02  # metres: body vertices this near the posed garment are tested for poking through it
 PREFILTER = 0.02  # metres: closest points only for vertices this near the skin by the push-out's measure
 # (0.005 / 0.01 left 1.5x / 1.3x as many vertices inside as exact everywhere; 0.02 within 5 %)
@@ -220,11 +219,7 @@ def posed_pushes(garment: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray, 
         # body vertices can still poke through the triangles between them (a coarse garment
         # over a convex limb: 25 body vertices up to 2.6 mm through the women's jeans on the
         # 195/80 man in the arms-down and hands-on-hips poses, whose legs are as at rest)
-        for _ in range(POKE_ROUNDS):
-            more = _poke_pushes(v, pv + d, faces, edges, body, CLEARANCE + layer * G.LAYER_GAP, smoother)
-            if not more.any():
-                break
-            d = d + more
+        d = d + _poke_pushes(v, pv + d, faces, edges, body, CLEARANCE + layer * G.LAYER_GAP, smoother)
     if edges is not None and STRAIN_LIMITING:
         d = limit_strain(v, pv + d, edges, body, clearance) - pv
     return d, int(np.count_nonzero(np.any(d != 0.0, axis=1)))
