@@ -62,14 +62,14 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_ma
     return (n64 / np.sqrt(np.einsum("ij,ij->i", n64, n64))[:, None]).astype(np.float32)
 
 
-COMPILED = True  # winding_numbers, closest_points_on_mesh: the compiled kernels (service.model.kernels) where numba is there
+COMPILED = True  # winding_numbers, closest_points_on_mesh, face_bounds: the compiled kernels (service.model.kernels) where numba is there
 
 
 def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:
     """Generalised winding numbers (P,) of points (P, 3) with respect to a closed triangle
     mesh: ~1 inside, ~0 outside (Jacobson et al. 2013; solid angles by Van Oosterom and
     Strackee). Exact and robust, O(P F): use it to confirm a few candidate points. With
-    ``COMPILED`` (and numba there): ``kernels.winding_numbers``, ~5x faster, equal to ~1e-15."""
+    ``COMPILED`` (and numba there): ``kernels.winding_numbers``, ~5x faster, equal to ~1e-14."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces)
     if COMPILED and kernels.AVAILABLE:
