@@ -14,19 +14,22 @@ from fastapi.staticfiles import StaticFiles
 from service import __version__
 from service.api import body, customers, errors, examples, garments, health, jobs, tryon
 from service.api import responses as R
+from service.api.middleware import (
+    BackPressureMiddleware,
+    BodySizeLimitMiddleware,
+    MethodsMiddleware,
+)
 from service.api.schemas import attribute_ranges, document_measurements
-from service.api.middleware import BackPressureMiddleware, BodySizeLimitMiddleware, MethodsMiddleware
 from service.application.context import Context
 from service.model import shape
 from service.model.body import load_body_model
-from service.settings import Settings, get_settings
+from service.settings import SERVE_PID_ENV, Settings, get_settings
 from service.storage.redis import die_with_parent
 from service.storage.supervise import EmbeddedWorker
 
 log = logging.getLogger("tryon")
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-SERVE_PID_ENV = "TRYON_SERVE_PID"  # set by `tryon serve` for the server processes uvicorn starts
 CORS_HEADERS = ["Authorization", "Content-Type", "X-API-Key", "If-None-Match", "Accept"]
 CORS_EXPOSED = ["ETag", "Location", "Retry-After"]
 

@@ -11,11 +11,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from service.model import shape
-from service.model.body import load_body_model
-from service.settings import get_settings
-from service.storage.queue import JOB_MONITORING_INTERVAL, MAINTENANCE_INTERVAL, WORKER_TTL
-from service.storage.supervise import run_worker
+from service.settings import SERVE_PID_ENV, get_settings
+from service.storage.queue import (
+    JOB_MONITORING_INTERVAL,
+    MAINTENANCE_INTERVAL,
+    WORKER_TTL,
+)
+
+# The body model and the maths (numpy, scipy, numba) are imported only by the commands that use
+# them: `tryon serve`'s supervising process (the parent of the server processes) stays ~50 MB.
 
 # Subcommands whose arguments are handed, untouched, to another module's main(argv).
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -102,7 +106,6 @@ def _serve(host: str, port: int, log_level: str, workers: int | None = None) -> 
     server processes, which die with this one too, and the embedded worker share it."""
     import uvicorn  # only to serve
 
-    from service.app import SERVE_PID_ENV
     from service.storage.redis import EmbeddedServer
 
     settings = get_settings()
@@ -171,6 +174,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s", "%H:%M:%S"))
         logging.getLogger("tryon").addHandler(handler)  # rq configures its own loggers
         logging.getLogger("tryon").setLevel(logging.INFO)
+        from service.model import shape
+        from service.model.body import load_body_model
+        from service.storage.supervise import run_worker
+
         settings = get_settings()
         shape.precompute(load_body_model(settings.body_model_path))  # once: every work-horse is a fork of this process
         return run_worker(settings, burst=args.burst, worker_ttl=args.worker_ttl,

@@ -7,6 +7,8 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+SERVE_PID_ENV = "TRYON_SERVE_PID"  # set by `tryon serve` for the server processes uvicorn starts
+
 
 class Settings(BaseSettings):
     """Process settings.

@@ -3,8 +3,9 @@ the template topology, body scans, clothed avatars, point clouds and garments.
 
 Reads OBJ, PLY (ascii/binary), STL (ascii/binary), GLB, glTF (embedded buffers only) and XYZ
 text into a :class:`Scan` (:func:`read_mesh_file`; :func:`read_scan` for the body-fitting
-job), with a :class:`ScanError` (shown to the uploader as a 422) for anything unusable. Plain functions over numpy arrays; trimesh
-parses the binary formats (``process=False``, materials skipped, nothing outside the upload is
+job), with a :class:`ScanError` (shown to the uploader as a 422) for anything unusable. Plain functions over numpy arrays; OBJ is read by
+:mod:`service.model.obj_io` (in bounded memory), XYZ by numpy, and trimesh
+parses the other formats (``process=False``, materials skipped, nothing outside the upload is
 ever opened or fetched).
 
 Shapes: points (P, 3) float64 in the file's units and axes; faces (F, 3) int64 or None (a point
@@ -25,6 +26,7 @@ from trimesh.grouping import unique_rows
 
 from service.model.geometry import estimate_normals, vertex_normals  # noqa: F401 (re-exported)
 from service.model.gltf import FLOAT, _parse_glb
+from service.model.obj_io import ObjError, read_obj
 
 log = logging.getLogger("tryon.scan_io")
 
@@ -175,6 +177,15 @@ def _read_xyz(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
     return np.ascontiguousarray(rows[:, :3]), normals
 
 
+def _read_obj(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices and faces (None when there are none: a point cloud) of an OBJ."""
+    try:
+        mesh = read_obj(data)
+    except ObjError as exc:
+        raise ScanError(f"cannot read the file as OBJ: {exc}") from exc
+    return mesh.vertices, (mesh.faces if len(mesh.faces) else None)
+
+
 class _NoResolver:
     """A trimesh resolver that refuses everything: nothing outside the upload is read."""
 
@@ -322,8 +333,6 @@ def _read_with_trimesh(data: bytes, kind: str, max_points: int) -> tuple[np.ndar
         _check_gltf(data, kind, max_points)
         data = data[3:] if data[:3] == b"\xef\xbb\xbf" else data  # trimesh's JSON reader wants no BOM
     kwargs: dict[str, Any] = {"process": False, "skip_materials": True}
-    if kind == "obj":
-        kwargs["maintain_order"] = True
     try:
         loaded = trimesh.load(io.BytesIO(data), file_type=kind, resolver=_NoResolver(), **kwargs)
         points, faces, cloud = _trimesh_arrays(loaded, max_points)
@@ -451,6 +460,9 @@ def read_mesh_file(data: bytes, filename: str | None = None, *, max_points: int 
         if kind == "xyz":
             points, normals = _read_xyz(data)
             faces = None
+        elif kind == "obj":
+            points, faces = _read_obj(data)
+            normals = None
         else:
             points, faces, normals = _read_with_trimesh(data, kind, max_points)
         if require_faces and (faces is None or len(faces) == 0):

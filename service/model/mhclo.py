@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.model.obj_io import ObjError, read_obj
+
 DM = 0.1  # metres per decimetre
 # The hm08 ``helper-tights`` vertices [start, stop): MakeHuman's surface of skin-tight clothing,
 # which suits and shoes bind to (kept in the body model; the garment auto-fit follows it too).
@@ -116,45 +118,17 @@ class ObjMesh:
 
 
 def parse_obj(text: str) -> ObjMesh:
-    """Vertex count, triangulated faces and per-corner texture coordinates of an OBJ."""
-    n_v = 0
-    uv: list[list[float]] = []
-    faces: list[list[int]] = []
-    corners_uv: list[list[int]] = []
-    all_uv = True
-    for line in text.splitlines():
-        if line.startswith("v "):
-            n_v += 1
-        elif line.startswith("vt "):
-            try:
-                uv.append([float(t) for t in line.split()[1:3]])
-            except ValueError as e:
-                raise MhcloError(f"bad texture vertex line: {line!r}") from e
-        elif line.startswith("f "):
-            try:
-                refs = [t.split("/") for t in line.split()[1:]]
-                poly = [int(r[0]) for r in refs]
-                tpoly = [int(r[1]) if len(r) > 1 and r[1] else 0 for r in refs]
-            except ValueError as e:
-                raise MhcloError(f"bad face line: {line!r}") from e
-            poly = [p - 1 if p > 0 else n_v + p for p in poly]
-            all_uv = all_uv and all(t != 0 for t in tpoly)
-            tpoly = [t - 1 if t > 0 else len(uv) + t for t in tpoly]
-            for k in range(1, len(poly) - 1):
-                faces.append([poly[0], poly[k], poly[k + 1]])
-                corners_uv.append([tpoly[0], tpoly[k], tpoly[k + 1]])
-    if n_v == 0 or not faces:
+    """Vertex count, triangulated faces and per-corner texture coordinates of an OBJ (the
+    project's OBJ reader, :func:`service.model.obj_io.read_obj`)."""
+    try:
+        mesh = read_obj(text.encode("utf-8", errors="surrogateescape"), uv=True)
+    except ObjError as e:
+        raise MhcloError(str(e)) from e
+    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
         raise MhcloError("the OBJ has no vertices or no faces")
-    F = np.array(faces, np.int64)
-    if F.min() < 0 or F.max() >= n_v:
-        raise MhcloError("the OBJ has a face index out of range")
-    if not (all_uv and uv):
-        return ObjMesh(n_v, F)
-    FT = np.array(corners_uv, np.int64)
-    UV = np.array(uv, np.float64).reshape(-1, 2)
-    if FT.min() < 0 or FT.max() >= len(UV) or not np.all(np.isfinite(UV)):
-        raise MhcloError("the OBJ has a texture index out of range or a non-finite texture coordinate")
-    return ObjMesh(n_v, F, FT, UV)
+    if mesh.uv is not None and not np.all(np.isfinite(mesh.uv)):
+        raise MhcloError("the OBJ has a non-finite texture coordinate")
+    return ObjMesh(len(mesh.vertices), mesh.faces, mesh.face_uv, mesh.uv)
 
 
 def parse_obj_faces(text: str) -> tuple[int, np.ndarray]:
