@@ -111,7 +111,7 @@ class Settings(BaseSettings):
         validation_alias="TRYON_MAX_UPLOADS",
         ge=1,
         description="File uploads (multipart requests) one server process reads and parses at once "
-        "(a 45 MB scan takes ~300 MB and seconds of CPU to parse); more get 503 with Retry-After.",
+        "(a 45 MB OBJ scan takes ~150 MB and ~2 s of CPU to read); more get 503 with Retry-After.",
     )
 
     def cors_origin_list(self) -> list[str]:
