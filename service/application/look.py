@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -142,21 +144,43 @@ def material_fields(material: Material) -> dict[str, Any]:
             "material": material}
 
 
-def body_fields(model: BodyModel, look: Look) -> dict[str, Any]:
-    """The avatar (body) mesh's fields under ``look``: the skin's material, and the faces left
-    after hiding the body under the base layer."""
-    out = material_fields(look.skin.material)
-    if look.base_layer:
-        out["faces"] = _visible_faces(model, tuple(look.base_layer))
+def body_fields(model: BodyModel, look: Look | None, hidden: tuple[np.ndarray, ...] = ()) -> dict[str, Any]:
+    """The avatar (body) mesh's fields under ``look`` (or None: no look) with garments over it
+    hiding body vertices ``hidden`` (each (H_i,) int, e.g. ``GarmentBasis.hidden_body``): the
+    skin's material, and the faces left after hiding the body under the base layer and those
+    garments (none left out when nothing hides it)."""
+    out = material_fields(look.skin.material) if look is not None else {}
+    sets = ([look.hidden] if look is not None and look.base_layer else []) + [h for h in hidden if len(h)]
+    if sets:
+        out["faces"] = visible_faces(model, sets)
     return out
 
 
-@functools.lru_cache(maxsize=16)
-def _visible_faces(model: BodyModel, base_layer: tuple[CatalogueItem, ...]) -> np.ndarray:
-    hidden = np.unique(np.concatenate([i.hidden for i in base_layer]))
-    faces = visible_body_faces(model.body_faces, hidden, model.n_body_vertices)
+VISIBLE_FACES_CACHE_SIZE = 64  # hidden-vertex sets (looks x outfits' garments) kept per process (~0.3 MB each)
+_visible: OrderedDict[tuple[int, str], tuple[BodyModel, np.ndarray]] = OrderedDict()
+_visible_lock = threading.Lock()
+
+
+def visible_faces(model: BodyModel, hidden: list[np.ndarray]) -> np.ndarray:
+    """The body faces (F', 3) left to draw when the body vertices in ``hidden`` (a list of
+    (H_i,) int arrays: a base layer's, worn garments') are hidden (``visible_body_faces`` of
+    their union), cached per process by the union: the same set gives the same read-only
+    array object, which keys the avatar's mesh template (``scenes._body_template``)."""
+    h = np.unique(np.concatenate([np.asarray(x, np.int64) for x in hidden])) if hidden else np.zeros(0, np.int64)
+    key = (id(model), hashlib.sha1(h.tobytes()).hexdigest())
+    with _visible_lock:
+        hit = _visible.get(key)
+        if hit is not None and hit[0] is model:
+            _visible.move_to_end(key)
+            return hit[1]
+    faces = visible_body_faces(model.body_faces, h, model.n_body_vertices)
     faces.setflags(write=False)
-    return faces
+    with _visible_lock:
+        hit = _visible.setdefault(key, (model, faces))  # a racing thread's array wins: one object per set
+        _visible.move_to_end(key)
+        while len(_visible) > VISIBLE_FACES_CACHE_SIZE:
+            _visible.popitem(last=False)
+    return hit[1]
 
 
 _fitted = VersionedLRU(FITTED_CACHE_SIZE)

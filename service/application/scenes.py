@@ -23,7 +23,7 @@ from . import look as looks
 from .look import Look
 
 AVATAR_COLOR = (0.8, 0.7, 0.62, 1.0)
-SCENE_VERSION = 4  # bump when the GLB assembly changes: every scene ETag changes with it
+SCENE_VERSION = 5  # bump when the GLB assembly changes: every scene ETag changes with it
 
 
 def etag(kind: str, body_model: str, weights: list[float] | None, compression: str | None,
@@ -50,7 +50,7 @@ def skeleton(model: BodyModel, vertices: np.ndarray) -> dict[str, Any]:
 # body mesh templates: (model, faces) -> (model, faces, template); the key objects are kept
 # alive with their entry (ids stay theirs) and checked by identity
 _body_templates: dict[tuple[int, int], tuple[BodyModel, np.ndarray, gltf.MeshTemplate]] = {}
-MAX_BODY_TEMPLATES = 32  # body models x base-layer choices (the looks' visible faces)
+MAX_BODY_TEMPLATES = 64  # body models x visible-face sets (looks' base layers x outfits' garments)
 
 
 def _body_template(model: BodyModel, faces: np.ndarray) -> gltf.MeshTemplate:
@@ -69,27 +69,31 @@ def _body_template(model: BodyModel, faces: np.ndarray) -> gltf.MeshTemplate:
 
 
 def avatar_mesh(model: BodyModel, vertices: np.ndarray, normals: np.ndarray | None = None,
-                look: Look | None = None, template: bool = True) -> dict[str, Any]:
+                look: Look | None = None, template: bool = True,
+                hidden: tuple[np.ndarray, ...] = ()) -> dict[str, Any]:
     """The customer-visible skinned body surface of an avatar (V, 3) as a scene mesh, named
     ``avatar``; under a ``look``, with its skin's material and without the faces hidden under
-    its base layer. ``template``: its static arrays also as a mesh template (see
-    :func:`look_mesh`)."""
+    its base layer, nor under garments worn over it that hide body vertices ``hidden`` (each
+    (H_i,) int: ``GarmentBasis.hidden_body``). ``template``: its static arrays also as a mesh
+    template (see :func:`look_mesh`)."""
     nb = model.n_body_vertices
     mesh = {"vertices": model.body_vertices(vertices), "faces": model.body_faces, "normals": normals,
             "color": AVATAR_COLOR, "name": "avatar",
             "vertex_joints": model.lbs_indices[:nb], "vertex_weights": model.lbs_weights[:nb]}
-    if look is not None:
-        mesh.update(looks.body_fields(model, look))
+    if look is not None or hidden:
+        mesh.update(looks.body_fields(model, look, hidden))
     if template:
         mesh["template"] = _body_template(model, mesh["faces"])
     return mesh
 
 
 def avatar_meshes(model: BodyModel, vertices: np.ndarray, normals: np.ndarray | None = None,
-                  look: Look | None = None, template: bool = True) -> list[dict[str, Any]]:
-    """The avatar (V, 3) as scene meshes: the body (``avatar``), then, under a ``look``, its
-    ``eyes``, ``eyebrows``, ``hair`` and ``underwear`` (each skinned with the body's skeleton)."""
-    body = avatar_mesh(model, vertices, normals, look, template)
+                  look: Look | None = None, template: bool = True,
+                  hidden: tuple[np.ndarray, ...] = ()) -> list[dict[str, Any]]:
+    """The avatar (V, 3) as scene meshes: the body (``avatar``, without the faces ``hidden``
+    under garments: :func:`avatar_mesh`), then, under a ``look``, its ``eyes``, ``eyebrows``,
+    ``hair`` and ``underwear`` (each skinned with the body's skeleton)."""
+    body = avatar_mesh(model, vertices, normals, look, template, hidden)
     if look is None:
         return [body]
     if normals is None:
@@ -146,6 +150,12 @@ def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray
     return mesh
 
 
+def _opaque(record: Garment) -> bool:
+    """Whether the garment's colour is opaque (for a basis without a material; a material's
+    alpha mode is ``GarmentBasis.hidden_body``'s to judge)."""
+    return record.color is None or len(record.color) < 4 or float(record.color[3]) >= 1.0
+
+
 def _untextured(material: Any) -> bool:
     return material.base_color_texture is None and material.normal_texture is None
 
@@ -191,7 +201,10 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     body): each garment also gets one pose-corrective morph target per pose
     (:func:`add_pose_correctives`); or a function returning them, called once the outfit is
     layered (the poses' adaptation may be under way in another server process meanwhile)."""
-    meshes = avatar_meshes(model, body.vertices, body.normals, look, template) if with_avatar else []
+    # the body under opaque garments is left out (it cannot show, and skinning or a pose would
+    # let it poke through): each basis' hidden_body, once per basis
+    hidden = tuple(basis.hidden_body(model) for rec, basis in garments if basis.material is not None or _opaque(rec))
+    meshes = avatar_meshes(model, body.vertices, body.normals, look, template, hidden) if with_avatar else []
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
     # the look's base layer is the innermost layer: a bra never shows through a blouse

@@ -341,6 +341,56 @@ def layer_outfit(garments: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
     return out, sk
 
 
+# -- the body a garment hides ----------------------------------------------------------------------
+HIDE_GAP = 0.02  # m: a body vertex is hidden only where the garment is at most this far outside its skin
+# (on the mean body; 3 cm left holes at the armpits of a 200 cm / 130 kg customer)
+HIDE_INSIDE = 0.002  # m: ...or this far inside it (a tight garment the body grazes)
+HIDE_CONE_COS = 0.5  # ...and over it: the offset to the garment within 60 degrees of the body normal
+HIDE_RIM_MARGIN = 0.05  # m: ...and at least this far from every vertex of the garment's rims (hems, cuffs)
+
+
+def covered_body(body: np.ndarray, body_normals: np.ndarray, garment: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The body vertices an opaque garment hides, (H,) int64 sorted: the MakeHuman
+    ``delete_verts`` idea computed for any garment. Body vertices (V, 3) with unit normals
+    (V, 3), garment vertices (M, 3) and faces (F, 3), in the same pose.
+
+    A body vertex is hidden when the garment's closest point lies over it (its offset within
+    ``HIDE_CONE_COS`` of the body normal, or within ``HIDE_INSIDE`` of the vertex) at most
+    ``HIDE_GAP`` outside or ``HIDE_INSIDE`` inside the skin, and the vertex is at least
+    ``HIDE_RIM_MARGIN`` from every rim (boundary) vertex of the garment: near a hem or a cuff
+    the skin stays, since a pose can lift the edge off it. Dropping the body's faces there
+    (a face goes when all its vertices are hidden) keeps skin that the garment's own
+    approximations (skinning, correctives) would let poke through from ever showing."""
+    B = np.asarray(body, np.float64)
+    n = np.asarray(body_normals, np.float64)
+    Gv = np.asarray(garment, np.float64)
+    F = np.asarray(faces, np.int64)
+    if len(B) == 0 or len(F) == 0:
+        return np.zeros(0, np.int64)
+    rim = boundary_vertices(F, len(Gv))
+    near = np.ones(len(B), bool)
+    if rim.any():  # far from every rim vertex
+        d_rim, _ = cKDTree(Gv[rim]).query(B, distance_upper_bound=HIDE_RIM_MARGIN)
+        near = ~np.isfinite(d_rim)
+    cand = np.flatnonzero(near)
+    if len(cand) == 0:
+        return np.zeros(0, np.int64)
+    # only candidates whose nearest garment vertex can be within the gap (plus one edge)
+    edge = np.linalg.norm(Gv[F] - Gv[np.roll(F, 1, axis=1)], axis=2).max()
+    tree = cKDTree(Gv)
+    d1, _ = tree.query(B[cand], distance_upper_bound=HIDE_GAP + edge)
+    cand = cand[np.isfinite(d1)]
+    if len(cand) == 0:
+        return np.zeros(0, np.int64)
+    _, q, _ = closest_points_on_mesh(B[cand], Gv, F, tree=tree)
+    d = q - B[cand]
+    dist = np.linalg.norm(d, axis=1)
+    along = np.einsum("ij,ij->i", d, n[cand])
+    over = (along >= HIDE_CONE_COS * dist) | (dist <= HIDE_INSIDE)
+    hidden = over & (dist <= HIDE_GAP) & (along >= -HIDE_INSIDE)
+    return np.sort(cand[hidden]).astype(np.int64)
+
+
 def inner_outside_share(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, inner_faces: np.ndarray,
                         body: np.ndarray, body_normals: np.ndarray, body_faces: np.ndarray,
                         tolerance: float = 0.0) -> tuple[int, int]:

@@ -28,6 +28,7 @@ from service.model.body import BONES
 from service.model.catalogue import Material, RenderLayout, Texture
 from service.model.geometry import face_incidence, mesh_edges, row_dot, vertex_normals
 from service.model.gltf import MeshTemplate, vertex_tangents
+from service.model.layering import covered_body
 from service.model.poses import preset_transforms
 from service.model.skin_weights import leg_frame, transfer_skin_weights
 
@@ -95,6 +96,7 @@ class GarmentBasis:
     _render_tangents: object = None
     # per n_joints; init=False: dataclasses.replace (a new layout or material) starts empty
     _templates: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _hidden: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # per body model
 
     @property
     def n_vertices(self) -> int:
@@ -163,6 +165,23 @@ class GarmentBasis:
                                    vertex_weights=np.asarray(self.skin_w), n_joints=n_joints)
             self._templates[n_joints] = hit
         return hit
+
+    def hidden_body(self, model) -> np.ndarray:
+        """The body vertices (H,) int64 this garment hides (``layering.covered_body`` of the mean
+        garment on ``model``'s mean body), once per basis and body model; none for a material that
+        is not opaque (lace, sheer cloth: the skin shows through). Read-only."""
+        hit = self._hidden.get(id(model))
+        if hit is not None and hit[0] is model:
+            return hit[1]
+        if self.material is not None and self.material.alpha_mode != "OPAQUE":
+            hidden = np.zeros(0, np.int64)
+        else:
+            nb = model.n_body_vertices
+            X = np.asarray(model.mean[:nb], np.float64)
+            hidden = covered_body(X, vertex_normals(X, model.body_faces), np.asarray(self.g), np.asarray(self.faces))
+        hidden.setflags(write=False)
+        self._hidden[id(model)] = (model, hidden)
+        return hidden
 
     def save(self, directory: Path) -> None:
         """Write atomically: a temporary sibling directory renamed into place."""
