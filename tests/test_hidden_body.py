@@ -181,7 +181,7 @@ def test_outfit_leaves_out_the_body_under_opaque_garments_without_a_hole(model, 
     of the faces under the two garments (their bases' ``hidden_body``), the head, hands and feet
     untouched; and no dropped face is a hole (:func:`holes`: seen from outside with no cloth
     under it) at rest, nor, but for ``POSED_HOLE_SHARE``, in the page's
-    poses (garments with their pose targets, everything skinned as the GLB says)."""
+    poses (garments and avatar with their pose targets, everything skinned as the GLB says)."""
     bases, body, poses = dressed
     worn = [(record("jeans", 0), bases[0]), (record("tee", 1), bases[1])]
     out = read_glb(scenes.outfit_glb(model, body, worn, None, with_avatar=True, poses=poses))
@@ -190,7 +190,7 @@ def test_outfit_leaves_out_the_body_under_opaque_garments_without_a_hole(model, 
     nb = model.n_body_vertices
     hidden = [b.hidden_body(model) for b in bases]
     assert all(len(h) > 500 for h in hidden), [len(h) for h in hidden]  # the legs, the torso
-    assert len(av["positions"]) == nb and av["targets"] is None  # every vertex kept; faces dropped
+    assert len(av["positions"]) == nb  # every vertex kept; faces dropped
     kept = np.asarray(av["indices"])
     assert np.array_equal(kept, visible_body_faces(model.body_faces, np.concatenate(hidden), nb))
     is_kept = np.zeros(len(model.body_faces), bool)
@@ -204,7 +204,8 @@ def test_outfit_leaves_out_the_body_under_opaque_garments_without_a_hole(model, 
     garments = [meshes["jeans"], meshes["tee"]]
     for name in ["", *poses]:
         transforms = C.posed_body(model, body.vertices, poses[name] if name else np.zeros((17, 3))).transforms
-        pb = skin(np.asarray(av["positions"], np.float64), transforms, av["joints"], av["weights"])
+        tuck = av["targets"][av["target_names"].index(f"pose:{name}")] if name and av["targets"] is not None else 0.0
+        pb = skin(np.asarray(av["positions"], np.float64) + tuck, transforms, av["joints"], av["weights"])
         cloth = np.concatenate([
             skin(np.asarray(g["positions"], np.float64) + (g["targets"][g["target_names"].index(f"pose:{name}")]
                                                              if name else 0.0), transforms, g["joints"],

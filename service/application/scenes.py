@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from service.model import correctives, gltf
+from service.model import correctives, gltf, lbs
 from service.model.body import BONES, BodyModel
 from service.model.geometry import vertex_normals
 from service.model.layering import layer_outfit
@@ -235,7 +235,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     if callable(poses):
         poses = poses()
     if poses:
-        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses)
+        avatar = next((m for m in meshes if m.get("name") == "avatar"), None)
+        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses, avatar)
     meshes += garment_meshes
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
@@ -266,25 +267,29 @@ def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarr
 
 def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: CustomerBody,
                          bases: list[GarmentBasis], worn: list[np.ndarray],
-                         skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray]) -> None:
+                         skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray],
+                         avatar: dict[str, Any] | None = None) -> None:
     """Give an outfit's garment scene meshes (:func:`look_mesh` of ``worn`` (M_i, 3) skinned with
     ``skins``, or the bases' own skin; inner first) one morph target per pose, ``pose:<name>``:
     rest-space deltas that keep each garment outside the posed body
     (``correctives.posed_pushes``; outer layers with more clearance), an inner garment moved as
     the garment over it where covered (``correctives.follow_outer``: the layers keep their
-    order), gathered into the render layout, stored sparse. Cached per process by the digest of
-    everything they are made of (the same customer and outfit asked again)."""
+    order), gathered into the render layout, stored sparse. With the ``avatar`` scene mesh
+    (:func:`avatar_mesh`, its drawn faces), the body gets one too: skin still showing through
+    the posed garments pulled back under them (``correctives.body_tucks``). Cached per process
+    by the digest of everything they are made of (the same customer and outfit asked again)."""
     sk = [(b.skin_idx, b.skin_w) if s is None else s for b, s in zip(bases, skins)]
     bodies = posed_bodies(model, body, poses)
-    h = hashlib.sha1(json.dumps(sorted(bodies)).encode())
+    tucks = avatar is not None and correctives.BODY_TUCKS
+    h = hashlib.sha1(json.dumps([sorted(bodies), tucks]).encode())
     for a in (*worn, *[x for pair in sk for x in pair], *[b.faces for b in bases],
-              *[bodies[k].transforms for k in sorted(bodies)]):
+              *[bodies[k].transforms for k in sorted(bodies)], *([avatar["faces"]] if tucks else [])):
         a = np.ascontiguousarray(a)
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
     key = h.hexdigest()
-    deltas = _correctives.get(key, None)
-    if deltas is None:
+    hit = _correctives.get(key, None)
+    if hit is None:
         deltas = [np.zeros((len(poses), len(v), 3), np.float32) for v in worn]
         nb = model.n_body_vertices
         covers = [correctives.cover_map(worn[i], worn[i + 1], bases[i + 1].faces, body.vertices[:nb], body.normals)
@@ -298,13 +303,39 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
                     d = correctives.follow_outer(d, covers[i], above, bases[i + 1].faces)
                 deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
                 above = d
-        for d in deltas:
+        body_deltas = _body_tucks(model, body, bodies, poses, bases, worn, sk, deltas, avatar) if tucks else None
+        for d in (*deltas, *([body_deltas] if body_deltas is not None else [])):
             d.setflags(write=False)
-        _correctives.put(key, None, deltas)
+        hit = (deltas, body_deltas)
+        _correctives.put(key, None, hit)
+    deltas, body_deltas = hit
+    if body_deltas is not None and np.any(body_deltas) and avatar is not None:
+        avatar.update(targets=body_deltas, target_names=correctives.target_names(poses), sparse_targets=True)
     for mesh, d, basis in zip(meshes, deltas, bases):
         if basis.has_layout:
             d = np.take(d, np.asarray(basis.render_vertex), axis=1)
         mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
+
+
+def _body_tucks(model: BodyModel, body: CustomerBody, bodies: dict[str, correctives.PosedBody],
+                poses: dict[str, np.ndarray], bases: list[GarmentBasis], worn: list[np.ndarray],
+                sk: list[tuple[np.ndarray, np.ndarray]], deltas: list[np.ndarray],
+                avatar: dict[str, Any]) -> np.ndarray:
+    """The avatar's rest-space pose targets (P, Vb, 3) float32: per pose, the garments posed as
+    the page shows them (rest + their pose target, skinned) and ``correctives.body_tucks`` of
+    the body's drawn vertices (those on the avatar mesh's faces) back under them."""
+    nb = model.n_body_vertices
+    shown = np.zeros(nb, bool)
+    shown[np.asarray(avatar["faces"]).ravel()] = True
+    out = np.zeros((len(poses), nb, 3), np.float32)
+    smoother = correctives.body_smoother(model)
+    for k, name in enumerate(poses):
+        G = bodies[name].transforms
+        posed = [(lbs.skin(np.asarray(v, np.float64) + d[k], G, *s), b.faces)
+                 for v, d, s, b in zip(worn, deltas, sk, bases)]
+        d = correctives.body_tucks(bodies[name], posed, shown, smoother, model.body_faces)
+        out[k] = correctives.to_rest(d, G, model.lbs_indices[:nb], model.lbs_weights[:nb])
+    return out
 
 
 def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None, components: int | None = None) -> bytes:
