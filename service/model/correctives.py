@@ -415,7 +415,7 @@ def garment_index(pv: np.ndarray, faces: np.ndarray) -> tuple[cKDTree, cKDTree, 
 # -- the body's own pose targets: skin still showing through the clothes ---------------------------
 TUCK_MARGIN = 0.002  # m: skin showing through a worn garment is pulled this far under it
 TUCK_MAX_DEPTH = 0.025  # m: skin farther out than this is left (a limb through the cloth, not flesh on it)
-TUCK_PASSES = 3  # rounds of finding what still shows and pulling it in (the smoothing moves neighbours)
+TUCK_PASSES = 5  # rounds of finding what still shows and pulling it in (the smoothing moves neighbours)
 BODY_TUCKS = True
 
 
