@@ -236,3 +236,26 @@ def test_see_through_garments_hide_no_body(model, dressed) -> None:
     assert len(lace.hidden_body(model)) == 0 and len(bases[1].hidden_body(model)) > 0
     out = read_glb(scenes.outfit_glb(model, body, [(record("tee", 0), lace)], None, with_avatar=True))
     assert len(out["meshes"][0]["indices"]) == len(model.body_faces)
+
+
+@pytest.mark.parametrize("compression", [None, "quantize", "meshopt"])
+def test_avatar_template_with_fewer_faces_gives_the_same_bytes(model, compression) -> None:
+    """The avatar's template for a face subset (``MeshTemplate.with_faces`` of the whole body's,
+    sharing its skin views) writes the same GLB bytes as a template built from scratch and as
+    the plain arrays (the reference path), and keeps only the new indices."""
+    from service.model import gltf
+
+    nb = model.n_body_vertices
+    faces = visible_body_faces(model.body_faces, np.arange(0, nb, 3), nb)
+    whole = scenes._body_template(model, model.body_faces)
+    shared = whole.with_faces(faces)
+    fresh = gltf.MeshTemplate(faces, nb, vertex_joints=model.lbs_indices[:nb], vertex_weights=model.lbs_weights[:nb],
+                              n_joints=len(model.bone_parents))
+    mesh = {**scenes.avatar_mesh(model, model.mean, template=False), "faces": faces}
+    sk = scenes.skeleton(model, model.mean)
+    plain = gltf.scene_to_glb([mesh], skin=sk, compression=compression)
+    for tpl in (shared, fresh):
+        assert gltf.scene_to_glb([{**mesh, "template": tpl}], skin=sk, compression=compression) == plain
+    assert shared.joints is whole.joints and shared.weights is whole.weights
+    assert all(shared.views(compression)[k] is whole.views(compression)[k] for k in ("JOINTS_0", "WEIGHTS_0"))
+    assert len(read_glb(plain)["indices"]) == len(faces) < len(model.body_faces)

@@ -156,7 +156,7 @@ def body_fields(model: BodyModel, look: Look | None, hidden: tuple[np.ndarray, .
     return out
 
 
-VISIBLE_FACES_CACHE_SIZE = 64  # hidden-vertex sets (looks x outfits' garments) kept per process (~0.3 MB each)
+VISIBLE_FACES_CACHE_SIZE = 16  # hidden-vertex sets (looks x outfits' garments) kept per process (~0.3 MB each)
 _visible: OrderedDict[tuple[int, str], tuple[BodyModel, np.ndarray]] = OrderedDict()
 _visible_lock = threading.Lock()
 

@@ -425,6 +425,21 @@ class MeshTemplate:
             if self.joints.shape[0] != self.n:
                 raise ValueError(f"skin vertex arrays must have {self.n} rows, got {self.joints.shape[0]}")
         self._views: dict[str | None, dict[str, tuple[View, dict[str, Any], bytes | None]]] = {}
+        self._parent: MeshTemplate | None = None
+
+    def with_faces(self, faces: np.ndarray) -> "MeshTemplate":
+        """The same vertices, UVs and skin with other ``faces`` (F', 3) (the avatar with the faces
+        under its clothes left out): shares this template's arrays and its encoded attribute
+        views, only the indices are checked and encoded anew (the same bytes as a template built
+        from scratch; for the body with its plain and meshopt views 0.46 MB instead of 2.2)."""
+        t = object.__new__(MeshTemplate)
+        t.n, t.uv, t.n_joints, t.joints, t.weights = self.n, self.uv, self.n_joints, self.joints, self.weights
+        f = _check_faces(faces, self.n)  # checked (as int64); kept as given when int32, not copied
+        src = np.asarray(faces)
+        t.f = src if src.dtype == np.int32 else f
+        t._views = {}
+        t._parent = self._parent if self._parent is not None else self
+        return t
 
     def views(self, compression: str | None) -> dict[str, tuple[View, dict[str, Any], bytes | None]]:
         """{"TEXCOORD_0"?, "JOINTS_0"?, "WEIGHTS_0"?, "indices": (view, accessor, meshopt bytes
@@ -432,10 +447,15 @@ class MeshTemplate:
         hit = self._views.get(compression)
         if hit is None:
             _check_compression(compression)
-            made = _static_views(self.f, self.n, self.uv, self.joints, self.weights, self.n_joints,
-                                 compression in ("quantize", "meshopt"))
-            hit = {k: (view, acc, _meshopt_encode(view) if compression == "meshopt" else None)
-                   for k, (view, acc) in made.items()}
+            if self._parent is not None:  # the attributes' views are the parent's
+                view, acc = _index_view(self.f, self.n)
+                hit = {k: v for k, v in self._parent.views(compression).items() if k != "indices"}
+                hit["indices"] = (view, acc, _meshopt_encode(view) if compression == "meshopt" else None)
+            else:
+                made = _static_views(self.f, self.n, self.uv, self.joints, self.weights, self.n_joints,
+                                     compression in ("quantize", "meshopt"))
+                hit = {k: (view, acc, _meshopt_encode(view) if compression == "meshopt" else None)
+                       for k, (view, acc) in made.items()}
             self._views[compression] = hit
         return hit
 
@@ -462,9 +482,14 @@ def _static_views(f: np.ndarray, n: int, uv: np.ndarray | None, joints: np.ndarr
         else:
             out["JOINTS_0"] = _make_view(joints, jtype, "VEC4", target=ARRAY_BUFFER)
             out["WEIGHTS_0"] = _make_view(weights, FLOAT, "VEC4", target=ARRAY_BUFFER)  # type: ignore[arg-type]
-    itype = UNSIGNED_SHORT if n < 65535 else UNSIGNED_INT
-    out["indices"] = _make_view(f.reshape(-1), itype, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
+    out["indices"] = _index_view(f, n)
     return out
+
+
+def _index_view(f: np.ndarray, n: int) -> tuple[View, dict[str, Any]]:
+    """The indices' view and accessor of faces (F, 3) into n vertices."""
+    itype = UNSIGNED_SHORT if n < 65535 else UNSIGNED_INT
+    return _make_view(f.reshape(-1), itype, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
 
 
 def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[str, Any]:
