@@ -31,6 +31,9 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
     ``avatar.glb`` (nodes ``avatar``, ``eyes``, ``eyebrows``, ``hair``, ``underwear``; the same
     ``hair`` and ``underwear`` choices), then one node per garment. ``ETag`` and
     ``If-None-Match`` as for one garment; ``pose_correctives`` as for one garment (the page
-    asks for them: it sets the current pose's target influence)."""
+    asks for them: it sets the current pose's target influence), and the ``avatar`` node gets
+    ``pose:<name>`` targets too where skin would show through the posed clothes (pulled under
+    them). The body under opaque garments is left out of the ``avatar`` mesh (its vertices
+    stay)."""
     return R.private_glb(*tryon.outfit_glb(cid, garments.split(","), creds, compression, if_none_match,
                                            hair, underwear, pose_correctives))
