@@ -68,9 +68,10 @@ def _body_template(model: BodyModel, faces: np.ndarray) -> gltf.MeshTemplate:
                                 vertex_weights=model.lbs_weights[:nb], n_joints=len(model.bone_parents))
     else:
         tpl = _body_template(model, model.body_faces).with_faces(faces)
-    if len(_body_templates) >= MAX_BODY_TEMPLATES:  # the oldest face set goes (a whole body's stays
-        old = next((k for k, v in _body_templates.items() if v[1] is not v[0].body_faces), None)  # while
-        _body_templates.pop(old if old is not None else next(iter(_body_templates)))  # subsets share it)
+    if len(_body_templates) >= MAX_BODY_TEMPLATES:
+        # the oldest face set goes; a whole body's template stays while face sets share it
+        old = next((k for k, v in _body_templates.items() if v[1] is not v[0].body_faces), None)
+        _body_templates.pop(old if old is not None else next(iter(_body_templates)))
     _body_templates[(id(model), id(faces))] = (model, faces, tpl)
     return tpl
 
@@ -208,10 +209,12 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     body): each garment also gets one pose-corrective morph target per pose
     (:func:`add_pose_correctives`); or a function returning them, called once the outfit is
     layered (the poses' adaptation may be under way in another server process meanwhile)."""
-    # the body under opaque garments is left out (it cannot show, and skinning or a pose would
-    # let it poke through): each basis' hidden_body, once per basis
-    hidden = tuple(basis.hidden_body(model) for rec, basis in garments if basis.material is not None or _opaque(rec))
-    meshes = avatar_meshes(model, body.vertices, body.normals, look, template, hidden) if with_avatar else []
+    meshes: list[dict[str, Any]] = []
+    if with_avatar:  # the body under opaque garments is left out (it cannot show, and skinning or
+        # a pose would let it poke through): each basis' hidden_body, once per basis
+        hidden = tuple(basis.hidden_body(model) for rec, basis in garments
+                       if basis.material is not None or _opaque(rec))
+        meshes = avatar_meshes(model, body.vertices, body.normals, look, template, hidden)
     worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
     normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
     # the look's base layer is the innermost layer: a bra never shows through a blouse
@@ -310,7 +313,7 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
                     d = correctives.follow_outer(d, covers[i], above, bases[i + 1].faces)
                 deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
                 above = d
-        body_deltas = _body_tucks(model, body, bodies, poses, bases, worn, sk, deltas, avatar) if tucks else None
+        body_deltas = _body_tucks(model, bodies, poses, bases, worn, sk, deltas, avatar) if tucks else None
         for d in (*deltas, *([body_deltas] if body_deltas is not None else [])):
             d.setflags(write=False)
         hit = (deltas, body_deltas)
@@ -324,7 +327,7 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
         mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
-def _body_tucks(model: BodyModel, body: CustomerBody, bodies: dict[str, correctives.PosedBody],
+def _body_tucks(model: BodyModel, bodies: dict[str, correctives.PosedBody],
                 poses: dict[str, np.ndarray], bases: list[GarmentBasis], worn: list[np.ndarray],
                 sk: list[tuple[np.ndarray, np.ndarray]], deltas: list[np.ndarray],
                 avatar: dict[str, Any]) -> np.ndarray:
