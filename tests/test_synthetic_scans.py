@@ -206,3 +206,23 @@ def test_random_pose_angles():
         R = SS.lbs.axis_angle_to_matrix(rv[0])
         assert np.degrees(np.arccos(np.clip(R[1, 1], -1, 1))) <= SS.ROOT_MAX_TILT_DEG + 1e-6
     assert np.allclose(SS.random_pose(rng, 0.0)[1:], 0.0)
+
+
+def test_anatomical_random_pose_redraws_only_the_bones_outside_the_joint_limits():
+    """``random_pose(anatomical=True)``: every bone inside the fitter's joint limits, within the
+    angle bound; the bones that were inside, the root and the caller's next draws are the same
+    as without (the redraws come from a spawned child generator)."""
+    from service.model.fitting import limit_violation
+
+    redrawn = 0
+    for seed in range(40):
+        a, b = np.random.default_rng([7, seed]), np.random.default_rng([7, seed])
+        free, anat = SS.random_pose(a, 45.0), SS.random_pose(b, 45.0, anatomical=True)
+        assert a.uniform() == b.uniform()  # the caller's stream goes on unchanged
+        assert not limit_violation(anat).any()
+        assert np.degrees(np.linalg.norm(anat[1:], axis=1)).max() <= 45.0 + 1e-9
+        outside = limit_violation(free).any(axis=1)
+        np.testing.assert_array_equal(anat[~outside], free[~outside])
+        assert not np.any(np.all(anat[outside] == free[outside], axis=1))
+        redrawn += int(outside.sum())
+    assert redrawn >= 10  # the free poses do leave the limits (a knee bent sideways)

@@ -131,7 +131,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     its parent's rotation at 0.1, not 0.02) or ``clothed_prior`` (a clothed scan's clothing-aware refinement and Alg. 1
     with the bare scans' shape prior, not ``FitParams.clothed_shape_prior``) or ``refine_holes`` (the refinement's ICP pulling template vertices over a hole to its rim,
     a bare scan's normals rejected beyond the coarse stage's 60 degrees: no
-    ``FitParams.refine_hole_reject``, no ``refine_normal_reject_deg``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``)."""
+    ``FitParams.refine_hole_reject``, no ``refine_normal_reject_deg``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``) or
+    ``loose_regions`` (a clothed scan's inside pairs weighted by their own depth alone, not
+    also by how deep their body region sits in the clothes: ``FitParams(loose_region_depth=None)``)."""
     from service.model.fitting import FitParams
 
     if kind == "wrong_fit":
@@ -146,6 +148,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         return FitParams(refine_bare_iterations=0)
     if kind == "blas_threads":
         return FitParams(blas_threads=None)
+    if kind == "loose_regions":
+        return FitParams(loose_region_depth=None)
     if kind == "landmark_init":
         return FitParams(landmark_init=False)
     if kind == "landmark_candidates":
@@ -259,7 +263,7 @@ def select_conditions(names: str | None, before: str | None = None) -> tuple[Con
 
 
 def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = MAX_POSE_DEG,
-                           conditions: tuple[Condition, ...] = CONDITIONS) -> dict:
+                           conditions: tuple[Condition, ...] = CONDITIONS, anatomical: bool = True) -> dict:
     from service.model.fitting import fit_body
 
     model = load_body_model()
@@ -278,7 +282,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             scan = SS.make_scan(model, np.random.default_rng([SEED, person["index"]]), person["weights"],
                                 person["gender"], clothed=clothed, point_cloud=cloud, n_points=N_POINTS,
                                 noise_mm=NOISE_MM, max_pose_deg=max_pose_deg, clothes_dir=clothes,
-                                garments=None if cond.garments is None else cond.garments[person["gender"]])
+                                garments=None if cond.garments is None else cond.garments[person["gender"]],
+                                anatomical=anatomical)
             if cond.degrade:
                 scan = SS.degrade(scan, cond.degrade, np.random.default_rng([SEED, 11, person["index"]]))
             scan_seconds.append(time.perf_counter() - t0)
@@ -310,6 +315,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                          f"{seconds:.1f} s, worst joint {row['worst_joint']}; before "
                          + (f"{row['before']['p2s_mm']:.2f} mm" if "p2s_mm" in row["before"] else "-"))
     out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
+           "poses": "anatomical" if anatomical else "free",
            "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
            "goal": GOALS, "conditions": {}}
     for cond in conditions:
@@ -507,14 +513,18 @@ def _run_kills(client, files, workers, start, n_jobs, kill_every_s, deadline_s, 
 
 # -- the suite --------------------------------------------------------------------------------
 def run(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float = MAX_POSE_DEG,
-        conditions: str | None = None, person_check: bool = True, before: str | None = None) -> dict:
+        conditions: str | None = None, person_check: bool = True, before: str | None = None,
+        poses: str = "anatomical") -> dict:
     """The ``fitting`` suite (``repeats`` is unused: each fit is timed once); ``conditions``: a
-    comma-separated subset of ``CONDITIONS`` (default all); ``person_check``: run part 1b."""
+    comma-separated subset of ``CONDITIONS`` (default all); ``person_check``: run part 1b;
+    ``poses``: "anatomical" (every bone within the joint limits, :func:`SS.random_pose`) or
+    "free" (any axis, as before 2026-11-24: a knee may bend 45 degrees sideways)."""
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) \
         if sys.stderr.isatty() or os.environ.get("TRYON_BENCH_PROGRESS") else None
     res: dict = {"suite": "fitting",
                  "accuracy": bench_fitting_accuracy(limit, progress=say, max_pose_deg=max_pose_deg,
-                                                    conditions=select_conditions(conditions, before))}
+                                                    conditions=select_conditions(conditions, before),
+                                                    anatomical=poses == "anatomical")}
     if person_check:
         res["person_check"] = bench_person_check(progress=say)
     res["job_kills"] = bench_job_kills(progress=say) if kill else {"skipped": "--no-kill"}
@@ -530,7 +540,7 @@ def format_result(r: dict) -> str:
     conds = a["conditions"]
     names = list(conds)
     L = [f"body fitting: {a['avatars']} held-out avatars x {len(names)} conditions; scans of {a['points']} points, "
-         f"{a['noise_mm']:g} mm noise, poses up to {a['max_pose_deg']:g} deg per bone, random unit/up/yaw/placement; "
+         f"{a['noise_mm']:g} mm noise, {a.get('poses', 'free')} poses up to {a['max_pose_deg']:g} deg per bone, random unit/up/yaw/placement; "
          f"{a['cpu_count']} CPU cores"]
     head = f"  {'':<40}" + "".join(f"{n.replace('_', ' '):>17}" for n in names)
     L.append(head)

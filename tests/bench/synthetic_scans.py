@@ -12,7 +12,8 @@ not):
    angle uniform in ``[0, max_pose_deg]``; the root gets a whole-body yaw uniform in
    [-180, 180) degrees (the fitter does not know the facing anyway) composed with a tilt of at
    most 10 degrees about a random horizontal axis (a standing person: a 45-degree root tilt
-   would lay the body down). The posed body is lifted so that its lowest vertex is at y = 0.
+   would lay the body down). With ``anatomical=True`` a bone drawn outside the joint limits (a
+   knee bent sideways) is drawn again until it is inside. The posed body is lifted so that its lowest vertex is at y = 0.
 3. **Clothes** (``clothed=True``): a MakeHuman CC0 suit (one of the ``*suit*`` folders, of the
    body's gender when there is one), plus, with probability 1/2, shoes (40 %) or a fedora
    (10 %). Each garment is fitted in the rest pose with its ``.mhclo`` binding
@@ -117,10 +118,17 @@ def _random_axes(rng: np.random.Generator, n: int) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def random_pose(rng: np.random.Generator, max_deg: float = 45.0) -> np.ndarray:
+def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: bool = False) -> np.ndarray:
     """(17, 3) rotvecs: every non-root bone a uniformly random axis and an angle uniform in
     [0, max_deg] degrees; the root a yaw uniform in [-180, 180) degrees (about +Y) after a
-    tilt of at most min(max_deg, 10) degrees about a random horizontal axis."""
+    tilt of at most min(max_deg, 10) degrees about a random horizontal axis.
+
+    ``anatomical``: a bone whose draw is outside the anatomical joint limits
+    (``fitting.JOINT_LIMITS_DEG``: a knee bent 33 degrees sideways, a foot turned 50 degrees) is
+    drawn again, from the same distribution, until it is inside: a person can stand in the pose.
+    The redraws come from a child of ``rng`` (``Generator.spawn``), so ``rng``'s own stream, and
+    with it every other bone, the root and whatever the caller draws next (frame, garments,
+    noise), is the same as without."""
     from scipy.spatial.transform import Rotation
 
     from service.model.body import BONES
@@ -134,6 +142,17 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0) -> np.ndarray:
     tilt = np.radians(rng.uniform(0.0, min(max_deg, ROOT_MAX_TILT_DEG)))
     root = Rotation.from_rotvec([0.0, yaw, 0.0]) * Rotation.from_rotvec(tilt * np.array([np.cos(a), 0.0, np.sin(a)]))
     rv[0] = root.as_rotvec()
+    if anatomical:
+        from service.model.fitting import limit_violation
+
+        redraw = rng.spawn(1)[0]
+        for b in range(1, n):
+            for _ in range(10_000):
+                if not np.any(limit_violation(np.pad(rv[b:b + 1], ((b, n - b - 1), (0, 0))))[b]):
+                    break
+                rv[b] = _random_axes(redraw, 1)[0] * np.radians(redraw.uniform(0.0, max_deg))
+            else:  # pragma: no cover - the limits leave most of every bone's ball
+                raise ValueError(f"no anatomical rotation of {BONES[b]} within {max_deg} degrees")
     return rv
 
 
@@ -396,16 +415,18 @@ def dress(model, X: np.ndarray, transforms: np.ndarray, translation: np.ndarray,
 def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str, *, clothed: bool,
               point_cloud: bool, n_points: int = 12_500, noise_mm: float = 2.0, max_pose_deg: float = 45.0,
               garments: list[str] | None = None, clothes_dir: Path | None = None, unit: str | None = None,
-              up: str | None = None) -> SyntheticScan:
+              up: str | None = None, anatomical: bool = False) -> SyntheticScan:
     """A synthetic scan of the body ``weights`` (see the module docstring). ``garments``
-    (mhclo stems) overrides the random choice; ``unit``/``up`` override the random frame."""
+    (mhclo stems) overrides the random choice; ``unit``/``up`` override the random frame;
+    ``anatomical``: the pose within the joint limits (:func:`random_pose`; everything else the
+    same as without)."""
     weights = np.asarray(weights, np.float64)
     X = model.vertices(weights).astype(np.float64)
     nb = model.n_body_vertices
     measurements = model.measure(X, gender)
 
     # random draws in a fixed order (same person/pose/frame/garments whether clothed or not)
-    rotvecs = random_pose(rng, max_pose_deg)
+    rotvecs = random_pose(rng, max_pose_deg, anatomical)
     u_unit, u_up = rng.uniform(size=2)
     yaw = rng.uniform(-np.pi, np.pi)
     shift = rng.uniform(-1.0, 1.0, size=3)
