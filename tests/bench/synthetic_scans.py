@@ -143,12 +143,13 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: boo
     root = Rotation.from_rotvec([0.0, yaw, 0.0]) * Rotation.from_rotvec(tilt * np.array([np.cos(a), 0.0, np.sin(a)]))
     rv[0] = root.as_rotvec()
     if anatomical:
-        from service.model.fitting import limit_violation
+        from service.model.fitting import joint_limits
 
+        lo, hi = joint_limits()
         redraw = rng.spawn(1)[0]
         for b in range(1, n):
             for _ in range(10_000):
-                if not np.any(limit_violation(np.pad(rv[b:b + 1], ((b, n - b - 1), (0, 0))))[b]):
+                if np.all((rv[b] >= lo[b]) & (rv[b] <= hi[b])):
                     break
                 rv[b] = _random_axes(redraw, 1)[0] * np.radians(redraw.uniform(0.0, max_deg))
             else:  # pragma: no cover - the limits leave most of every bone's ball
