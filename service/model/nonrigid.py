@@ -143,6 +143,20 @@ def point_to_plane_normal_equations(jacobian: np.ndarray, vi: np.ndarray, nn: np
     return rows.T @ wr, wr.T @ r
 
 
+def cloth_offset_normal_equations(jacobian: np.ndarray, vi: np.ndarray, nn: np.ndarray, w: np.ndarray,
+                                  r: np.ndarray, region: np.ndarray, n_regions: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_to_plane_normal_equations` with one more unknown per region: residuals
+    r_k = n_k . (v_{vi_k} - c_k) + o_{region_k} (the target moved in by o along its normal),
+    so the rows get a one-hot column per region. region (k,) int in [0, n_regions). Returns
+    (H (P + R, P + R), g (P + R,)), the region unknowns last."""
+    rows = sum(nn[:, a, None] * np.ascontiguousarray(jacobian[:, a, :])[vi] for a in range(3))
+    E = np.zeros((len(r), n_regions))
+    E[np.arange(len(r)), region] = 1.0
+    rows = np.concatenate([rows, E], axis=1)
+    wr = rows * w[:, None]
+    return rows.T @ wr, wr.T @ r
+
+
 def damped_step(H: np.ndarray, g: np.ndarray, *, damping: float = 1e-6, levenberg: float = 0.0) -> np.ndarray:
     """The Levenberg-Marquardt step -(H + (damping + levenberg mean(diag H)) I)^-1 g."""
     lam = damping + levenberg * float(np.trace(H)) / max(len(H), 1)

@@ -132,8 +132,11 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     with the bare scans' shape prior, not ``FitParams.clothed_shape_prior``) or ``refine_holes`` (the refinement's ICP pulling template vertices over a hole to its rim,
     a bare scan's normals rejected beyond the coarse stage's 60 degrees: no
     ``FitParams.refine_hole_reject``, no ``refine_normal_reject_deg``) or ``blas_threads`` (BLAS with the library's default threads, not 1: ``FitParams(blas_threads=None)``) or
-    ``loose_regions`` (a clothed scan's inside pairs weighted by their own depth alone, not
-    also by how deep their body region sits in the clothes: ``FitParams(loose_region_depth=None)``)."""
+    ``loose_regions`` (a clothed scan's inside pairs weighted by their own depth alone, neither
+    by how deep their body region sits in the clothes nor with a stand-off per region:
+    ``FitParams(loose_region_depth=None, cloth_offset_mean=None)``) or ``cloth_offsets`` (main
+    before the clothes' stand-off per body region, 2026-11-25: the loose regions' weights
+    instead, ``FitParams(cloth_offset_mean=None, loose_region_depth=0.01)``)."""
     from service.model.fitting import FitParams
 
     if kind == "wrong_fit":
@@ -148,8 +151,10 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         return FitParams(refine_bare_iterations=0)
     if kind == "blas_threads":
         return FitParams(blas_threads=None)
+    if kind == "cloth_offsets":
+        return FitParams(cloth_offset_mean=None, loose_region_depth=0.01)
     if kind == "loose_regions":
-        return FitParams(loose_region_depth=None)
+        return FitParams(loose_region_depth=None, cloth_offset_mean=None)
     if kind == "landmark_init":
         return FitParams(landmark_init=False)
     if kind == "landmark_candidates":
@@ -262,9 +267,45 @@ def select_conditions(names: str | None, before: str | None = None) -> tuple[Con
     return out
 
 
+def parse_fit_params(text: str | None) -> dict:
+    """'name=value,...' (values Python literals, e.g. ``None``, ``0.05``) -> {name: value},
+    checked against the fields of ``FitParams``."""
+    import ast
+    from dataclasses import fields
+
+    from service.model.fitting import FitParams
+
+    known = {f.name for f in fields(FitParams)}
+    out = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        name, _, value = item.partition("=")
+        name = name.strip()
+        if name not in known:
+            raise ValueError(f"unknown FitParams field {name!r}")
+        out[name] = ast.literal_eval(value.strip())
+    return out
+
+
+def with_overrides(params, overrides: dict):
+    """``params`` with ``overrides`` applied to every field it leaves at the default (a
+    "before" kind's own change wins)."""
+    from dataclasses import replace
+
+    from service.model.fitting import FitParams
+
+    default = FitParams()
+    return replace(params, **{k: v for k, v in overrides.items() if getattr(params, k) == getattr(default, k)})
+
+
 def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = MAX_POSE_DEG,
-                           conditions: tuple[Condition, ...] = CONDITIONS, anatomical: bool = True) -> dict:
-    from service.model.fitting import fit_body
+                           conditions: tuple[Condition, ...] = CONDITIONS, anatomical: bool = True,
+                           fit_params: dict | None = None) -> dict:
+    from service.model.fitting import FitParams, fit_body
+
+    overrides = dict(fit_params or {})
+    params = FitParams(**overrides)
 
     model = load_body_model()
     clothes = shared_data_dir() / "makehuman_clothes"
@@ -290,7 +331,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             base[name].append(baseline(model, scan, surface))
             t0 = time.perf_counter()
             try:
-                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed)
+                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed, params=params)
                 seconds = time.perf_counter() - t0
                 row = evaluate(model, scan, fit, surface)
             except Exception as exc:  # noqa: BLE001 - a benchmark counts failures, never crashes
@@ -301,7 +342,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                     raise RuntimeError("not measured in this condition")
                 t1 = time.perf_counter()
                 prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed,
-                                                      params=BEFORE_PARAMS(cond.before)), surface)
+                                                      params=with_overrides(BEFORE_PARAMS(cond.before), overrides)),
+                                surface)
                 row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"],
                                  "measurements": prev["measurements"], "seconds": time.perf_counter() - t1}
             except Exception as exc:  # noqa: BLE001
@@ -315,7 +357,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                          f"{seconds:.1f} s, worst joint {row['worst_joint']}; before "
                          + (f"{row['before']['p2s_mm']:.2f} mm" if "p2s_mm" in row["before"] else "-"))
     out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
-           "poses": "anatomical" if anatomical else "free",
+           "poses": "anatomical" if anatomical else "free", "fit_params": {k: repr(v) for k, v in overrides.items()},
            "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
            "goal": GOALS, "conditions": {}}
     for cond in conditions:
@@ -514,17 +556,19 @@ def _run_kills(client, files, workers, start, n_jobs, kill_every_s, deadline_s, 
 # -- the suite --------------------------------------------------------------------------------
 def run(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float = MAX_POSE_DEG,
         conditions: str | None = None, person_check: bool = True, before: str | None = None,
-        poses: str = "anatomical") -> dict:
+        poses: str = "anatomical", fit_params: str | None = None) -> dict:
     """The ``fitting`` suite (``repeats`` is unused: each fit is timed once); ``conditions``: a
     comma-separated subset of ``CONDITIONS`` (default all); ``person_check``: run part 1b;
     ``poses``: "anatomical" (every bone within the joint limits, :func:`SS.random_pose`) or
-    "free" (any axis, as before 2026-11-24: a knee may bend 45 degrees sideways)."""
+    "free" (any axis, as before 2026-11-24: a knee may bend 45 degrees sideways); ``fit_params``:
+    'name=value,...' FitParams overrides in every fit (:func:`parse_fit_params`)."""
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) \
         if sys.stderr.isatty() or os.environ.get("TRYON_BENCH_PROGRESS") else None
     res: dict = {"suite": "fitting",
                  "accuracy": bench_fitting_accuracy(limit, progress=say, max_pose_deg=max_pose_deg,
                                                     conditions=select_conditions(conditions, before),
-                                                    anatomical=poses == "anatomical")}
+                                                    anatomical=poses == "anatomical",
+                                                    fit_params=parse_fit_params(fit_params))}
     if person_check:
         res["person_check"] = bench_person_check(progress=say)
     res["job_kills"] = bench_job_kills(progress=say) if kill else {"skipped": "--no-kill"}
@@ -542,6 +586,8 @@ def format_result(r: dict) -> str:
     L = [f"body fitting: {a['avatars']} held-out avatars x {len(names)} conditions; scans of {a['points']} points, "
          f"{a['noise_mm']:g} mm noise, {a.get('poses', 'free')} poses up to {a['max_pose_deg']:g} deg per bone, random unit/up/yaw/placement; "
          f"{a['cpu_count']} CPU cores"]
+    if a.get("fit_params"):
+        L.append("  FitParams overridden: " + ", ".join(f"{k}={v}" for k, v in a["fit_params"].items()))
     head = f"  {'':<40}" + "".join(f"{n.replace('_', ' '):>17}" for n in names)
     L.append(head)
 
