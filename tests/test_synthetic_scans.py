@@ -226,3 +226,39 @@ def test_anatomical_random_pose_redraws_only_the_bones_outside_the_joint_limits(
         assert not np.any(np.all(anat[outside] == free[outside], axis=1))
         redrawn += int(outside.sum())
     assert redrawn >= 10  # the free poses do leave the limits (a knee bent sideways)
+
+
+def test_leg_gap_on_known_lines():
+    """``leg_gap``: the least distance between the two legs' centre lines (hip -> knee -> ankle)."""
+    J = np.zeros((17, 3))
+    J[11], J[12], J[13] = [0.1, 1.0, 0.0], [0.1, 0.5, 0.0], [0.1, 0.0, 0.0]  # left leg, straight
+    J[14], J[15], J[16] = [-0.1, 1.0, 0.0], [-0.1, 0.5, 0.0], [-0.1, 0.0, 0.0]
+    assert abs(SS.leg_gap(J) - 0.2) < 1e-9
+    J[15], J[16] = [0.0, 0.5, 0.05], [0.3, 0.0, 0.0]  # the right shin crosses over to the left
+    assert SS.leg_gap(J) < 0.06
+
+
+def test_anatomical_scans_do_not_cross_the_legs_through_each_other(model):
+    """An anatomical random pose can keep every bone inside its limits and still pass one leg
+    through the other: held-out avatar 5 at 45 degrees (the fitting bench's seed) had the
+    legs' centre lines 4 cm apart, the ankles crossed over by 22 cm. ``make_scan(anatomical=True)``
+    draws the thighs and shins again until the legs are apart; the frame and everything drawn
+    after the pose are the same as without that redraw."""
+    from tests.bench import fitting as BF
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 11)[10]
+    X = model.vertices(person["weights"]).astype(np.float64)
+    rv = SS.random_pose(np.random.default_rng([BF.SEED, person["index"]]), 45.0, anatomical=True)
+    assert SS.leg_gap(model.forward(pose=rv, vertices=X).joints) < 0.05  # crossed before
+    scan = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
+                        person["gender"], clothed=False, point_cloud=True, n_points=2000, max_pose_deg=45.0,
+                        anatomical=True)
+    assert SS.leg_gap(scan.true_joints) >= SS.LEG_CLEARANCE_M
+    changed = np.any(scan.rotvecs != rv, axis=1)
+    assert set(np.nonzero(changed)[0]) <= set(SS.LEG_BONES) and changed.any()
+    free = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"],
+                        person["gender"], clothed=False, point_cloud=True, n_points=2000, max_pose_deg=45.0)
+    assert free.unit == scan.unit and free.up == scan.up
+    R = lambda s: s.to_model[:3, :3]  # noqa: E731 - the random yaw and up axis
+    np.testing.assert_allclose(R(free), R(scan))

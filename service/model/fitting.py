@@ -184,11 +184,11 @@ class FitParams:
     # the clothes. With o_R the data fix the body only up to a uniform stand-off per region,
     # and the shape prior (the body's bare and snug parts predicting the loose ones) against
     # the offset prior decides how far inside it sits. Fitting bench, 12 avatars at 45 degrees
-    # (anatomical poses), against the loose regions above (deterministic fits, two runs): body
-    # error median / p90 clothed mesh 2.34 / 2.99 -> 1.80 / 2.76 mm, loose clothes 3.02 / 3.49 ->
-    # 2.42 / 2.90, tight 1.85 / 2.75 -> 1.52 / 2.04, point cloud 2.10 / 2.99 -> 1.71 / 2.24,
-    # scanner 2.64 / 3.25 -> 2.25 / 2.78; weight mean |error| 5.2 -> 2.0, 9.2 -> 4.2, 7.0 -> 2.2,
-    # 6.0 -> 1.7, 5.7 -> 1.9 kg. A mean of 3 or 10 cm gives the same within 0.05 mm and 1.3 kg;
+    # (anatomical poses), against the loose regions above, same run: body error median / p90
+    # clothed mesh 2.33 / 2.99 -> 1.80 / 2.76 mm, loose clothes 3.14 / 3.49 -> 2.46 / 2.90, tight
+    # 1.85 / 2.75 -> 1.52 / 2.04, point cloud 2.10 / 2.99 -> 1.71 / 2.24, scanner 2.64 / 3.02 ->
+    # 2.25 / 2.68; weight mean |error| 5.7 -> 1.9, 9.2 -> 4.1, 7.0 -> 2.3, 6.2 -> 1.7, 5.8 -> 1.6
+    # kg. A mean of 3 or 10 cm gives the same within 0.05 mm and 1.3 kg;
     # 1-2 cm is too dear an offset, and the body fills the clothes as before. None: off
     cloth_offset_mean: float | None = 0.05
     # Gaussian shape prior sum_k beta_k^2 / var_k, weighted against the data terms (sums of

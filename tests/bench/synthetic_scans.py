@@ -13,7 +13,9 @@ not):
    [-180, 180) degrees (the fitter does not know the facing anyway) composed with a tilt of at
    most 10 degrees about a random horizontal axis (a standing person: a 45-degree root tilt
    would lay the body down). With ``anatomical=True`` a bone drawn outside the joint limits (a
-   knee bent sideways) is drawn again until it is inside. The posed body is lifted so that its lowest vertex is at y = 0.
+   knee bent sideways) is drawn again until it is inside, and the thighs and shins are drawn
+   again while the legs pass through each other (:func:`separate_legs`). The posed body is
+   lifted so that its lowest vertex is at y = 0.
 3. **Clothes** (``clothed=True``): a MakeHuman CC0 suit (one of the ``*suit*`` folders, of the
    body's gender when there is one), plus, with probability 1/2, shoes (40 %) or a fedora
    (10 %). Each garment is fitted in the rest pose with its ``.mhclo`` binding
@@ -155,6 +157,45 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: boo
             else:  # pragma: no cover - the limits leave most of every bone's ball
                 raise ValueError(f"no anatomical rotation of {BONES[b]} within {max_deg} degrees")
     return rv
+
+
+LEG_BONES = (11, 12, 14, 15)  # thigh_l, shin_l, thigh_r, shin_r (``BONES`` order)
+# the centre lines of the two legs (hip -> knee -> ankle) closer than this pass through each
+# other: two knees side by side are ~12 cm apart centre to centre
+LEG_CLEARANCE_M = 0.08
+
+
+def leg_gap(joints: np.ndarray, samples: int = 50) -> float:
+    """The least distance (metres) between the left leg's centre line (hip -> knee -> ankle:
+    joints 11 -> 12 -> 13) and the right leg's (14 -> 15 -> 16); joints (17, 3) posed."""
+    t = np.linspace(0.0, 1.0, samples)[:, None]
+
+    def line(a, b, c):
+        return np.concatenate([joints[a] + t * (joints[b] - joints[a]), joints[b] + t * (joints[c] - joints[b])])
+
+    return float(cKDTree(line(11, 12, 13)).query(line(14, 15, 16))[0].min())
+
+
+def separate_legs(model, vertices: np.ndarray, rotvecs: np.ndarray, rng: np.random.Generator,
+                  max_deg: float) -> np.ndarray:
+    """(17, 3) rotvecs: ``rotvecs`` with the thighs and shins drawn again (as
+    :func:`random_pose` draws them, within the joint limits) from ``rng`` while the legs of the
+    rest body ``vertices`` (V, 3) posed so pass through each other (:func:`leg_gap` under
+    ``LEG_CLEARANCE_M``): a random pose within each bone's limits can still cross the legs
+    through one another, which nobody can stand in."""
+    from service.model.fitting import joint_limits
+
+    lo, hi = joint_limits()
+    rv = np.array(rotvecs, np.float64)
+    for _ in range(10_000):
+        if leg_gap(model.forward(pose=rv, vertices=vertices).joints) >= LEG_CLEARANCE_M:
+            return rv
+        for b in LEG_BONES:
+            while True:
+                rv[b] = _random_axes(rng, 1)[0] * np.radians(rng.uniform(0.0, max_deg))
+                if np.all((rv[b] >= lo[b]) & (rv[b] <= hi[b])):
+                    break
+    raise ValueError("no pose with the legs apart")  # pragma: no cover
 
 
 def _rot_x(deg: float) -> np.ndarray:
@@ -428,6 +469,8 @@ def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str,
 
     # random draws in a fixed order (same person/pose/frame/garments whether clothed or not)
     rotvecs = random_pose(rng, max_pose_deg, anatomical)
+    if anatomical:  # nor the legs through each other (a child generator: the draws below stay)
+        rotvecs = separate_legs(model, X, rotvecs, rng.spawn(1)[0], max_pose_deg)
     u_unit, u_up = rng.uniform(size=2)
     yaw = rng.uniform(-np.pi, np.pi)
     shift = rng.uniform(-1.0, 1.0, size=3)
