@@ -136,7 +136,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     by how deep their body region sits in the clothes nor with a stand-off per region:
     ``FitParams(loose_region_depth=None, cloth_offset_mean=None)``) or ``cloth_offsets`` (main
     before the clothes' stand-off per body region, 2026-11-25: the loose regions' weights
-    instead, ``FitParams(cloth_offset_mean=None, loose_region_depth=0.01)``)."""
+    instead and the clothed posture anchor at 1.0, ``FitParams(cloth_offset_mean=None,
+    loose_region_depth=0.01, clothed_posture_anchor=1.0)``) or ``posture_anchor`` (the
+    stand-offs with the clothed posture anchor at 1.0, not 0.1)."""
     from service.model.fitting import FitParams
 
     if kind == "wrong_fit":
@@ -152,7 +154,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     if kind == "blas_threads":
         return FitParams(blas_threads=None)
     if kind == "cloth_offsets":
-        return FitParams(cloth_offset_mean=None, loose_region_depth=0.01)
+        return FitParams(cloth_offset_mean=None, loose_region_depth=0.01, clothed_posture_anchor=1.0)
+    if kind == "posture_anchor":
+        return FitParams(clothed_posture_anchor=1.0)
     if kind == "loose_regions":
         return FitParams(loose_region_depth=None, cloth_offset_mean=None)
     if kind == "landmark_init":
