@@ -672,3 +672,20 @@ def test_a_scanner_scan_bent_forward_is_fitted_facing_the_right_way(model):
     ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
     assert ev["p2s_mm"] < 8.0 and ev["joints_mm"] < 25.0, ev
     assert ev["worst_joint"][1] < 80.0, ev["worst_joint"]
+
+
+def test_bench_fit_params_overrides():
+    """``tryon bench fitting --fit-params``: 'name=value,...' parsed as Python literals and
+    checked against FitParams; applied to a "before" kind's params except where that kind
+    changed the field itself."""
+    from tests.bench import fitting as BF
+
+    got = BF.parse_fit_params("cloth_offset_mean=None, loose_region_depth=0.02,max_outer=3")
+    assert got == {"cloth_offset_mean": None, "loose_region_depth": 0.02, "max_outer": 3}
+    assert BF.parse_fit_params("") == {} and BF.parse_fit_params(None) == {}
+    with pytest.raises(ValueError, match="unknown FitParams field"):
+        BF.parse_fit_params("no_such_field=1")
+    before = BF.BEFORE_PARAMS("cloth_offsets")  # its own cloth_offset_mean=None, anchor 1.0
+    p = BF.with_overrides(before, {"cloth_offset_mean": 0.1, "max_outer": 3, "clothed_posture_anchor": 0.5})
+    assert p.cloth_offset_mean is None and p.clothed_posture_anchor == 1.0  # the kind's own changes win
+    assert p.max_outer == 3 and p.loose_region_depth == 0.01

@@ -273,7 +273,10 @@ class FitParams:
     # avatars at 45 degrees, the 5 clothed conditions, with the stand-offs, 1.0 -> 0.1 -> 0
     # (``--fit-params``, 2026-11-25): body error median 1.52-2.46 -> 1.34-2.01 -> 1.27-1.88 mm,
     # stature worst 0.94-2.04 -> 0.69-1.00 -> 0.47-1.05 cm. 0.1 keeps every stature worst
-    # within 1 cm and some of the anchor's hold. 0: off
+    # within 1 cm at 45 degrees and some of the anchor's hold; 0.3 was between the two at 45
+    # degrees and a little better at 20 (stature worst 0.51-1.02 against 0.45-1.17 cm); at 20
+    # degrees held-out avatar 3's spine under a casual suit goes 29-32 mm off (scanner 5.16 ->
+    # 7.29 mm; 0.3: 5.15 mm). 0: off
     clothed_posture_anchor: float = 0.1
     # ... and Alg. 1's Eq. 3 of a clothed scan towards the posture it starts from: with the
     # refinement anchored, Alg. 1 alone turned held-out avatar 39's hand (scanner, 20 degrees,
