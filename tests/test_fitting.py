@@ -323,9 +323,9 @@ def test_loose_region_weight_against_a_per_pair_reference():
 
 
 def test_cloth_offset_normal_equations_against_a_per_pair_reference():
-    """``cloth_offset_normal_equations``: point-to-plane rows n_k^T J_{vi_k} with a one-hot
-    column per region (the residual r_k + o_{region_k}), summed pair by pair."""
-    from service.model.nonrigid import cloth_offset_normal_equations, point_to_plane_normal_equations
+    """``point_to_plane_normal_equations`` with regions: point-to-plane rows n_k^T J_{vi_k} with a
+    one-hot column per region (the residual r_k + o_{region_k}), summed pair by pair."""
+    from service.model.nonrigid import point_to_plane_normal_equations
 
     rng = np.random.default_rng(8)
     m, P, R, k = 7, 5, 4, 30
@@ -334,7 +334,7 @@ def test_cloth_offset_normal_equations_against_a_per_pair_reference():
     nn = rng.normal(size=(k, 3))
     nn /= np.linalg.norm(nn, axis=1, keepdims=True)
     w, r = rng.uniform(0.1, 2.0, k), rng.normal(size=k)
-    H, g = cloth_offset_normal_equations(J, vi, nn, w, r, region, R)
+    H, g = point_to_plane_normal_equations(J, vi, nn, w, r, region, R)
     Hr, gr = np.zeros((P + R, P + R)), np.zeros(P + R)
     for q in range(k):
         row = np.r_[nn[q] @ J[vi[q]], np.eye(R)[region[q]]]

@@ -62,7 +62,6 @@ from service.model.lbs import axis_angle_to_matrix, global_transforms, matrix_to
 from service.model.poses import rotation_between
 from service.model.nonrigid import (
     EdgeSystem,
-    cloth_offset_normal_equations,
     damped_step,
     edge_incidence,
     nearest_correspondences,
@@ -776,7 +775,7 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         comps = np.arange(n_shape)
         Jall = np.concatenate([Jp, _shape_jacobian(rig, p, comps)], axis=2) if n_shape else Jp
         if offsets is not None:
-            H, g = cloth_offset_normal_equations(Jall, vi, nn, w, r, sub.region[vi], len(offsets))
+            H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r, sub.region[vi], len(offsets))
             H[-len(offsets):, -len(offsets):] += offset_prior_hessian
             g[-len(offsets):] += offset_prior_gradient
         else:

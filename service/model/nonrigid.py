@@ -134,25 +134,20 @@ def trimmed_mean(d: np.ndarray, keep: float = 0.9, weights: np.ndarray | None = 
 
 # -- Gauss-Newton ---------------------------------------------------------------------------------
 def point_to_plane_normal_equations(jacobian: np.ndarray, vi: np.ndarray, nn: np.ndarray, w: np.ndarray,
-                                    r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                                    r: np.ndarray, region: np.ndarray | None = None,
+                                    n_regions: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton normal equations of point-to-plane residuals r_k = n_k . (v_{vi_k} - c_k)
     with weights w_k: rows_k = n_k^T J_{vi_k}, H = rows^T W rows, g = rows^T W r.
-    jacobian: (m, 3, P) of the m vertices; vi (k,), nn (k, 3), w (k,), r (k,) -> (H (P, P), g (P,))."""
+    jacobian: (m, 3, P) of the m vertices; vi (k,), nn (k, 3), w (k,), r (k,) -> (H (P, P), g (P,)).
+    With ``region`` (k,) int in [0, n_regions): one more unknown per region, the residuals
+    r_k + o_{region_k} (the target moved in by o along its normal: the clothes' stand-off of
+    ``fitting``), a one-hot column per region in the rows; H (P + R, P + R), g (P + R,), the
+    region unknowns last."""
     rows = sum(nn[:, a, None] * np.ascontiguousarray(jacobian[:, a, :])[vi] for a in range(3))
-    wr = rows * w[:, None]
-    return rows.T @ wr, wr.T @ r
-
-
-def cloth_offset_normal_equations(jacobian: np.ndarray, vi: np.ndarray, nn: np.ndarray, w: np.ndarray,
-                                  r: np.ndarray, region: np.ndarray, n_regions: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`point_to_plane_normal_equations` with one more unknown per region: residuals
-    r_k = n_k . (v_{vi_k} - c_k) + o_{region_k} (the target moved in by o along its normal),
-    so the rows get a one-hot column per region. region (k,) int in [0, n_regions). Returns
-    (H (P + R, P + R), g (P + R,)), the region unknowns last."""
-    rows = sum(nn[:, a, None] * np.ascontiguousarray(jacobian[:, a, :])[vi] for a in range(3))
-    E = np.zeros((len(r), n_regions))
-    E[np.arange(len(r)), region] = 1.0
-    rows = np.concatenate([rows, E], axis=1)
+    if region is not None:
+        E = np.zeros((len(r), n_regions))
+        E[np.arange(len(r)), region] = 1.0
+        rows = np.concatenate([rows, E], axis=1)
     wr = rows * w[:, None]
     return rows.T @ wr, wr.T @ r
 

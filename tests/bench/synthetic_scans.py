@@ -150,13 +150,20 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: boo
         lo, hi = joint_limits()
         redraw = rng.spawn(1)[0]
         for b in range(1, n):
-            for _ in range(10_000):
-                if np.all((rv[b] >= lo[b]) & (rv[b] <= hi[b])):
-                    break
-                rv[b] = _random_axes(redraw, 1)[0] * np.radians(redraw.uniform(0.0, max_deg))
-            else:  # pragma: no cover - the limits leave most of every bone's ball
-                raise ValueError(f"no anatomical rotation of {BONES[b]} within {max_deg} degrees")
+            if not np.all((rv[b] >= lo[b]) & (rv[b] <= hi[b])):
+                rv[b] = _draw_within_limits(redraw, lo[b], hi[b], max_deg)
     return rv
+
+
+def _draw_within_limits(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, max_deg: float) -> np.ndarray:
+    """(3,) a rotation vector drawn as :func:`random_pose` draws a bone's (a uniformly random
+    axis, an angle uniform in [0, max_deg] degrees) again and again until it lies in the box
+    [lo, hi] (3,) radians."""
+    for _ in range(10_000):
+        rv = _random_axes(rng, 1)[0] * np.radians(rng.uniform(0.0, max_deg))
+        if np.all((rv >= lo) & (rv <= hi)):
+            return rv
+    raise ValueError(f"no rotation within the limits and {max_deg} degrees")  # pragma: no cover
 
 
 LEG_BONES = (11, 12, 14, 15)  # thigh_l, shin_l, thigh_r, shin_r (``BONES`` order)
@@ -191,10 +198,7 @@ def separate_legs(model, vertices: np.ndarray, rotvecs: np.ndarray, rng: np.rand
         if leg_gap(model.forward(pose=rv, vertices=vertices).joints) >= LEG_CLEARANCE_M:
             return rv
         for b in LEG_BONES:
-            while True:
-                rv[b] = _random_axes(rng, 1)[0] * np.radians(rng.uniform(0.0, max_deg))
-                if np.all((rv[b] >= lo[b]) & (rv[b] <= hi[b])):
-                    break
+            rv[b] = _draw_within_limits(rng, lo[b], hi[b], max_deg)
     raise ValueError("no pose with the legs apart")  # pragma: no cover
 
 
