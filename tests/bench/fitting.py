@@ -141,37 +141,26 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     stand-offs with the clothed posture anchor at 1.0, not 0.1)."""
     from service.model.fitting import FitParams
 
-    if kind == "wrong_fit":
-        return FitParams(area_weighted=False, clothed_posture_anchor=0.0, alg1_posture_anchor=0.0)
-    if kind == "bone_smoothness":
-        return FitParams(bone_smoothness=0.1)
-    if kind == "refine_holes":
-        return FitParams(refine_hole_reject=False, refine_normal_reject_deg=None)
-    if kind == "clothed_prior":
-        return FitParams(clothed_shape_prior=None)
-    if kind == "refine_bare":
-        return FitParams(refine_bare_iterations=0)
-    if kind == "blas_threads":
-        return FitParams(blas_threads=None)
-    if kind == "cloth_offsets":
-        return FitParams(cloth_offset_mean=None, loose_region_depth=0.01, clothed_posture_anchor=1.0)
-    if kind == "posture_anchor":
-        return FitParams(clothed_posture_anchor=1.0)
-    if kind == "loose_regions":
-        return FitParams(loose_region_depth=None, cloth_offset_mean=None)
-    if kind == "landmark_init":
-        return FitParams(landmark_init=False)
-    if kind == "landmark_candidates":
-        return FitParams(landmark_candidates=1)
-    if kind == "scan_cleanup":
-        return FitParams(scan_cleanup=False)
-    if kind == "refine_damping":
-        return FitParams(refine_levenberg=FitParams().levenberg)
-    if kind == "clothing_contact":
-        return FitParams(clothing_contact=None)
-    if kind == "pose_prior":
-        return FitParams(joint_limit_weight=0.0, bone_smoothness=0.1, coarse_bone_smoothness=0.1)
-    raise ValueError(f"unknown 'before' kind {kind!r}")
+    kinds = {
+        "wrong_fit": {"area_weighted": False, "clothed_posture_anchor": 0.0, "alg1_posture_anchor": 0.0},
+        "bone_smoothness": {"bone_smoothness": 0.1},
+        "refine_holes": {"refine_hole_reject": False, "refine_normal_reject_deg": None},
+        "clothed_prior": {"clothed_shape_prior": None},
+        "refine_bare": {"refine_bare_iterations": 0},
+        "blas_threads": {"blas_threads": None},
+        "cloth_offsets": {"cloth_offset_mean": None, "loose_region_depth": 0.01, "clothed_posture_anchor": 1.0},
+        "posture_anchor": {"clothed_posture_anchor": 1.0},
+        "loose_regions": {"loose_region_depth": None, "cloth_offset_mean": None},
+        "landmark_init": {"landmark_init": False},
+        "landmark_candidates": {"landmark_candidates": 1},
+        "scan_cleanup": {"scan_cleanup": False},
+        "refine_damping": {"refine_levenberg": FitParams().levenberg},
+        "clothing_contact": {"clothing_contact": None},
+        "pose_prior": {"joint_limit_weight": 0.0, "bone_smoothness": 0.1, "coarse_bone_smoothness": 0.1},
+    }
+    if kind not in kinds:
+        raise ValueError(f"unknown 'before' kind {kind!r}")
+    return FitParams(**kinds[kind])
 
 
 def posed(model, weights: np.ndarray, rotvecs: np.ndarray, translation: np.ndarray):
