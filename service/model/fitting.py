@@ -30,9 +30,15 @@ Stages:
    clothing weights leave it little data (``clothed_posture_anchor``; Alg. 1 likewise). The
    initialisation's distances of a clothed scan count the template's side per surface area,
    not per vertex (``area_weighted``): the template's hands and head hold over half its vertices.
+   Hidden limbs (issue 12): the initialisation's cost adds the arms' share inside the torso or
+   thighs (``arm_inside_cost``), and no ICP or Alg. 1 pair joins a template vertex to a scan
+   point whose nearest template vertex lies on a bone more than ``exclusive_hops`` joints away
+   (the scan point is another body part's: a hand over a hole is not pulled into the thigh).
 2. Alg. 1: repeat { correspondences template -> scan (nearest point, rejected when normals differ
    by more than 30 degrees); repeat { update T (Eq. 2), update theta (Eq. 3), update beta (Eq. 4) }
-   until 20 iterations or T moves < 1 mm } until 10 iterations or T moves < 5 mm.
+   until 20 iterations or T moves < 1 mm } until 10 iterations or T moves < 5 mm. On a bare
+   scan Eqs. 3 and 4 fit the model to the template vertices matched to the scan only
+   (``alg1_matched_only``): over a hole T is the model itself, extrapolated.
    Eq. 2's matrix (edge Laplacian + correspondence weights) depends only on the correspondences,
    so it is factored once per outer iteration (``EdgeSystem``) and re-solved in the inner loop.
 3. Clothing: a template vertex outside the scan (the body would poke through the clothes) keeps
@@ -59,6 +65,7 @@ from service.model import scan_cleanup as SC
 from service.model.frames import UnitError, detect_unit, orient_outward, up_candidates
 from service.model.geometry import estimate_normals, face_incidence, vertex_normals
 from service.model.lbs import axis_angle_to_matrix, global_transforms, matrix_to_axis_angle
+from service.model import poses as POSES
 from service.model.poses import rotation_between
 from service.model.nonrigid import (
     EdgeSystem,
@@ -219,6 +226,17 @@ class FitParams:
     # 0.12 mm; per area the feet count less, and there the skin's feet and hands are sharp
     # features worth their vertices. Scoring per area but ICP per vertex: avatar 1 23 mm
     area_weighted: bool = True
+    # issue 12: a template vertex's pair with its nearest scan point is dropped when the template
+    # vertex nearest to that scan point lies on a bone more than this many joints away (the scan
+    # point is another body part's): a hand over a hole in the scan is not pulled into the thigh
+    # beside it (held-out avatar 40, raw scanner scan, 45 degrees); None: off
+    exclusive_hops: int | None = 2
+    # issue 12: the initialisation's cost of a pose adds this many metres times the share of the
+    # arms' points inside the torso or thighs (``poses.arm_inside_share``; 0: off). The symmetric
+    # distance is a trimmed mean: a limb hidden inside the body costs little there, and a raw
+    # scanner scan with a hole at the hand (held-out avatar 40, 45 degrees) was fitted with the
+    # hand inside the thigh, or with the arms crossed through the chest (an arm 78 cm long)
+    arm_inside_cost: float = 0.02
     limb_search: bool = True
     # issue 12: limbs aimed at the scan's extremities (service.model.landmarks) before the
     # coarse schedule, the assignment and up to this many left/right swaps scored beside ICP alone
@@ -289,6 +307,11 @@ class FitParams:
     # posed body matches to 2 mm. 1e-6 follows the valley to the scan's minimum in ~10 steps
     refine_levenberg: float = 1e-6
     run_alg1: bool = True
+    # issue 12: on bare scans Eqs. 3 and 4 fit the model to the template vertices matched to the
+    # scan only. A hand over a hole in a raw scanner scan (no scan point within reach) spun
+    # away in Alg. 1, 131 mm mean error on the hand after 10 outer iterations (held-out avatar
+    # 40, 45 degrees), refined to 4 mm before it
+    alg1_matched_only: bool = True
     person_check: bool = True  # service.model.person_check before and after the fit
     scan_cleanup: bool = True  # issue 12: floor and stray clusters dropped, no pull into holes (scan_cleanup)
     # no pull into holes in the refinement either (with ``scan_cleanup``), as in Alg. 1: a
@@ -354,6 +377,7 @@ class _Rig:
     precision: np.ndarray
     posture: np.ndarray  # (3 * 16, K): the shape's change of each bone's direction (see _posture_matrix)
     area: np.ndarray  # (n,) the mean rest body's surface area per vertex (a third of each incident face's), m^2
+    hops: np.ndarray  # (17, 17) int: bones between two bones in the skeleton (bone_hops)
     subsets: dict = field(default_factory=dict)
 
 
@@ -380,7 +404,22 @@ def _rig(model) -> _Rig:
                 edges=edges, incidence=face_incidence(faces, n), laplacian=(B.T @ B).tocsc(),
                 parents=parents, subtree=(subtree > 0).astype(np.float64),
                 precision=1.0 / np.maximum(model.variances.astype(np.float64), 1e-12),
-                posture=_posture_matrix(jmean, jdirs, parents), area=vertex_areas(full_mean[:n], faces))
+                posture=_posture_matrix(jmean, jdirs, parents), area=vertex_areas(full_mean[:n], faces),
+                hops=bone_hops(parents))
+
+
+def bone_hops(parents: np.ndarray) -> np.ndarray:
+    """(J, J) int: the number of joints between bones a and b in the skeleton tree (0 on the
+    diagonal, 1 for a bone and its parent); parents (J,) int, -1 at the root."""
+    J = len(parents)
+    hops = np.full((J, J), J, np.int64)
+    np.fill_diagonal(hops, 0)
+    for j, p in enumerate(parents):
+        if p >= 0:
+            hops[j, p] = hops[p, j] = 1
+    for k in range(J):  # Floyd-Warshall on 17 nodes
+        hops = np.minimum(hops, hops[:, k:k + 1] + hops[k:k + 1, :])
+    return hops
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -497,7 +536,9 @@ def _shape_jacobian(rig: _Rig, p: _Posed, comps: np.ndarray) -> np.ndarray:
     U_k and every joint by its regressed direction, which moves each bone's translation
     t_j = R_parent p_j - R_j p_j + t_parent (forward kinematics, linear in the joints)."""
     Rg = p.G[:, :3, :3]
-    part = p.M @ p.sub.Ut[:, :, comps]  # (m, 3, C)
+    k = len(comps)  # the fits' components are a prefix: a view, not a copy (76 of them: 10 ms)
+    Ut = p.sub.Ut[:, :, :k] if np.array_equal(comps, np.arange(k)) else p.sub.Ut[:, :, comps]
+    part = p.M @ Ut  # (m, 3, C)
     dp = rig.jdirs[comps]  # (C, 17, 3)
     dt = np.zeros_like(dp)
     for j, par in enumerate(rig.parents):
@@ -569,8 +610,8 @@ JOINT_LIMITS_DEG: dict[str, tuple[tuple[float, float, float], tuple[float, float
     "chest": ((-35, -30, -30), (35, 30, 30)),
     "neck": ((-45, -60, -40), (45, 60, 40)),
     "head": ((-45, -60, -40), (45, 60, 40)),
-    "upper_arm_l": ((-120, -120, -120), (120, 120, 120)),
-    "upper_arm_r": ((-120, -120, -120), (120, 120, 120)),
+    "upper_arm_l": ((-120, -120, -75), (120, 120, 120)),
+    "upper_arm_r": ((-120, -120, -120), (120, 120, 75)),
     "forearm_l": ((-150, -150, -150), (150, 150, 150)),
     "forearm_r": ((-150, -150, -150), (150, 150, 150)),
     "hand_l": ((-80, -90, -60), (80, 90, 60)),
@@ -753,6 +794,8 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
             ok1 &= ~SC.over_hole(p.v, Ps[j1], Ns[j1], hole_spacing, scan.sub_tree)
         # scan -> template
         d2, i2 = cKDTree(p.v).query(Ps)
+        if params.exclusive_hops is not None:
+            ok1 &= rig.hops[sub.region, sub.region[i2[j1]]] <= params.exclusive_hops
         ok2 = (d2 < params.coarse_max_dist) & (np.einsum("ij,ij->i", nv[i2], Ns) > cos_rej)
         wv = sub.area if params.area_weighted else None
         cost = 0.5 * (trimmed_mean(d1, weights=wv) + trimmed_mean(d2))
@@ -872,19 +915,48 @@ def _limit_cost(s: _State, params: FitParams) -> float:
     return LIMIT_COST_M_PER_RAD * float(np.abs(limit_violation(matrix_to_axis_angle(s.rot))).sum())
 
 
+@dataclass(frozen=True)
+class _Arms:
+    """What the initialisation's arm-inside cost needs: the model (its torso surface) and the
+    arm points tested per side (``poses.arm_points`` on the mean rest body)."""
+
+    model: object
+    points: dict
+
+
+def _arms(model, params: FitParams) -> _Arms | None:
+    if params.arm_inside_cost <= 0:
+        return None
+    rest = model.vertices(np.zeros(model.n_components))
+    return _Arms(model, {side: POSES.arm_points(model, rest, side) for side in POSES.ARM_BONES})
+
+
+def _init_cost(rig: _Rig, scan: _Scan, s: _State, sub: _Sub, params: FitParams, arms: _Arms | None,
+               bound: float = np.inf) -> float:
+    """The initialisation's cost of a state (metres): the symmetric distance (``_chamfer``),
+    the joint limits' cost and, only where it can decide (that sum below ``bound``), the
+    arms' share inside the torso or thighs times ``FitParams.arm_inside_cost`` (see there)."""
+    cost = _chamfer(rig, scan, s, sub, params) + _limit_cost(s, params)
+    if arms is None or cost >= bound:
+        return cost
+    posed = _pose_model(rig, s, _subset(rig, np.arange(len(rig.mean)))).v
+    share = sum(POSES.arm_inside_share(arms.model, posed, pts, side) for side, pts in arms.points.items())
+    return cost + params.arm_inside_cost * share
+
+
 def _limb_search(rig: _Rig, scan: _Scan, s: _State, sub: _Sub, rest_normals: np.ndarray, clothed: bool,
-                 params: FitParams) -> _State:
+                 params: FitParams, arms: _Arms | None = None) -> _State:
     """For each bone in SEARCH_BONES: try its local rotation turned by SEARCH_ANGLE_DEG about
     each axis (both ways), let the bone's subtree settle for a few ICP iterations, keep the
-    candidate with the lowest symmetric distance to the scan."""
-    best_cost = _chamfer(rig, scan, s, sub, params) + _limit_cost(s, params)
+    candidate of the lowest cost (``_init_cost``)."""
+    best_cost = _init_cost(rig, scan, s, sub, params, arms)
     for b in SEARCH_BONES:
         bones = np.nonzero(rig.subtree[b])[0]
         for axis in np.vstack([np.eye(3), -np.eye(3)]):
             cand = s.copy()
             cand.rot[b] = axis_angle_to_matrix(axis * np.radians(SEARCH_ANGLE_DEG)) @ cand.rot[b]
             cand, _ = _coarse(rig, scan, cand, sub, rest_normals, [(bones, 0)] * 3, clothed, params)
-            cost = _chamfer(rig, scan, cand, sub, params) + _limit_cost(cand, params)
+            cost = _init_cost(rig, scan, cand, sub, params, arms, bound=best_cost - 1e-4)
             if cost < best_cost - 1e-4:
                 best_cost, s = cost, cand
     return s
@@ -937,13 +1009,14 @@ def _aim_limbs(rig: _Rig, s: _State, targets: dict, eff: _Sub) -> _State:
 
 
 def _landmark_hypotheses(rig: _Rig, scan: _Scan, s0: _State, s_icp: _State, sub: _Sub,
-                         rest_normals: np.ndarray, schedule: list, clothed: bool, params: FitParams) -> _State:
+                         rest_normals: np.ndarray, schedule: list, clothed: bool, params: FitParams,
+                         arms: _Arms | None = None) -> _State:
     """Issue 12: the scan's extremities (``landmarks.find_extremities``) assigned to the
     template's effectors at the root-fitted state ``s0``; for the assignment and its left/right
     swaps the limbs are aimed at the tips and the coarse schedule run. The state of least
-    symmetric distance plus limit cost wins; ``s_icp`` (ICP alone) is one of the candidates,
-    so a scan without usable landmarks (holes, a skirt, a hand on the hip) keeps it."""
-    best_cost = _chamfer(rig, scan, s_icp, sub, params) + _limit_cost(s_icp, params)
+    cost (``_init_cost``) wins; ``s_icp`` (ICP alone) is one of the candidates, so a scan
+    without usable landmarks (holes, a skirt, a hand on the hip) keeps it."""
+    best_cost = _init_cost(rig, scan, s_icp, sub, params, arms)
     best = s_icp
     pts = scan.points[scan.sub]
     ext = LM.find_extremities(pts)
@@ -965,7 +1038,7 @@ def _landmark_hypotheses(rig: _Rig, scan: _Scan, s0: _State, s_icp: _State, sub:
         pull = (_subset(rig, eff.idx[keep]), np.array([h[label] for label in np.array(LM.LABELS)[keep]]),
                 LANDMARK_WEIGHT * len(sub.idx), int(LANDMARK_PULL_SHARE * len(schedule)))
         cand, _ = _coarse(rig, scan, cand, sub, rest_normals, schedule, clothed, params, landmarks=pull)
-        cost = _chamfer(rig, scan, cand, sub, params) + _limit_cost(cand, params)
+        cost = _init_cost(rig, scan, cand, sub, params, arms, bound=best_cost - LANDMARK_MARGIN_M)
         if cost < best_cost - LANDMARK_MARGIN_M:
             best_cost, best = cost, cand
     return best
@@ -975,7 +1048,7 @@ LANDMARK_MARGIN_M = 1e-4  # a hypothesis must beat ICP alone by this much (symme
 
 
 def _initialise(rig: _Rig, points_m: np.ndarray, normals: np.ndarray, clothed: bool,
-                params: FitParams, rng: np.random.Generator):
+                params: FitParams, rng: np.random.Generator, arms: _Arms | None = None):
     """Up axis, facing and a coarse pose and shape (see module docstring). Returns
     (up label, R0 (3, 3), t0 (3,), scan in the model frame, state)."""
     n = len(rig.mean)
@@ -1013,13 +1086,13 @@ def _initialise(rig: _Rig, points_m: np.ndarray, normals: np.ndarray, clothed: b
         for c_cost, up_c, R_c, t_c, scan_c, s_c, s0_c in coarse[:max(1, params.landmark_candidates)]:
             if c_cost > params.landmark_candidate_ratio * coarse[0][0]:
                 break  # far behind the best: not a facing the landmarks could prefer
-            s_c = _landmark_hypotheses(rig, scan_c, s0_c, s_c, sub, rest_normals, schedule, clothed, params)
-            cost = _chamfer(rig, scan_c, s_c, sub, params) + _limit_cost(s_c, params)
+            s_c = _landmark_hypotheses(rig, scan_c, s0_c, s_c, sub, rest_normals, schedule, clothed, params, arms)
+            cost = _init_cost(rig, scan_c, s_c, sub, params, arms, bound=np.inf if best is None else best[0])
             if best is None or cost < best[0]:
                 best = (cost, up_c, R_c, t_c, scan_c, s_c)
         _, up, R, t, scan, s = best
     if params.limb_search:
-        s = _limb_search(rig, scan, s, sub, rest_normals, clothed, params)
+        s = _limb_search(rig, scan, s, sub, rest_normals, clothed, params, arms)
         s, _ = _coarse(rig, scan, s, sub, rest_normals, schedule[-4:], clothed, params)
     return up, R, t, s, [c[0] for c in screened]
 
@@ -1038,6 +1111,10 @@ def _correspondences(T: np.ndarray, rig: _Rig, tree: cKDTree, points: np.ndarray
         ok &= signed >= -params.alg1_inside_tol
     if params.scan_cleanup:  # holes, a cut head top (issue 12)
         ok &= ~SC.over_hole(T, c, nc, SC.point_spacing(tree, points), tree)
+    if params.exclusive_hops is not None:  # the scan point is another body part's (FitParams)
+        region = _subset(rig, np.arange(len(T))).region
+        owner = cKDTree(T).query(c[ok])[1]
+        ok[ok] = rig.hops[region[ok], region[owner]] <= params.exclusive_hops
     return c, nc, ok.astype(np.float64)
 
 
@@ -1102,7 +1179,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     if not clothed:  # the initialisation's distances per template vertex (see FitParams.area_weighted)
         params = replace(params, area_weighted=False)
     report(0.02, "initialising: units, up axis, facing, coarse pose")
-    up, R0, t0, s, screen_costs = _initialise(rig, pts_m, nrm, clothed, params, rng)
+    up, R0, t0, s, screen_costs = _initialise(rig, pts_m, nrm, clothed, params, rng, _arms(model, params))
     t_init = time.perf_counter() - t_start
     P = pts_m @ R0.T + t0
     N = nrm @ R0.T
@@ -1154,6 +1231,10 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         T_outer = T.copy()
         c, nc, w = _correspondences(T, rig, tree, P, N, clothed, params)
         system = EdgeSystem.precompute(rig.laplacian, w * (params.alpha_point + params.alpha_plane))
+        # a bare scan's template vertices without a scan point (over a hole) are the model itself,
+        # extrapolated by Eq. 2, not data: Eqs. 3 and 4 fit the model to the matched ones
+        support = np.repeat(w[upd] > 0 if params.alg1_matched_only and not clothed
+                            else np.ones(len(upd), bool), 3).astype(np.float64)
         backend = system.backend
         for _ in range(params.max_inner):
             inner_total += 1
@@ -1168,8 +1249,8 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             # Eq. 3: update theta with T and beta fixed (one Gauss-Newton step)
             p = _pose_model(rig, s, upd_sub)
             Jp = _pose_jacobian(rig, p, ALL_BONES).reshape(-1, 3 + 3 * 17)
-            r = (p.v - target).reshape(-1)
-            H = sw * Jp.T @ Jp
+            r = (p.v - target).reshape(-1) * support
+            H = sw * Jp.T @ (Jp * support[:, None])
             g = sw * Jp.T @ r
             Hs, gs = _smoothness(rig, s, p, ALL_BONES, params.bone_smoothness)
             Hl, gl = _joint_limit_terms(rig, s, p, ALL_BONES, params.joint_limit_weight)
@@ -1181,8 +1262,8 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             # Eq. 4: update beta with T and theta fixed (linear least squares with the prior)
             p = _pose_model(rig, s, upd_sub)
             Jb = _shape_jacobian(rig, p, all_comps).reshape(-1, len(all_comps))
-            r = (p.v - target).reshape(-1)
-            Hb = sw * Jb.T @ Jb + lam * np.diag(rig.precision) + params.posture_weight * AtA
+            r = (p.v - target).reshape(-1) * support
+            Hb = sw * Jb.T @ (Jb * support[:, None]) + lam * np.diag(rig.precision) + params.posture_weight * AtA
             gb = sw * Jb.T @ r + lam * rig.precision * s.beta + params.posture_weight * AtA @ s.beta
             s.beta = s.beta - np.linalg.solve(Hb, gb)
             if np.linalg.norm(T - T_prev, axis=1).max() <= params.inner_tol:

@@ -168,45 +168,77 @@ def arm_points(model, vertices: np.ndarray, side: str) -> np.ndarray:
     return np.flatnonzero(ok)
 
 
+def _inside_candidates(model, X: np.ndarray, probe: np.ndarray, near_m: float | None = NEAR_TORSO_M) -> np.ndarray:
+    """Indices into ``probe`` (P, 3) of the points that may be inside the torso or thighs of the
+    posed body X (>= n_body, 3), deepest first: within ``near_m`` of a torso vertex (None: any)
+    and behind the closest torso triangle (face-normal sign). An arm entering the torso has
+    points just behind its surface (the arm's own vertex spacing), so "any inside" is decided
+    among the near ones; the far ones skip the closest-point search (most of its cost)."""
+    lab = _labels(model)
+    TV, TF = X[lab["torso_vertices"]], lab["torso_faces"]
+    tree = cKDTree(TV)
+    bound = np.inf if near_m is None else near_m
+    near = np.flatnonzero(np.isfinite(tree.query(probe, distance_upper_bound=bound)[0]))
+    if not len(near):
+        return np.zeros(0, np.int64)
+    face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=lab["torso_vertex_faces"])
+    tri = TV[TF[face]]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    off = probe[near] - q
+    order = np.flatnonzero(np.einsum("ij,ij->i", off, fn) < 0)  # behind the closest triangle
+    depth = np.linalg.norm(off, axis=1)
+    return near[order[np.argsort(-depth[order])]]
+
+
+def _confirmed(model, X: np.ndarray, probe: np.ndarray, side: str) -> np.ndarray:
+    """(P,) bool: the generalised winding number of each probe point (P, 3) with respect to the
+    posed body X without that arm's faces is > 1/2 (inside the torso or thighs)."""
+    return winding_numbers(probe, X, _labels(model)["without_arm"][side]) > 0.5
+
+
 def arm_vertices_inside(model, posed: np.ndarray, points: np.ndarray, side: str, *,
                         exhaustive: bool = False) -> np.ndarray:
     """The arm points (indices into the body) of a posed body (>= n_body, 3) that are inside the
-    torso or thighs. Candidates: within ``NEAR_TORSO_M`` of a torso vertex and behind the
-    closest torso triangle (face-normal sign); each is
-    confirmed by its generalised winding number with respect to the posed body surface without
-    that arm's faces (> 1/2: inside the torso or thighs). With
+    torso or thighs. Candidates (:func:`_inside_candidates`) are confirmed by their generalised
+    winding number with respect to the posed body surface without that arm's faces. With
     ``exhaustive`` every arm point is checked by winding number (slow; the tests' reference);
     without, the search stops at the first confirmed batch (enough to decide "any")."""
-    lab = _labels(model)
     nb = model.n_body_vertices
     X = np.asarray(posed[:nb], np.float64)
     probe = X[points]
-    if exhaustive:
-        cand = np.arange(len(points))
-    else:
-        TV, TF = X[lab["torso_vertices"]], lab["torso_faces"]
-        tree = cKDTree(TV)
-        # only arm points near the torso's surface can be the first inside it: an arm entering
-        # the torso has points just behind the surface (the arm's own vertex spacing), so "any"
-        # is decided among them; the far ones skip the closest-point search (most of its cost)
-        near = np.flatnonzero(np.isfinite(tree.query(probe, distance_upper_bound=NEAR_TORSO_M)[0]))
-        if not len(near):
-            return np.zeros(0, np.int64)
-        face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=lab["torso_vertex_faces"])
-        tri = TV[TF[face]]
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        off = probe[near] - q
-        order = np.flatnonzero(np.einsum("ij,ij->i", off, fn) < 0)  # behind the closest triangle
-        depth = np.linalg.norm(off, axis=1)
-        cand = near[order[np.argsort(-depth[order])]]  # deepest first
+    cand = np.arange(len(points)) if exhaustive else _inside_candidates(model, X, probe)
     found = []
     for s in range(0, len(cand), CONFIRM_BATCH):  # stop at the first batch that confirms any
         c = cand[s:s + CONFIRM_BATCH]
-        hit = c[winding_numbers(probe[c], X, lab["without_arm"][side]) > 0.5]
+        hit = c[_confirmed(model, X, probe[c], side)]
         found.append(points[hit])
         if len(hit) and not exhaustive:
             break
     return np.concatenate(found) if found else np.zeros(0, np.int64)
+
+
+INSIDE_SHARE_STRIDE = 4  # arm_inside_share: every 4th arm point tested ...
+INSIDE_SHARE_SAMPLE = 24  # ... and this many of its candidates confirmed by winding number
+
+
+def arm_inside_share(model, posed: np.ndarray, points: np.ndarray, side: str) -> float:
+    """An estimate of the share of an arm's points (indices into the body) of a posed body
+    (>= n_body, 3) inside the torso or thighs, at a bounded cost (for scoring many poses):
+    among every ``INSIDE_SHARE_STRIDE``-th point, those behind their closest torso triangle
+    (:func:`_inside_candidates`, at any distance), times the confirmed fraction of
+    ``INSIDE_SHARE_SAMPLE`` of them taken evenly over their depths. A forearm resting on a hip
+    gives a few per cent, a hand hidden in a thigh or an arm through the chest tens."""
+    points = np.asarray(points)[::INSIDE_SHARE_STRIDE]
+    if not len(points):
+        return 0.0
+    nb = model.n_body_vertices
+    X = np.asarray(posed[:nb], np.float64)
+    probe = X[points]
+    cand = _inside_candidates(model, X, probe, near_m=None)
+    if not len(cand):
+        return 0.0
+    sample = cand[np.unique(np.linspace(0, len(cand) - 1, INSIDE_SHARE_SAMPLE).astype(np.int64))]
+    return float(len(cand) * _confirmed(model, X, probe[sample], side).mean() / len(points))
 
 
 def adapted_poses(model, vertices: np.ndarray, path: str | Path | None = None) -> dict[str, np.ndarray]:
