@@ -177,8 +177,8 @@ def _inside_candidates(model, X: np.ndarray, probe: np.ndarray, near_m: float | 
     lab = _labels(model)
     TV, TF = X[lab["torso_vertices"]], lab["torso_faces"]
     tree = cKDTree(TV)
-    bound = np.inf if near_m is None else near_m
-    near = np.flatnonzero(np.isfinite(tree.query(probe, distance_upper_bound=bound)[0]))
+    near = (np.arange(len(probe)) if near_m is None
+            else np.flatnonzero(np.isfinite(tree.query(probe, distance_upper_bound=near_m)[0])))
     if not len(near):
         return np.zeros(0, np.int64)
     face, q, _ = closest_points_on_mesh(probe[near], TV, TF, tree=tree, vert_faces=lab["torso_vertex_faces"])
