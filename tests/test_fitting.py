@@ -51,6 +51,8 @@ def test_jacobians_match_finite_differences(model, rig):
         s2.beta[k] += eps
         fd = (F._pose_model(rig, s2, sub).v - p.v) / eps
         assert np.abs(fd - Jb[:, :, c]).max() < 1e-6
+    # both in one array, the shape's columns written in place after the pose's
+    assert np.array_equal(F._pose_jacobian(rig, p, F.ALL_BONES, comps), np.concatenate([J, Jb], axis=2))
 
 
 def test_unit_detection_errors_are_fit_errors():

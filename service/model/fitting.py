@@ -512,41 +512,49 @@ def _pose_model(rig: _Rig, s: _State, sub: _Sub) -> _Posed:
     return _Posed(v=v, rest=rest, joints=joints, G=G, M=M, sub=sub)
 
 
-def _pose_jacobian(rig: _Rig, p: _Posed, bones: np.ndarray) -> np.ndarray:
+def _pose_jacobian(rig: _Rig, p: _Posed, bones: np.ndarray, comps: np.ndarray | None = None) -> np.ndarray:
     """(m, 3, 3 + 3 len(bones)): d v_i / d(translation, dw_b for b in bones), where dw_b rotates
     bone b's subtree in the world frame about its posed joint q_b, moving v_i by
-    dw_b x (S_b(i) - W_b(i) q_b) with S_b(i) = sum_{j in subtree(b)} w_ij G_j(x_i)."""
+    dw_b x (S_b(i) - W_b(i) q_b) with S_b(i) = sum_{j in subtree(b)} w_ij G_j(x_i).
+    With ``comps``: (m, 3, 3 + 3 len(bones) + len(comps)), the shape Jacobian
+    (``_shape_jacobian``) in the last columns, written in place (no concatenated copy)."""
     m = len(p.v)
     nb = len(bones)
+    npz = 3 + 3 * nb
     q = np.einsum("jab,jb->ja", p.G[:, :3, :3], p.joints) + p.G[:, :3, 3]  # posed joints (17, 3)
     per_bone = p.rest @ p.G[:, :3, :3].transpose(0, 2, 1) + p.G[:, None, :3, 3]  # (17, m, 3)
     contrib = p.sub.W.T[:, :, None] * per_bone  # w_ij G_j(x_i)
     sub = rig.subtree[bones]  # (nb, 17)
     S = np.tensordot(sub, contrib, axes=1)  # (nb, m, 3)
-    arm = S - (p.sub.W @ sub.T).T[:, :, None] * q[bones][:, None, :]  # (nb, m, 3)
-    J4 = np.zeros((m, 3, nb + 1, 3))
-    J4[:, :, 0, :] = np.eye(3)
+    arm = (S - (sub @ p.sub.W.T)[:, :, None] * q[bones][:, None, :]).transpose(1, 2, 0)  # (m, 3, nb)
+    J = np.empty((m, 3, npz + (0 if comps is None else len(comps))))
+    J[:, :, :3] = np.eye(3)
+    J4 = J[:, :, 3:npz].reshape(m, 3, nb, 3)  # a view: (vertex, coordinate, bone, rotation axis)
     # -[arm]x, the cross-product matrix of dw x arm
-    J4[:, 0, 1:, 1], J4[:, 0, 1:, 2] = arm[..., 2].T, -arm[..., 1].T
-    J4[:, 1, 1:, 0], J4[:, 1, 1:, 2] = -arm[..., 2].T, arm[..., 0].T
-    J4[:, 2, 1:, 0], J4[:, 2, 1:, 1] = arm[..., 1].T, -arm[..., 0].T
-    return J4.reshape(m, 3, 3 + 3 * nb)
+    J4[:, 0, :, 0], J4[:, 0, :, 1], J4[:, 0, :, 2] = 0.0, arm[:, 2], -arm[:, 1]
+    J4[:, 1, :, 0], J4[:, 1, :, 1], J4[:, 1, :, 2] = -arm[:, 2], 0.0, arm[:, 0]
+    J4[:, 2, :, 0], J4[:, 2, :, 1], J4[:, 2, :, 2] = arm[:, 1], -arm[:, 0], 0.0
+    if comps is not None:
+        _shape_jacobian(rig, p, comps, out=J[:, :, npz:])
+    return J
 
 
-def _shape_jacobian(rig: _Rig, p: _Posed, comps: np.ndarray) -> np.ndarray:
+def _shape_jacobian(rig: _Rig, p: _Posed, comps: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """(m, 3, len(comps)): d v_i / d beta_k with the rotations fixed. The rest vertex moves by
     U_k and every joint by its regressed direction, which moves each bone's translation
-    t_j = R_parent p_j - R_j p_j + t_parent (forward kinematics, linear in the joints)."""
+    t_j = R_parent p_j - R_j p_j + t_parent (forward kinematics, linear in the joints).
+    ``out``: an (m, 3, len(comps)) array (a view) to write it into."""
     Rg = p.G[:, :3, :3]
     k = len(comps)  # the fits' components are a prefix: a view, not a copy (76 of them: 10 ms)
     Ut = p.sub.Ut[:, :, :k] if np.array_equal(comps, np.arange(k)) else p.sub.Ut[:, :, comps]
-    part = p.M @ Ut  # (m, 3, C)
     dp = rig.jdirs[comps]  # (C, 17, 3)
     dt = np.zeros_like(dp)
     for j, par in enumerate(rig.parents):
         own = dp[:, j] - dp[:, j] @ Rg[j].T
         dt[:, j] = own if par < 0 else dp[:, j] @ Rg[par].T - dp[:, j] @ Rg[j].T + dt[:, par]
-    return part + (p.sub.W @ dt.transpose(1, 0, 2).reshape(17, -1)).reshape(-1, len(comps), 3).transpose(0, 2, 1)
+    out = np.matmul(p.M, Ut, out=out)  # (m, 3, C)
+    out += (p.sub.W @ dt.transpose(1, 0, 2).reshape(17, -1)).reshape(-1, k, 3).transpose(0, 2, 1)
+    return out
 
 
 def _apply_pose(rig: _Rig, s: _State, p: _Posed, bones: np.ndarray, delta: np.ndarray) -> None:
@@ -816,22 +824,19 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         if clothed and contact is not None and params.loose_region_depth is not None:
             w = w * loose_region_weight(r, sub.region[vi], params.loose_region_depth)
         w = w / np.maximum(1.0, np.abs(r) / params.robust_scale)  # Huber-like: far pairs count less
-        Jp = _pose_jacobian(rig, p, bones)
         comps = np.arange(n_shape)
-        Jall = np.concatenate([Jp, _shape_jacobian(rig, p, comps)], axis=2) if n_shape else Jp
+        Jall = _pose_jacobian(rig, p, bones, comps if n_shape else None)
         if offsets is not None:
             H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r, sub.region[vi], len(offsets))
             H[-len(offsets):, -len(offsets):] += offset_prior_hessian
             g[-len(offsets):] += offset_prior_gradient
         else:
             H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r)
-        npz = Jp.shape[2]
+        npz = 3 + 3 * len(bones)
         if landmarks is not None and it < landmarks[3]:
             eff, targets, w_lm, _ = landmarks
             pe = _pose_model(rig, s, eff)
-            Je = _pose_jacobian(rig, pe, bones)
-            if n_shape:
-                Je = np.concatenate([Je, _shape_jacobian(rig, pe, comps)], axis=2)
+            Je = _pose_jacobian(rig, pe, bones, comps if n_shape else None)
             Je = Je.reshape(-1, Je.shape[2])
             ne = Je.shape[1]
             H[:ne, :ne] += w_lm * Je.T @ Je

@@ -143,13 +143,21 @@ def point_to_plane_normal_equations(jacobian: np.ndarray, vi: np.ndarray, nn: np
     r_k + o_{region_k} (the target moved in by o along its normal: the clothes' stand-off of
     ``fitting``), a one-hot column per region in the rows; H (P + R, P + R), g (P + R,), the
     region unknowns last."""
-    rows = sum(nn[:, a, None] * np.ascontiguousarray(jacobian[:, a, :])[vi] for a in range(3))
-    if region is not None:
-        E = np.zeros((len(r), n_regions))
-        E[np.arange(len(r)), region] = 1.0
-        rows = np.concatenate([rows, E], axis=1)
+    rows = np.matmul(nn[:, None, :], jacobian[vi])[:, 0]  # (k, P), one batched product
     wr = rows * w[:, None]
-    return rows.T @ wr, wr.T @ r
+    H, g = rows.T @ wr, wr.T @ r
+    if region is None:
+        return H, g
+    # the one-hot columns summed per region, never formed: H_po = sum_k w_k rows_k e_region_k^T,
+    # H_oo = diag(sum of w per region), g_o = sum of w_k r_k per region
+    n_par = len(g)
+    per_region = sp.csr_matrix((np.ones(len(r)), (region, np.arange(len(r)))), shape=(n_regions, len(r)))
+    Hf = np.zeros((n_par + n_regions, n_par + n_regions))
+    Hf[:n_par, :n_par] = H
+    Hf[n_par:, :n_par] = per_region @ wr
+    Hf[:n_par, n_par:] = Hf[n_par:, :n_par].T
+    Hf[n_par:, n_par:] = np.diag(np.bincount(region, weights=w, minlength=n_regions))
+    return Hf, np.r_[g, np.bincount(region, weights=w * r, minlength=n_regions)]
 
 
 def damped_step(H: np.ndarray, g: np.ndarray, *, damping: float = 1e-6, levenberg: float = 0.0) -> np.ndarray:
