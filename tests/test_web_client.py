@@ -67,6 +67,11 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
     assert out["avatar"]["values"] == {"gender": "male", "height_cm": 180, "weight_kg": 80}
     assert abs(out["avatar"]["height"] - 1.80) < 0.03
     assert out["canvas"]["max"] - out["canvas"]["min"] > 40 and out["canvas"]["colours"] > 10
+    # the hair selector: "Default style" (the server's default for the gender) shows hair, "No
+    # hair" shows none (it once sent nothing, i.e. the default style), a chosen style shows hair
+    assert out["hair"]["labels"][:2] == ["Default style", "No hair"], out["hair"]
+    assert out["hair"]["defaultShown"] and not out["hair"]["none"], out["hair"]
+    assert out["hair"]["chosen"] and out["hair"]["back"], out["hair"]
     assert out["heightInches"] == "70.9"  # 180 cm in inches
     # a slider: the form follows, the avatar grows
     assert out["formAfterSlider"] == "195"

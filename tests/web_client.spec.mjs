@@ -95,6 +95,20 @@ try {
   out.canvas = await canvasVariation(page);
   await shot(page, '01-avatar');
 
+  // the hair selector: the default style, no hair, a chosen style (a node named "hair" or not)
+  const hairNow = async (value) => {
+    const k = await loadsNow(page);
+    await page.selectOption('#hair', value);
+    await waitLoad(page, k);
+    return (await page.evaluate(() => window.__tryon.meshNames())).includes('hair');
+  };
+  out.hair = { labels: await page.evaluate(() => [...document.querySelectorAll('#hair option')].map((o) => o.textContent)),
+    defaultShown: (await page.evaluate(() => window.__tryon.meshNames())).includes('hair') };
+  out.hair.none = await hairNow('none');
+  await shot(page, '01-avatar-no-hair', '#viewer');
+  out.hair.chosen = await hairNow(await page.evaluate(() => window.__tryon.hairOptions[0]));
+  out.hair.back = await hairNow('');
+
   // the unit toggle converts the displayed values
   await page.check('input[name=units][value=imperial]');
   out.heightInches = await page.inputValue('#in-height_cm');

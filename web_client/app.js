@@ -26,7 +26,7 @@ const state = {
   units: 'metric',
   garments: [],            // the catalogue
   worn: [],                // chosen garment ids
-  hair: '',                // chosen hair ('' = none), when the server lists looks
+  hair: '',                // chosen hair ('' = the server's default for the gender, 'none' = none)
   customerId: localStorage.getItem(CUSTOMER_KEY),
   customerToken: localStorage.getItem(TOKEN_KEY),
   customerStale: false,    // measurements changed since the customer was saved
@@ -448,7 +448,9 @@ async function buildHair() {
   if (!options.length) return;
   const sel = $('#hair');
   sel.innerHTML = '';
-  sel.add(new Option('No hair', ''));
+  // no hair= on the URL is the server's default style for the body's gender; 'none' is no hair
+  sel.add(new Option('Default style', ''));
+  sel.add(new Option('No hair', 'none'));
   for (const o of options) sel.add(new Option(o.name.replace(/[_-]+/g, ' '), o.id));
   sel.value = state.hair;
   sel.addEventListener('change', () => { state.hair = sel.value; refresh(); });
