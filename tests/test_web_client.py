@@ -117,6 +117,9 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
     assert out["phoneScrollWidth"] <= 390
     assert out["phoneViewer"]["width"] > 350 and out["phoneViewer"]["height"] > 400
     assert _inside(out["phoneHead"], 2)
+    # ... and the pose buttons (two rows there) below the avatar, not over its legs
+    assert out["phoneCanvas"]["y"] + out["phoneScene"]["y1"] <= out["phonePoses"]["y"] + 2, \
+        (out["phoneCanvas"], out["phoneScene"], out["phonePoses"])
 
     # 1280x800: the viewer and the catalogue side by side, both in the window, no page scroll
     lay = out["layout"]
@@ -137,6 +140,8 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
             assert _inside(view["head"], 5), (where, view["head"])
             sb = view["scene"]
             assert sb["y0"] >= 0 and sb["y1"] <= sb["height"], (where, sb)
+            if view["view"] == "front":  # as framed (the side and back views are orbited, not reframed)
+                assert sb["y1"] <= out["posesTop"] + 2, (where, sb, out["posesTop"])  # no button over the feet
             assert len(view["names"]) >= 3, (where, view["names"])
             for name, px in (view.get("pixels") or {}).items():
                 assert px is not None, (where, name, view["names"])

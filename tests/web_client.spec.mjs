@@ -177,6 +177,8 @@ try {
     { name: 'm208-110', gender: 'male', height: 208, weight: 110, pose: 'arms-down' },
   ];
   out.bodies = [];
+  // where the pose buttons start, in the canvas' pixels (they sit over its bottom edge)
+  out.posesTop = (await box(page, '#poses')).y - (await box(page, '#scene')).y;
   const views = [['front', 0], ['side', Math.PI / 2], ['back', Math.PI / 2]];
   for (const b of bodies) {
     const rec = { name: b.name, views: [] };
@@ -259,6 +261,9 @@ try {
   out.phoneScrollWidth = await page.evaluate(() => document.documentElement.scrollWidth);
   out.phoneHead = await page.evaluate(() => window.__tryon.headTop());
   out.phoneViewer = await box(page, '#viewer');
+  out.phoneScene = await page.evaluate(() => window.__tryon.sceneScreenBox());
+  out.phoneCanvas = await box(page, '#scene');
+  out.phonePoses = await box(page, '#poses');
   await shot(page, '05-phone');
   await page.close();
 
