@@ -705,6 +705,23 @@ def test_a_hand_in_a_hole_is_neither_hidden_in_the_thigh_nor_crossed_over(model)
     assert BF.evaluate(model, scan, before, surface)["worst_joint"][1] > 150.0
 
 
+@pytest.mark.slow
+def test_a_scan_with_holes_does_not_drift_in_alg1(model):
+    """Issue 12, a body scanner's mesh with holes (bare): held-out avatar 41 at 45 degrees. Alg.
+    1's later outer iterations moved the fit away from the truth, each re-matching near the
+    holes (10 outer iterations: 2.19 mm point to surface); with at most 3 (``FitParams.max_outer``)
+    1.20 mm."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 9, "holes")
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
+    assert BF.evaluate(model, scan, fit, surface)["p2s_mm"] < 1.6 and fit.outer_iterations <= 3
+    before = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                        params=BF.BEFORE_PARAMS("alg1_outer"))
+    assert BF.evaluate(model, scan, before, surface)["p2s_mm"] > 1.8 and before.outer_iterations > 3
+
+
 def test_bone_hops_against_a_breadth_first_search(model):
     """``fitting.bone_hops`` (Floyd-Warshall) against a breadth-first search per bone on the
     body model's skeleton."""
