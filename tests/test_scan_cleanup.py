@@ -123,6 +123,38 @@ def test_correspondences_over_a_hole_are_rejected():
     assert SC.over_hole(T2, S2[j2], n2, spacing).all() and not SC.over_hole(T2, S2[j2], n2, spacing, tree2).any()
 
 
+def test_rim_points_on_a_hole_a_cut_and_a_closed_surface():
+    """``rim_points`` (the angle criterion): on a noisy 1 cm grid with a 10 cm hole, the points
+    within a spacing of the hole or of the grid's border, and no point inside the surface; on a
+    sphere, none; on the same sphere with a cap cut off, the ring at the cut only."""
+    rng = np.random.default_rng(3)
+    g = np.arange(-0.3, 0.3001, 0.01)
+    x, z = np.meshgrid(g, g)
+    S = np.column_stack([x.ravel(), np.zeros(x.size), z.ravel()])
+    S = S[np.linalg.norm(S[:, [0, 2]], axis=1) > 0.05]
+    S = S + rng.normal(0, 0.001, S.shape)
+    up = np.tile([0.0, 1.0, 0.0], (len(S), 1))
+    rim = SC.rim_points(S, up)
+    r = np.linalg.norm(S[:, [0, 2]], axis=1)
+    edge = np.abs(S[:, [0, 2]]).max(axis=1)  # the grid's border at 0.3
+    assert rim[(r < 0.058) | (edge > 0.295)].mean() > 0.9  # the first ring around the hole, the border
+    assert not rim[(r > 0.075) & (edge < 0.28)].any()  # inside the surface
+    # a sphere (10 cm, ~1 cm spacing), then cut 3 cm below its top
+    n = 1200
+    i = np.arange(n) + 0.5
+    phi, theta = np.arccos(1 - 2 * i / n), np.pi * (1 + 5 ** 0.5) * i
+    U = np.column_stack([np.cos(theta) * np.sin(phi), np.cos(phi), np.sin(theta) * np.sin(phi)])
+    P = 0.1 * U + rng.normal(0, 0.001, U.shape)
+    assert not SC.rim_points(P, U).any()
+    keep = P[:, 1] < 0.07
+    rim = SC.rim_points(P[keep], U[keep])
+    y = P[keep, 1]
+    assert rim[y > 0.065].mean() > 0.9 and not rim[y < 0.05].any()
+    d = SC.rim_distance(P[keep], rim)
+    assert (d[rim] == 0).all() and d[y < 0.0].min() > 0.06
+    assert np.isinf(SC.rim_distance(P, np.zeros(len(P), bool))).all()
+
+
 @pytest.mark.slow
 def test_fit_scan_with_floor_and_cut_head(model):
     """An unclothed re-meshed scan in mm with Z up, the top 4 cm of the head cut off and a

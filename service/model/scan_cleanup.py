@@ -26,7 +26,10 @@ Holes and a cut head top are kept as they are: they are handled in the fit's dat
 of the template vertex (on the rim of a hole, or of the cut) rather than below or above it, so
 the body is not pulled into holes and, where the scan has nothing, the body model (its shape
 prior and the rest of the body) carries the surface -- the top of the head included, so the
-stature is not lost with it.
+stature is not lost with it. A template vertex that juts out over a rim (a nose over a hole
+that took the face) has its nearest point on the rim straight below it, which that test keeps;
+:func:`rim_points` finds the rims on the scan itself (points whose neighbours all lie to one
+side), and the fit drops every pair whose scan point is on one.
 
 Shapes: points (P, 3) metres; normals (P, 3); faces (F, 3) int64.
 """
@@ -279,3 +282,48 @@ def over_hole(T: np.ndarray, c: np.ndarray, nc: np.ndarray, spacing: float,
         d, _ = tree.query(c, k=LOCAL_SPACING_K)
         s = np.maximum(s, d[:, -1])
     return np.linalg.norm(tang, axis=1) > np.maximum(HOLE_MIN_M, HOLE_SPACINGS * s)
+
+
+# -- holes' rims ---------------------------------------------------------------------------------
+RIM_NEIGHBOURS = 24  # neighbours whose directions around a point tell a rim from the inside
+RIM_GAP_DEG = 120.0  # ... a rim point has none over this wide an angle (a half-plane: 180)
+RIM_BLOCK = 20_000  # points per block of rim_points (~12 MB of neighbour offsets)
+
+
+def rim_points(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None = None,
+               k: int = RIM_NEIGHBOURS, gap_deg: float = RIM_GAP_DEG) -> np.ndarray:
+    """(P,) bool: points on a boundary of the scanned surface -- a hole's rim, a cut head top,
+    the edge of a partial scan -- by the angle criterion (Bendels, Schnabel and Klein 2006,
+    "Detecting holes in point set surfaces"): the k nearest neighbours' offsets projected onto
+    the point's tangent plane (normal (P, 3)) leave an angular gap wider than ``gap_deg``. Inside
+    a surface the neighbours surround the point (the widest gap ~30-60 degrees with noise); on a
+    rim they lie on one side (~180). Points (P, 3) metres; works on point clouds and meshes alike."""
+    P = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    if len(P) <= k:
+        return np.zeros(len(P), bool)
+    tree = tree if tree is not None else cKDTree(P)
+    out = np.zeros(len(P), bool)
+    for a0 in range(0, len(P), RIM_BLOCK):  # (block, k, 3) offsets at a time: bounded memory
+        p, nb = P[a0:a0 + RIM_BLOCK], n[a0:a0 + RIM_BLOCK]
+        _, nn = tree.query(p, k=k + 1)
+        d = P[nn[:, 1:]] - p[:, None, :]  # (B, k, 3)
+        # an orthonormal tangent basis (u, v) per point
+        a = np.where(np.abs(nb[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+        u = np.cross(nb, a)
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+        v = np.cross(nb, u)
+        ang = np.sort(np.arctan2(np.einsum("pki,pi->pk", d, v), np.einsum("pki,pi->pk", d, u)), axis=1)
+        gaps = np.diff(np.concatenate([ang, ang[:, :1] + 2 * np.pi], axis=1), axis=1)
+        out[a0:a0 + RIM_BLOCK] = gaps.max(axis=1) > np.radians(gap_deg)
+    return out
+
+
+def rim_distance(points: np.ndarray, rim: np.ndarray) -> np.ndarray:
+    """(P,) metres from each of ``points`` (P, 3) to the nearest rim point (``rim`` (P,) bool
+    from :func:`rim_points`); inf where the scan has no rim."""
+    P = np.asarray(points, np.float64)
+    if not rim.any():
+        return np.full(len(P), np.inf)
+    d, _ = cKDTree(P[rim]).query(P)
+    return d

@@ -142,7 +142,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     2026-11-25's second stop: no arm-inside cost in the initialisation, no exclusive pairs, Alg.
     1's pose and shape fitted to every template vertex; the upper arm's 75-degree adduction limit,
     module data, stays) or ``alg1_outer`` (Alg. 1 with up to 10 outer iterations, not 3:
-    ``FitParams(max_outer=10)``)."""
+    ``FitParams(max_outer=10)``) or ``rim_reject`` (no pairs dropped at the holes' rims found on
+    the scan, ``FitParams(rim_reject=False)``)."""
     from service.model.fitting import FitParams
 
     kinds = {
@@ -156,6 +157,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "posture_anchor": {"clothed_posture_anchor": 1.0},
         "hidden_limbs": {"arm_inside_cost": 0.0, "exclusive_hops": None, "alg1_matched_only": False},
         "alg1_outer": {"max_outer": 10},
+        "rim_reject": {"rim_reject": False},
         "loose_regions": {"loose_region_depth": None, "cloth_offset_mean": None},
         "landmark_init": {"landmark_init": False},
         "landmark_candidates": {"landmark_candidates": 1},
