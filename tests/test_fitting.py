@@ -750,6 +750,48 @@ def test_a_face_in_a_hole_does_not_nod_the_head(model):
     assert before["p2s_mm"] > 4.0 and before["worst_joint"][0] == "head", before
 
 
+def test_the_scalp_region_holds_the_scalp_not_the_face(model):
+    """``fitting.scalp_region`` on the template: the head above the hairline and the whole neck
+    in it, the nose tip (the head's most forward vertex) and everything off the head and neck out
+    of it, and MakeHuman's bob (the catalogue's hair, fitted to the mean body) within 3 cm of most
+    of it."""
+    from scipy.spatial import cKDTree
+
+    from service.model.catalogue import load_catalogue
+
+    rig = F._rig(model)
+    bone = np.argmax(rig.W, axis=1)
+    head, neck = bone == BONES.index("head"), bone == BONES.index("neck")
+    scalp = rig.scalp
+    assert not (scalp & ~(head | neck)).any() and scalp[neck].all()
+    y = rig.mean[:, 1]
+    assert scalp[head & (y > y[head].max() - F.SCALP_HAIRLINE_M)].all()
+    hv = np.flatnonzero(head)
+    assert not scalp[hv[np.argmax(rig.mean[hv, 2])]]  # the nose tip
+    assert scalp[head].mean() < 0.7  # the face is out
+    bob = load_catalogue().items["hair-bob02"].fit_to(model.mean.astype(np.float64))
+    d, _ = cKDTree(bob).query(rig.mean[scalp])
+    assert (d < 0.03).mean() > 0.75
+
+
+@pytest.mark.slow
+def test_hair_on_a_bare_scan_does_not_make_the_body_taller(model):
+    """Issue 12, a body scanner's customer in minimal clothing, with hair: held-out avatar 0
+    (short hair) at 10 degrees, fitted bare. Paired as skin, the hair made the head grow: +0.91 cm
+    of stature, 0.92 mm; with the head and neck weighted as clothing (``FitParams.hair_region``)
+    +0.33 cm, 0.54 mm."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 0, "bare_hair", deg=10.0)
+    assert scan.garments == ["hair-short02"]
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    fit = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False), surface)
+    assert abs(fit["stature_err_cm"]) < 0.5 and fit["p2s_mm"] < 0.8, fit
+    before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                                                 params=BF.BEFORE_PARAMS("hair_region")), surface)
+    assert before["stature_err_cm"] > 0.7, before
+
+
 def test_bone_hops_against_a_breadth_first_search(model):
     """``fitting.bone_hops`` (Floyd-Warshall) against a breadth-first search per bone on the
     body model's skeleton."""

@@ -51,7 +51,9 @@ CUSTOMER_BODY = {
                                    "description": "Optional; estimated from the shape if omitted"},
                         "clothed": {"type": "boolean", "default": True,
                                     "description": "Scans: the person wears clothes (the body is fitted "
-                                                   "inside them); false for a scan of the bare body"},
+                                                   "inside them); false for a scan of the bare body "
+                                                   "(minimal clothing; hair is expected and the head "
+                                                   "is fitted inside it)"},
                     },
                 }
             },

@@ -34,7 +34,9 @@
    wider than a person, so the unit is told after the floor is found), ``scanner`` (a clothed mesh with holes, a cut head top and a scanner's noisy,
    tilted floor) and ``scanner_minimal`` (the same three on a bare mesh: a body scanner's output
    of a person in minimal clothing, fitted as unclothed); their "before" is the same scan fitted without the scan cleaning
-   (``FitParams(scan_cleanup=False)``), same run.
+   (``FitParams(scan_cleanup=False)``), same run. ``bare_hair``: a bare mesh with hair
+   (MakeHuman's bob for women, short hair for men) fitted as unclothed; its "before" pairs the
+   scalp as skin (``FitParams(hair_region=False)``).
 
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
    two people apart and touching) with the check off (before) and on; CesiumMan; single-view
@@ -85,6 +87,11 @@ class Condition:
     garments: dict | None = None
     degrade: tuple = ()
     before: str | None = "refine_damping"
+    fit_clothed: bool | None = None  # the fit's ``clothed`` flag when not ``clothed`` (hair on a bare body)
+
+    @property
+    def fitted_clothed(self) -> bool:
+        return self.clothed if self.fit_clothed is None else self.fit_clothed
 
 
 CONDITIONS = (
@@ -104,6 +111,10 @@ CONDITIONS = (
     # what a body scanner gives: the person in minimal clothing (bare here), the mesh with holes,
     # a cut head top and the scanner's floor; fitted as unclothed
     Condition("scanner_minimal", False, False, degrade=("holes", "cut_head", "scanner_floor"), before="scan_cleanup"),
+    # a bare person with hair (MakeHuman's bob or short hair), fitted as bare: a body scanner's
+    # customer in minimal clothing
+    Condition("bare_hair", True, False, {"female": ["hair-bob02"], "male": ["hair-short02"]},
+              before="hair_region", fit_clothed=False),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
@@ -143,7 +154,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     1's pose and shape fitted to every template vertex; the upper arm's 75-degree adduction limit,
     module data, stays) or ``alg1_outer`` (Alg. 1 with up to 10 outer iterations, not 3:
     ``FitParams(max_outer=10)``) or ``rim_reject`` (no pairs dropped at the holes' rims found on
-    the scan, ``FitParams(rim_reject=False)``)."""
+    the scan, ``FitParams(rim_reject=False)``) or ``hair_region`` (a bare scan's scalp paired as
+    skin, ``FitParams(hair_region=False)``)."""
     from service.model.fitting import FitParams
 
     kinds = {
@@ -158,6 +170,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "hidden_limbs": {"arm_inside_cost": 0.0, "exclusive_hops": None, "alg1_matched_only": False},
         "alg1_outer": {"max_outer": 10},
         "rim_reject": {"rim_reject": False},
+        "hair_region": {"hair_region": False},
         "loose_regions": {"loose_region_depth": None, "cloth_offset_mean": None},
         "landmark_init": {"landmark_init": False},
         "landmark_candidates": {"landmark_candidates": 1},
@@ -332,7 +345,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             base[name].append(baseline(model, scan, surface))
             t0 = time.perf_counter()
             try:
-                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed, params=params)
+                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed, params=params)
                 seconds = time.perf_counter() - t0
                 row = evaluate(model, scan, fit, surface)
             except Exception as exc:  # noqa: BLE001 - a benchmark counts failures, never crashes
@@ -342,7 +355,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 if cond.before is None:
                     raise RuntimeError("not measured in this condition")
                 t1 = time.perf_counter()
-                prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=clothed,
+                prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed,
                                                       params=with_overrides(BEFORE_PARAMS(cond.before), overrides)),
                                 surface)
                 row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"],
@@ -365,11 +378,12 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
         name, clothed, cloud = cond.name, cond.clothed, cond.cloud
         r = rows[name]
         E = {a: [abs(x["measurements"][a]) for x in r] for a in M.ATTRIBUTES[1:]}
-        goal_mm = GOALS["clothed_body_mm" if clothed else "unclothed_body_mm"]
+        goal_mm = GOALS["clothed_body_mm" if cond.fitted_clothed else "unclothed_body_mm"]
         p2s = _stats([x["p2s_mm"] for x in r])
         t = _stats([x["seconds"] for x in r])
         out["conditions"][name] = {
-            "clothed": clothed, "point_cloud": cloud, "garments": cond.garments, "degrade": list(cond.degrade),
+            "clothed": clothed, "fitted_clothed": cond.fitted_clothed, "point_cloud": cloud, "garments": cond.garments,
+            "degrade": list(cond.degrade),
             "fits": len(r), "failures": len(failures[name]),
             "failure_examples": failures[name][:3],
             "body_p2s_mm": p2s, "body_v2v_mm": _stats([x["v2v_mm"] for x in r]),
