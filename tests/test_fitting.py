@@ -743,8 +743,12 @@ def test_a_face_in_a_hole_does_not_nod_the_head(model):
 
     _, scan = _bench_scan(model, 7, "holes", deg=10.0)
     surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
-    fit = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False), surface)
+    result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
+    fit = BF.evaluate(model, scan, result, surface)
     assert fit["p2s_mm"] < 1.5 and fit["joints_mm"] < 4.0, fit
+    # the face unseen, the head and neck are paired as skin (FitParams.hair_region would leave
+    # only down-weighted pairs on the head: 4.1 mm, the head nodded, before ``_face_seen``)
+    assert result.stats["hair_region"] is False
     before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
                                                  params=BF.BEFORE_PARAMS("rim_reject")), surface)
     assert before["p2s_mm"] > 4.0 and before["worst_joint"][0] == "head", before
@@ -785,11 +789,62 @@ def test_hair_on_a_bare_scan_does_not_make_the_body_taller(model):
     _, scan = _bench_scan(model, 0, "bare_hair", deg=10.0)
     assert scan.garments == ["hair-short02"]
     surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
-    fit = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False), surface)
+    result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
+    assert result.stats["hair_region"] is True  # the face seen
+    fit = BF.evaluate(model, scan, result, surface)
     assert abs(fit["stature_err_cm"]) < 0.5 and fit["p2s_mm"] < 0.8, fit
     before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
                                                  params=BF.BEFORE_PARAMS("hair_region")), surface)
     assert before["stature_err_cm"] > 0.7, before
+
+
+def test_known_terms_against_finite_differences(model):
+    """``fitting.known_terms``: the residuals (in sigmas) are the measurements' misses, the
+    gradient g is J^T r and H = J^T J, with J the finite differences of the body model's own
+    measurements of float64 vertices (the slow, obvious reference)."""
+    from service.model import measurements as M
+
+    rng = np.random.default_rng(5)
+    beta = rng.normal(size=model.n_components) * np.sqrt(model.variances) * 0.5
+    mean = model.mean.astype(np.float64)
+    comps = model.components.astype(np.float64)
+    measure = lambda b: model.measure(mean + np.tensordot(b, comps, axes=1), "male")  # noqa: E731
+    true = measure(beta)
+    known = {"height_cm": true["height_cm"] + 1.0, "weight_kg": true["weight_kg"] - 2.0, "waist_cm": true["waist_cm"]}
+    names = [n for n in M.ATTRIBUTES if n in known]
+    sigma = np.array([F.KNOWN_SIGMA.get(n, F.KNOWN_SIGMA_CM) for n in names])
+    H, g, r = F.known_terms(model, known, "male")(beta)
+    np.testing.assert_allclose(r, [(true[n] - known[n]) / s for n, s in zip(names, sigma)], atol=0.02)
+    J = np.zeros((len(names), len(beta)))
+    for k in range(len(beta)):
+        h = 0.1 * np.sqrt(model.variances[k])
+        up, down = measure(beta + h * np.eye(len(beta))[k]), measure(beta - h * np.eye(len(beta))[k])
+        J[:, k] = [(up[n] - down[n]) / (2 * h) for n in names] / sigma
+    np.testing.assert_allclose(g, J.T @ r, rtol=0.02, atol=0.01 * np.abs(J.T @ r).max())
+    np.testing.assert_allclose(H, J.T @ J, rtol=0.02, atol=0.01 * np.abs(J.T @ J).max())
+    with pytest.raises(ValueError, match="not a body measurement"):
+        F.known_terms(model, {"shoe_size": 42.0}, "male")
+
+
+@pytest.mark.slow
+def test_measurements_given_with_a_loose_suit_scan_are_kept(model):
+    """Issue 12: a man in a loose business suit (held-out avatar 2, 20 degrees) comes back ~11 kg
+    heavy, the suit's stand-off taken for girth. With his height, weight, chest, waist and hips
+    given (``fit_body(known=...)``), the rest body keeps them and the body error goes down."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 4, "loose_clothes", deg=20.0)
+    assert "business-suit" in scan.garments
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    plain = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces), surface)
+    names = ("height_cm", "weight_kg", "chest_cm", "waist_cm", "hip_cm")
+    known = {n: scan.measurements[n] for n in names}
+    given = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, known=known,
+                                                gender=scan.gender), surface)
+    assert plain["measurements"]["weight_kg"] > 5.0, plain
+    for n in names:
+        assert abs(given["measurements"][n]) < (1.0 if n == "weight_kg" else 0.5), (n, given)
+    assert given["p2s_mm"] < plain["p2s_mm"], (given, plain)
 
 
 def test_bone_hops_against_a_breadth_first_search(model):

@@ -174,6 +174,10 @@ def test_bad_scans_rejected_without_a_job(server: Server, scans: dict) -> None:
     filename, data, _ = scans["cloud"]
     assert_422(_post_scan(server, filename, data, clothed="maybe"), ["body", "clothed"])
     assert_422(_post_scan(server, filename, data, gender="robot"), ["body", "gender"])
+    # the person's own measurements, given with a scan: numbers in the accepted ranges
+    assert_422(_post_scan(server, filename, data, weight_kg="heavy"), ["body", "weight_kg"], ("number",))
+    assert_422(_post_scan(server, filename, data, height_cm="nan"), ["body", "height_cm"], ("finite",))
+    assert_422(_post_scan(server, filename, data, height_cm="20"), ["body", "height_cm"], ("range",))
     r = _post_scan(server, "big.xyz", b"0 0 0\n" * (MAX_UPLOAD // 6 + 10))
     assert r.status_code == 413, r.text
     assert _queue_keys(server) == before  # no job, no scan, no customer
@@ -246,6 +250,32 @@ def test_scan_customer_end_to_end(server: Server, scans: dict, model: BodyModel,
     assert server.client.get(f"/v1/customers/{cid}").status_code == 404
     keys = _queue_keys(server)
     assert not keys["scans"] and not [k for k in keys["jobs"] if cid.encode() in k]
+
+
+@pytest.mark.parametrize("server", ["embedded"], indirect=True)
+def test_measurements_given_with_a_scan_are_kept(server: Server, scans: dict, model: BodyModel,
+                                                   validate_glb: Callable[[bytes], dict[str, Any]]) -> None:
+    """A scan uploaded with the person's height and weight (here 2 cm and 4 kg off the scanned
+    body, so the data alone cannot give them): the fitted customer measures what was given and
+    shows it as ``entered``; the body still lies on the scan."""
+    filename, data, scan = scans["mesh"]
+    given = {"height_cm": round(scan.measurements["height_cm"] + 2.0, 1),
+             "weight_kg": round(scan.measurements["weight_kg"] + 4.0, 1)}
+    r = _post_scan(server, filename, data, gender=scan.gender, clothed="false", **{k: str(v) for k, v in given.items()})
+    assert r.status_code == 202, r.text
+    c = r.json()
+    assert c["entered"] == given, c
+    final = _wait_job(server, c["job"]["url"])[-1]
+    assert final["status"] == "done", final
+    c = _check_ready_customer(server, c["id"], scan, scan.unit, model, validate_glb)
+    assert c["entered"] == given
+    assert abs(c["measurements"]["height_cm"] - given["height_cm"]) < 0.5, c["measurements"]
+    assert abs(c["measurements"]["weight_kg"] - given["weight_kg"]) < 1.0, c["measurements"]
+    assert c["residual_mm"] < 20, c  # the body still on the scan (2 cm taller than the scanned one: ~10 mm)
+    # a mesh in the template topology is read exactly: measurements with it are refused
+    obj = server.client.get("/v1/body-model/template.obj").content
+    assert_422(_post_scan(server, "avatar.obj", obj, height_cm="170"), ["body", "height_cm"], ("template",))
+    assert server.client.delete(f"/v1/customers/{c['id']}").status_code == 204
 
 
 def _check_scan_pose(server: Server, cid: str, scan: S.SyntheticScan, model: BodyModel,

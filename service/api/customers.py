@@ -19,7 +19,8 @@ from service.api.errors import invalid
 from service.api.schemas import AvatarRequest, CustomerResponse, EditRequest
 from service.application import poses as _poses
 from service.application.errors import Conflict, Invalid, NotFound
-from service.application.uploads import SCAN_FORMATS, parse_bool, parse_gender
+from service.application.uploads import (KNOWN_FIELD_DOC, KNOWN_FIELDS, SCAN_FORMATS, parse_bool, parse_gender,
+                                         parse_known_measurements)
 from service.records import Customer
 
 router = APIRouter(tags=["customers"])
@@ -54,6 +55,8 @@ CUSTOMER_BODY = {
                                                    "inside them); false for a scan of the bare body "
                                                    "(minimal clothing; hair is expected and the head "
                                                    "is fitted inside it)"},
+                        **{name: {"type": "number", "description": KNOWN_FIELD_DOC.format(name=name)}
+                           for name in KNOWN_FIELDS},
                     },
                 }
             },
@@ -96,17 +99,18 @@ async def create_customer(request: Request, response: Response, customers: Custo
     if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
         measurements = _json_measurements(await request.body())
         return _created(*await run_in_threadpool(customers.create_from_measurements, measurements, retailer))
-    form = await request.form(max_files=2, max_fields=8)
+    form = await request.form(max_files=2, max_fields=8 + len(KNOWN_FIELDS))
     upload = form.get("mesh")
     if not isinstance(upload, UploadFile):
         raise invalid(("body", "mesh"), f"a file field 'mesh' ({SCAN_FORMATS}) is required")
     gender = parse_gender(form.get("gender"))
     clothed = parse_bool(form.get("clothed"), "clothed", True)
+    known = parse_known_measurements(customers.model, dict(form))
     data = await upload.read()
     await form.close()
     try:
         record, token = await run_in_threadpool(customers.create_from_upload, data, upload.filename, gender,
-                                                clothed, retailer)
+                                                clothed, retailer, known)
     finally:
         del data
     if record.job is not None:

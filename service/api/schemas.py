@@ -146,6 +146,9 @@ class CustomerResponse(BaseModel):
     measurements: dict[str, float | str] | None = Field(
         default=None, description="The 12 attributes measured on the avatar")
     estimated: list[str] = Field(default_factory=list, description="Attributes that were estimated")
+    entered: dict[str, float | str] | None = Field(
+        default=None, description="The measurements as entered: a measurement customer's, or those given with a "
+                                  "scan (height_cm, weight_kg, ...), which the fitted body keeps")
     created: str = Field(description="ISO 8601 UTC time of creation")
     unit: str | None = Field(default=None, description="Mesh and scan uploads: detected unit of the file (m, cm, mm)")
     residual_mm: float | None = Field(

@@ -115,27 +115,32 @@ class CustomerService:
         return record, token
 
     def create_from_upload(self, data: bytes, filename: str | None, gender: str | None, clothed: bool,
-                           owner: str | None = None) -> tuple[Customer, str]:
+                           owner: str | None = None, known: dict[str, float] | None = None) -> tuple[Customer, str]:
         """An avatar mesh in the template topology -> a ready customer (``status`` ready);
         any other mesh or point cloud -> a customer being fitted by a queued job (``status``
-        fitting, ``job``); with its token. Bad files raise :class:`Invalid` before anything
-        is stored."""
+        fitting, ``job``), with ``known`` measurements of the person (checked, API units) kept
+        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored."""
         upload = read_body_upload(self.model, data, filename)
         if isinstance(upload, TemplateAvatar):
+            if known:
+                raise Invalid(("body", next(iter(known))),
+                              "measurements are for scans: this mesh is in the template topology, its shape is "
+                              "read exactly (leave the measurements out, or create the customer from them)")
             p = upload.projection
             record, token = self._new(status="ready", source="mesh", owner=owner, gender_given=gender,
                                       **self._shape_fields(p.weights, gender), unit=p.unit,
                                       residual_mm=float(p.residual_mm))
             self.repo.put(record)
             return record, token
-        return self._submit_scan(upload, gender, clothed, owner)
+        return self._submit_scan(upload, gender, clothed, owner, known)
 
     def _submit_scan(self, scan: Scan, gender: str | None, clothed: bool,
-                     owner: str | None) -> tuple[Customer, str]:
-        """Store the scan (``scan:<id>``, for any worker) with the customer, then enqueue its
-        fitting job (deterministic id, retried); on failure nothing is left behind."""
+                     owner: str | None, known: dict[str, float] | None = None) -> tuple[Customer, str]:
+        """Store the scan (``scan:<id>``, for any worker) with the customer (``known``
+        measurements as ``entered``), then enqueue its fitting job (deterministic id, retried);
+        on failure nothing is left behind."""
         record, token = self._new(status="fitting", source="scan", owner=owner, gender_given=gender,
-                                  clothed=bool(clothed),
+                                  clothed=bool(clothed), entered=dict(known) if known else None,
                                   scan=ScanInfo(format=scan.kind, points=int(len(scan.points)),
                                                 faces=None if scan.faces is None else int(len(scan.faces))))
         cid = record.id
@@ -289,8 +294,10 @@ class CustomerService:
         fitting = progress.scaled(FIT_START, FIT_SHARE)
         fitting(0.0, "fitting the body model")
         try:
+            known = {k: float(v) for k, v in (record.entered or {}).items() if k != "gender"}
             fit = fit_body(self.model, scan.points, scan.normals, scan.faces, clothed=bool(record.clothed),
-                           progress=lambda f, m: fitting(f, m or "fitting"))
+                           progress=lambda f, m: fitting(f, m or "fitting"), known=known or None,
+                           gender=record.gender_given)
         except FitError as exc:
             return self._fail(record, str(exc), progress)
         progress(FIT_SHARE, "measuring the avatar")

@@ -15,6 +15,7 @@ from service.model import mesh_io
 from service.model.avatar_io import AvatarMeshError, Projection, project_mesh
 from service.model.body import BodyModel
 from service.model.frames import UNITS, UnitError, detect_unit, rotation_to_y
+from service.model.measurements import ATTRIBUTES
 from service.model.mesh_io import Scan, ScanError
 from service.model import gltf
 from service.model.catalogue import RenderLayout, Texture, render_layout
@@ -262,6 +263,35 @@ def parse_bool(value: object, field: str, default: bool) -> bool:
     if word not in TRUE_WORDS + FALSE_WORDS:
         raise Invalid(("body", field), f"{field} must be true or false")
     return word in TRUE_WORDS
+
+
+# a scan upload's optional measurements of the person: form fields named after the attributes
+KNOWN_FIELDS = tuple(a for a in ATTRIBUTES if a != "gender")
+KNOWN_FIELD_DOC = ("Scans, optional: the person's own {name} (cm; weight in kg), e.g. a tailor's "
+                   "measurement or the weight on a scale: the fitted body keeps it (within ~0.5 cm / 1 kg) "
+                   "where the scan cannot tell (loose clothes)")
+
+
+def parse_known_measurements(model, form: dict[str, object]) -> dict[str, float]:
+    """A scan upload's optional measurements of the person (form fields named after the body
+    model's attributes but gender: cm, kg), checked as the measurements of a new customer are
+    (``shape.validate_measurements``). Fields not given are left out."""
+    from service.model.shape import MeasurementError, validate_measurements
+
+    raw: dict[str, object] = {}
+    units = {a.name: a.unit for a in model.attributes}
+    for name in KNOWN_FIELDS:
+        value = form.get(name)
+        if value is None or str(value).strip() == "":
+            continue
+        try:
+            raw[name] = float(str(value))
+        except ValueError:
+            raise Invalid(("body", name), f"{name} must be a number in {units.get(name, 'cm')}") from None
+    try:
+        return validate_measurements(model, raw)
+    except MeasurementError as exc:
+        raise Invalid(("body", str(exc.field)), exc.message) from exc
 
 
 def parse_gender(value: object) -> str | None:

@@ -343,11 +343,17 @@ class FitParams:
     # issue 12, hair on a bare scan (a scanner's customer in minimal clothing): the pairs of the
     # head but the face, and of the neck (``scalp_region``), weighted as a clothed scan's (the body
     # may lie inside the scan there), the rest as skin; in the refinement and Alg. 1, not the
-    # initialisation. Clothed scans already weight every pair so. Without it the head and neck
+    # initialisation; not when the face is unseen (in a hole, ``_face_seen``): then nothing firm
+    # would hold the head. Clothed scans already weight every pair so. Without it the head and neck
     # grew into the hair: same run, 12 held-out people with MakeHuman's bob or short hair, 20
     # degrees, fitted bare: 1.43 -> 0.98 mm median, stature worst 1.22 -> 0.65 cm; bare scans
     # without hair +0.01-0.03 mm
     hair_region: bool = True
+    # issue 12, measurements the customer gives with the scan (``fit_body(known=...)``: the
+    # surface of a man in a loose suit is that of a heavier man in a tighter one): soft targets
+    # on the rest body in Eq. 4, each residual in units of KNOWN_SIGMA, weighted against the data
+    # term (sum over the template's vertices of squared metres)
+    known_weight: float = 1.0
     # the pose prior: weight of the joint-limit penalty (JOINT_LIMITS_DEG) in the coarse ICP and
     # in Eq. 3, per squared radian outside a limit (0: no limits)
     joint_limit_weight: float = 10.0
@@ -465,6 +471,31 @@ def scalp_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.n
     nz = vertex_normals(vertices, faces)[:, 2]
     face = head & (nz > SCALP_FACE_NORMAL_Z) & (y < top - SCALP_HAIRLINE_M)
     return np.isin(bone, [BONES.index(b) for b in HAIR_BONES]) & ~face
+
+
+# the face counts as seen (``_face_seen``) when FACE_SEEN_SHARE of its template vertices, posed as
+# initialised, have a scan point within FACE_SEEN_M that is not on a hole's rim
+FACE_SEEN_M = 0.02
+FACE_SEEN_SHARE = 0.5
+
+
+def _face_seen(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None, R0: np.ndarray,
+               t0: np.ndarray) -> bool:
+    """Whether the scan shows the face: the head's vertices outside ``rig.scalp`` (posed by the
+    state ``s``) near scan points P (P, 3) model frame; ``rims`` (rim distance (P,), point
+    spacing) or None. Without the face, hair_region would leave nothing firm on the head: held-out avatar
+    40's face in a hole, 10 degrees, 1.15 mm -> 4.1 mm with the head nodded."""
+    from service.model.body import BONES
+
+    face = np.flatnonzero((np.argmax(rig.W, axis=1) == BONES.index("head")) & ~rig.scalp)
+    if not len(face):
+        return True
+    V = _pose_model(rig, s, _subset(rig, face)).v
+    d, j = cKDTree(P).query(V, distance_upper_bound=FACE_SEEN_M)
+    seen = np.isfinite(d)
+    if rims is not None:
+        seen &= ~(rims[0][np.minimum(j, len(P) - 1)] <= RIM_SPACINGS * rims[1])
+    return bool(seen.mean() >= FACE_SEEN_SHARE)
 
 
 def bone_hops(parents: np.ndarray) -> np.ndarray:
@@ -1210,26 +1241,62 @@ def _correspondences(T: np.ndarray, rig: _Rig, tree: cKDTree, points: np.ndarray
     return c, nc, ok.astype(np.float64)
 
 
+# the tolerance of a measurement the customer gives (attribute units: cm, kg): one sigma of
+# ``FitParams.known_weight``'s term; the others (girths, lengths) KNOWN_SIGMA_CM
+KNOWN_SIGMA = {"height_cm": 0.5, "weight_kg": 1.0}
+KNOWN_SIGMA_CM = 1.0
+
+
+def known_terms(model, known: dict[str, float], gender: str) -> Callable[[np.ndarray], tuple]:
+    """The Gauss-Newton terms of measurements given for the rest body: ``known`` {attribute of
+    ``M.ATTRIBUTES`` but gender: value in its unit (cm, kg)}. Returns f(beta (K,)) -> (H (K, K),
+    g (K,), residuals (m,) in sigmas) of 1/2 sum_a ((m_a(beta) - known_a) / sigma_a)^2, the
+    measurements m_a exact (``shape.WeightMeasures``) and linearised at beta."""
+    from service.model import measurements as M
+    from service.model.shape import weight_measures
+
+    names = [n for n in M.ATTRIBUTES[1:] if n in known]
+    unknown = set(known) - set(names)
+    if unknown:
+        raise ValueError(f"not a body measurement: {sorted(unknown)}")
+    wm = weight_measures(model)
+    rows = [M.RAW_NAMES.index(n) for n in names]
+    scale = np.array([1.0 if n == "weight_kg" else 100.0 for n in names])  # raw (m, kg) -> cm, kg
+    target = np.array([float(known[n]) for n in names])
+    sigma = np.array([KNOWN_SIGMA.get(n, KNOWN_SIGMA_CM) for n in names])
+
+    def terms(beta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raw, J = wm.measure(beta, gender, jacobian=True, names=names)
+        r = (raw[rows] * scale - target) / sigma
+        Jr = J[rows] * (scale / sigma)[:, None]
+        return Jr.T @ Jr, Jr.T @ r, r
+
+    return terms
+
+
 def fit_body(model, points: np.ndarray, normals: np.ndarray | None = None,
              faces: np.ndarray | None = None, *, clothed: bool = True,
              progress: Callable[[float, str], None] | None = None,
-             params: FitParams = DEFAULT_PARAMS, seed: int = 0) -> FitResult:
+             params: FitParams = DEFAULT_PARAMS, seed: int = 0, known: dict[str, float] | None = None,
+             gender: str | None = None) -> FitResult:
     """Fit the body model to a scan (see the module docstring), with ``params.blas_threads``
     BLAS threads.
 
-    points: (P, 3) file units and axes; normals: (P, 3) or None; faces: (F, 3) or None.
+    points: (P, 3) file units and axes; normals: (P, 3) or None; faces: (F, 3) or None;
+    known: the person's own measurements, if any ({attribute: cm or kg}, see ``known_terms``),
+    with ``gender`` ('female'/'male', else estimated from the fit) for the weight's density.
     Raises FitError when the scan cannot be fitted."""
     if params.blas_threads is None:
-        return _fit_body(model, points, normals, faces, clothed, progress, params, seed)
+        return _fit_body(model, points, normals, faces, clothed, progress, params, seed, known, gender)
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=params.blas_threads, user_api="blas"):
-        return _fit_body(model, points, normals, faces, clothed, progress, params, seed)
+        return _fit_body(model, points, normals, faces, clothed, progress, params, seed, known, gender)
 
 
 def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.ndarray | None,
               clothed: bool, progress: Callable[[float, str], None] | None, params: FitParams,
-              seed: int) -> FitResult:
+              seed: int, known: dict[str, float] | None = None, gender: str | None = None) -> FitResult:
     t_start = time.perf_counter()
     report = progress or (lambda f, m: None)
     pts = np.asarray(points, np.float64)
@@ -1285,6 +1352,8 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     P = pts_m @ R0.T + t0
     N = nrm @ R0.T
     n = len(rig.mean)
+    if params.hair_region and not clothed:  # the face unseen (in a hole): only the scalp holds the head
+        params = replace(params, hair_region=_face_seen(rig, s, P, rims, R0, t0))
     if params.refine_iterations:
         report(0.12, "refining pose and shape")
         scan = _make_scan(pts_m, nrm, R0, t0, params.refine_points, rng, rims)
@@ -1328,6 +1397,11 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     AtA = rig.posture.T @ rig.posture
     T = _pose_model(rig, s, full_sub).v
     alg1_anchor = s.rot.copy() if clothed else None
+    given = None
+    if known and params.known_weight > 0:
+        from service.model.shape import estimate_gender
+
+        given = known_terms(model, known, gender or estimate_gender(model, s.beta))
     outer = inner_total = 0
     backend = None
     for outer in range(1, params.max_outer + 1 if params.run_alg1 else 1):
@@ -1368,6 +1442,9 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             r = (p.v - target).reshape(-1) * support
             Hb = sw * Jb.T @ (Jb * support[:, None]) + lam * np.diag(rig.precision) + params.posture_weight * AtA
             gb = sw * Jb.T @ r + lam * rig.precision * s.beta + params.posture_weight * AtA @ s.beta
+            if given is not None:  # the customer's own measurements (FitParams.known_weight)
+                Hk, gk, _ = given(s.beta)
+                Hb, gb = Hb + params.known_weight * Hk, gb + params.known_weight * gk
             s.beta = s.beta - np.linalg.solve(Hb, gb)
             if np.linalg.norm(T - T_prev, axis=1).max() <= params.inner_tol:
                 break
@@ -1407,6 +1484,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         partial=PC.is_partial(coverage), coverage=coverage,
         outer_iterations=outer, inner_iterations=inner_total, seconds=time.perf_counter() - t_start,
         stats={"init_seconds": t_init, "refine_seconds": t_refine, "solver": backend, "accepted_fraction": float(accepted.mean()),
+               "hair_region": bool(params.hair_region and not clothed),
                "person_check": checks, "cleaning": cleaning.stats if cleaning is not None else None,
                "screen_costs_mm": [round(1000 * x, 1) for x in sorted(screen_costs)[:4]]},
         kept=None if cleaning is None else cleaning.kept,

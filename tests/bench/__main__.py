@@ -55,12 +55,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
     ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
     ap.add_argument("--before", choices=("refine_damping", "pose_prior", "scan_cleanup", "clothing_contact",
-                                         "landmark_init", "landmark_candidates", "refine_bare", "blas_threads", "wrong_fit", "clothed_prior", "bone_smoothness", "refine_holes", "loose_regions", "cloth_offsets", "posture_anchor", "hidden_limbs", "alg1_outer", "rim_reject", "hair_region", "none"),
+                                         "landmark_init", "landmark_candidates", "refine_bare", "blas_threads", "wrong_fit", "clothed_prior", "bone_smoothness", "refine_holes", "loose_regions", "cloth_offsets", "posture_anchor", "hidden_limbs", "alg1_outer", "rim_reject", "hair_region", "known", "none"),
                     default=None,
                     help="fitting: what every condition's 'before' refit leaves out (default: per condition)")
     ap.add_argument("--fit-params", default=None,
                     help="fitting: FitParams fields overridden in every fit (experiments), e.g. "
                          "'cloth_offset_mean=None,loose_region_depth=0.02'")
+    ap.add_argument("--known", default=None,
+                    help="fitting: the truth's measurements given to every fit, as a customer gives them with a "
+                         "scan, e.g. 'height_cm,weight_kg' (with --before known: the same fits without them)")
     ap.add_argument("--conditions", default=None,
                     help="fitting: comma-separated scan conditions to run (default all; see tests/bench/fitting.py)")
     args = ap.parse_args(argv)
@@ -68,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     mod = importlib.import_module(module)
     extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg,
              "conditions": args.conditions, "person_check": not args.no_person_check,
-             "before": args.before, "poses": args.poses, "fit_params": args.fit_params} if args.suite == "fitting" else {}
+             "before": args.before, "poses": args.poses, "fit_params": args.fit_params, "known": args.known} if args.suite == "fitting" else {}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")

@@ -155,7 +155,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     module data, stays) or ``alg1_outer`` (Alg. 1 with up to 10 outer iterations, not 3:
     ``FitParams(max_outer=10)``) or ``rim_reject`` (no pairs dropped at the holes' rims found on
     the scan, ``FitParams(rim_reject=False)``) or ``hair_region`` (a bare scan's scalp paired as
-    skin, ``FitParams(hair_region=False)``)."""
+    skin, ``FitParams(hair_region=False)``) or ``known`` (the same fit without the measurements
+    given with ``--known``)."""
     from service.model.fitting import FitParams
 
     kinds = {
@@ -171,6 +172,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "alg1_outer": {"max_outer": 10},
         "rim_reject": {"rim_reject": False},
         "hair_region": {"hair_region": False},
+        "known": {},
         "loose_regions": {"loose_region_depth": None, "cloth_offset_mean": None},
         "landmark_init": {"landmark_init": False},
         "landmark_candidates": {"landmark_candidates": 1},
@@ -315,7 +317,9 @@ def with_overrides(params, overrides: dict):
 
 def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = MAX_POSE_DEG,
                            conditions: tuple[Condition, ...] = CONDITIONS, anatomical: bool = True,
-                           fit_params: dict | None = None) -> dict:
+                           fit_params: dict | None = None, known: tuple[str, ...] = ()) -> dict:
+    """``known``: attributes of the truth given to every fit (``fit_body(known=...)``, the
+    person's own measurements given with the scan; the ``known`` "before" leaves them out)."""
     from service.model.fitting import FitParams, fit_body
 
     overrides = dict(fit_params or {})
@@ -345,7 +349,9 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             base[name].append(baseline(model, scan, surface))
             t0 = time.perf_counter()
             try:
-                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed, params=params)
+                given = {a: scan.measurements[a] for a in known} or None
+                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed, params=params,
+                               known=given, gender=scan.gender if given else None)
                 seconds = time.perf_counter() - t0
                 row = evaluate(model, scan, fit, surface)
             except Exception as exc:  # noqa: BLE001 - a benchmark counts failures, never crashes
@@ -371,7 +377,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                          f"{seconds:.1f} s, worst joint {row['worst_joint']}; before "
                          + (f"{row['before']['p2s_mm']:.2f} mm" if "p2s_mm" in row["before"] else "-"))
     out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
-           "poses": "anatomical" if anatomical else "free", "fit_params": {k: repr(v) for k, v in overrides.items()},
+           "poses": "anatomical" if anatomical else "free", "fit_params": {k: repr(v) for k, v in overrides.items()}, "known": list(known),
            "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
            "goal": GOALS, "conditions": {}}
     for cond in conditions:
@@ -571,19 +577,21 @@ def _run_kills(client, files, workers, start, n_jobs, kill_every_s, deadline_s, 
 # -- the suite --------------------------------------------------------------------------------
 def run(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float = MAX_POSE_DEG,
         conditions: str | None = None, person_check: bool = True, before: str | None = None,
-        poses: str = "anatomical", fit_params: str | None = None) -> dict:
+        poses: str = "anatomical", fit_params: str | None = None, known: str | None = None) -> dict:
     """The ``fitting`` suite (``repeats`` is unused: each fit is timed once); ``conditions``: a
     comma-separated subset of ``CONDITIONS`` (default all); ``person_check``: run part 1b;
     ``poses``: "anatomical" (every bone within the joint limits, :func:`SS.random_pose`) or
     "free" (any axis, as before 2026-11-24: a knee may bend 45 degrees sideways); ``fit_params``:
-    'name=value,...' FitParams overrides in every fit (:func:`parse_fit_params`)."""
+    'name=value,...' FitParams overrides in every fit (:func:`parse_fit_params`); ``known``:
+    comma-separated measurements of the truth given to every fit (e.g. 'height_cm,weight_kg')."""
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) \
         if sys.stderr.isatty() or os.environ.get("TRYON_BENCH_PROGRESS") else None
     res: dict = {"suite": "fitting",
                  "accuracy": bench_fitting_accuracy(limit, progress=say, max_pose_deg=max_pose_deg,
                                                     conditions=select_conditions(conditions, before),
                                                     anatomical=poses == "anatomical",
-                                                    fit_params=parse_fit_params(fit_params))}
+                                                    fit_params=parse_fit_params(fit_params),
+                                                    known=tuple(a for a in (known or "").split(",") if a))}
     if person_check:
         res["person_check"] = bench_person_check(progress=say)
     res["job_kills"] = bench_job_kills(progress=say) if kill else {"skipped": "--no-kill"}
