@@ -1,6 +1,7 @@
 """Pydantic request/response schemas of the public API."""
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -268,11 +269,20 @@ def measurements_schema(ranges: dict[str, list[float]]) -> dict[str, Any]:
 
 
 def document_measurements(doc: dict[str, Any], ranges: dict[str, list[float]] | None) -> dict[str, Any]:
-    """Put the precise ``measurements`` schema into an OpenAPI document (in place)."""
+    """The OpenAPI document (a deep copy: FastAPI shares ``openapi_extra``'s dicts with the
+    routes) with the precise ``measurements`` schema: the JSON body's, and the accepted range of
+    each measurement form field of a scan upload."""
+    doc = copy.deepcopy(doc)
     if ranges:
         req = doc.get("components", {}).get("schemas", {}).get("AvatarRequest")
         if req is not None:
             req["properties"]["measurements"] = measurements_schema(ranges)
+        fields = measurements_schema(ranges)["properties"]
+        upload = (doc.get("paths", {}).get("/v1/customers", {}).get("post", {}).get("requestBody", {})
+                  .get("content", {}).get("multipart/form-data", {}).get("schema", {}).get("properties", {}))
+        for name, prop in upload.items():
+            if name != "gender" and name in fields:
+                prop.update({k: fields[name][k] for k in ("minimum", "maximum")})
     return doc
 
 

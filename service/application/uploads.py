@@ -267,9 +267,9 @@ def parse_bool(value: object, field: str, default: bool) -> bool:
 
 # a scan upload's optional measurements of the person: form fields named after the attributes
 KNOWN_FIELDS = tuple(a for a in ATTRIBUTES if a != "gender")
-KNOWN_FIELD_DOC = ("Scans, optional: the person's own {name} (cm; weight in kg), e.g. a tailor's "
-                   "measurement or the weight on a scale: the fitted body keeps it (within ~0.5 cm / 1 kg) "
-                   "where the scan cannot tell (loose clothes)")
+KNOWN_FIELD_DOC = ("Scans, optional: the person's own {name}, measured (a tailor's tape, a scale): the "
+                   "fitted body keeps it (within ~0.5 cm / 1 kg), also where the scan cannot tell (loose "
+                   "clothes). Shown as `entered`")
 
 
 def parse_known_measurements(model, form: dict[str, object]) -> dict[str, float]:
