@@ -479,12 +479,11 @@ FACE_SEEN_M = 0.02
 FACE_SEEN_SHARE = 0.5
 
 
-def _face_seen(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None, R0: np.ndarray,
-               t0: np.ndarray) -> bool:
+def _face_seen(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None) -> bool:
     """Whether the scan shows the face: the head's vertices outside ``rig.scalp`` (posed by the
-    state ``s``) near scan points P (P, 3) model frame; ``rims`` (rim distance (P,), point
-    spacing) or None. Without the face, hair_region would leave nothing firm on the head: held-out avatar
-    40's face in a hole, 10 degrees, 1.15 mm -> 4.1 mm with the head nodded."""
+    state ``s``) near scan points P (P, 3), model frame; ``rims`` (rim distance (P,), point
+    spacing) or None. Without the face, ``hair_region`` would leave nothing firm on the head:
+    held-out avatar 40's face in a hole, 10 degrees, 1.15 mm -> 4.1 mm with the head nodded."""
     from service.model.body import BONES
 
     face = np.flatnonzero((np.argmax(rig.W, axis=1) == BONES.index("head")) & ~rig.scalp)
@@ -1353,7 +1352,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     N = nrm @ R0.T
     n = len(rig.mean)
     if params.hair_region and not clothed:  # the face unseen (in a hole): only the scalp holds the head
-        params = replace(params, hair_region=_face_seen(rig, s, P, rims, R0, t0))
+        params = replace(params, hair_region=_face_seen(rig, s, P, rims))
     if params.refine_iterations:
         report(0.12, "refining pose and shape")
         scan = _make_scan(pts_m, nrm, R0, t0, params.refine_points, rng, rims)
