@@ -772,7 +772,7 @@ def test_the_scalp_region_holds_the_scalp_not_the_face(model):
     assert scalp[head & (y > y[head].max() - F.SCALP_HAIRLINE_M)].all()
     hv = np.flatnonzero(head)
     assert not scalp[hv[np.argmax(rig.mean[hv, 2])]]  # the nose tip
-    assert scalp[head].mean() < 0.7  # the face is out
+    assert 0.1 < 1 - scalp[head].mean() < 0.3  # the face's front is out (~19 % of the head)
     bob = load_catalogue().items["hair-bob02"].fit_to(model.mean.astype(np.float64))
     d, _ = cKDTree(bob).query(rig.mean[scalp])
     assert (d < 0.03).mean() > 0.75
@@ -782,8 +782,8 @@ def test_the_scalp_region_holds_the_scalp_not_the_face(model):
 def test_hair_on_a_bare_scan_does_not_make_the_body_taller(model):
     """Issue 12, a body scanner's customer in minimal clothing, with hair: held-out avatar 0
     (short hair) at 10 degrees, fitted bare. Paired as skin, the hair made the head grow: +0.91 cm
-    of stature, 0.92 mm; with the head and neck weighted as clothing (``FitParams.hair_region``)
-    +0.33 cm, 0.54 mm."""
+    of stature, 0.92 mm; with the head (but the face's front) and neck weighted as clothing
+    (``FitParams.hair_region``) +0.32 cm, 0.56 mm."""
     from tests.bench import fitting as BF
 
     _, scan = _bench_scan(model, 0, "bare_hair", deg=10.0)
