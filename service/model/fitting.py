@@ -1263,7 +1263,7 @@ def known_terms(model, known: dict[str, float], gender: str) -> Callable[[np.nda
         raise ValueError(f"not a body measurement: {sorted(unknown)}")
     wm = weight_measures(model)
     rows = [M.RAW_NAMES.index(n) for n in names]
-    scale = np.array([1.0 if n == "weight_kg" else 100.0 for n in names])  # raw (m, kg) -> cm, kg
+    scale = np.array([M.api_scale(n) for n in names])  # raw (m, kg) -> API units (cm, kg)
     target = np.array([float(known[n]) for n in names])
     sigma = np.array([KNOWN_SIGMA.get(n, KNOWN_SIGMA_CM) for n in names])
 
