@@ -8,7 +8,7 @@ import pytest
 
 from service.model import avatar_io, demo_garments as D, garment as G, mhclo, lbs, tryon as T
 
-from service.model.geometry import vertex_normals
+from service.model.geometry import vertex_faces, vertex_normals
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -64,6 +64,93 @@ def test_push_out_leaves_no_vertex_inside(model):
     out, moved = G.push_out(garment, body.vertices[:nb], body.normals, binding)
     assert moved >= 0.4 * n
     assert penetration_depths(out.astype(np.float64), *args).max() < 0  # all of it outside now
+
+
+def _sheet(x: float, normal_x: float, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square sheet (vertices (n, 3), triangles) in the plane x = const, 24 cm wide, a 3 cm
+    grid shifted by ``offset`` in y and z, its triangles' normals along +-x (``normal_x``)."""
+    t = np.arange(-0.12, 0.12 + 1e-9, 0.03) + offset
+    yy, zz = np.meshgrid(t, t, indexing="ij")
+    V = np.stack([np.full(yy.size, x), yy.ravel(), zz.ravel()], axis=1)
+    k = len(t)
+    i, j = np.meshgrid(np.arange(k - 1), np.arange(k - 1), indexing="ij")
+    a, b, c, d = (i * k + j).ravel(), ((i + 1) * k + j).ravel(), ((i + 1) * k + j + 1).ravel(), (i * k + j + 1).ravel()
+    F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])[:, 0]
+    if np.sign(n[0]) != np.sign(normal_x):
+        F = F[:, ::-1]
+    return V, F
+
+
+def test_a_vertex_inside_facing_skin_is_pushed_out_of_it():
+    """A crease: skin A (x = 0, normal +x) faces skin B (x = 1 cm, normal -x), both meshed
+    coarser than the gap, as a heavy crotch is. A garment vertex 2 mm into B, right over one
+    of A's vertices, is nearest to that vertex, whose tangent plane says it is 1.2 cm outside.
+    Its crease anchor is B's surface, and it is pushed out of B by the clearance; against the
+    slow reference (the signed distance to each plane)."""
+    from scipy.spatial import cKDTree
+
+    A, FA = _sheet(0.0, +1.0, 0.0)
+    B, FB = _sheet(0.01, -1.0, 0.015)
+    V = np.concatenate([A, B])
+    F = np.concatenate([FA, FB + len(A)])
+    N = vertex_normals(V, F)
+    garment = np.array([[0.012, 0.0, 0.0], [0.005, 0.03, 0.03], [0.011, 0.045, -0.03]])
+    tree = cKDTree(V)
+    _, nn = tree.query(garment, k=G.CREASE_K)
+    assert nn[0, 0] < len(A)  # the nearest skin vertex is A's
+    anchors = G.crease_anchors(garment, G.in_crease(nn, N), nn, V, N, F, tree, vertex_faces(F, len(V)))
+    idx, q, n, most = anchors
+    assert set(idx) >= {0, 2}
+    k = list(idx).index(0)
+    np.testing.assert_allclose(q[k], [0.01, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(n[k], [-1.0, 0.0, 0.0], atol=1e-6)
+    assert most[k] == pytest.approx(0.005, abs=1e-6)  # half the 1 cm gap
+    without, _ = G.push_out(garment, V, N, nn[:, :1], None, 0.003)
+    out, _ = G.push_out(garment, V, N, nn[:, :1], None, 0.003, anchors)
+    assert without[0, 0] > 0.01  # the bound vertex's plane alone leaves it inside B
+    # the slow reference: inside B is x > 0.01, inside A is x < 0; 3 mm of clearance from
+    # the skin each vertex is nearest to
+    assert out[0, 0] == pytest.approx(0.01 - 0.003, abs=1e-6)
+    assert out[2, 0] == pytest.approx(0.01 - 0.003, abs=1e-6)
+    np.testing.assert_allclose(out[1], garment[1], atol=1e-7)  # mid-gap, 4-5 mm from both: untouched
+    # a clearance wider than the gap: the vertex stops in the middle, inside neither side
+    wide, _ = G.push_out(garment, V, N, nn[:, :1], None, 0.008, anchors)
+    assert wide[0, 0] == pytest.approx(0.005, abs=1e-6) and wide[2, 0] == pytest.approx(0.005, abs=1e-6)
+
+
+def test_heavy_crotch_keeps_the_bottoms_outside(model):
+    """The penetration figure's misses (`tryon bench tryon`): a 179 cm / 111 kg man in
+    MakeHuman's jeans and denim shorts, whose crotch is a crease (skin facing skin). No
+    try-on vertex more than 1 mm inside him (exact closest triangle, confirmed by the winding
+    number); without the crease anchors, 9 are."""
+    from scipy.spatial import cKDTree
+
+    from service.model import shape as S
+    from tests.bench.common import makehuman_garments
+    from tests.bench.tryon import penetrations
+
+    ex = T.example_set(model)
+    EX = T.example_vertices(model, ex)
+    garments = makehuman_garments(model)
+    fit = S.avatar_from_measurements(model, {
+        "gender": "male", "height_cm": 179.1, "weight_kg": 111.4, "chest_cm": 111.5, "waist_cm": 109.1,
+        "hip_cm": 113.5, "thigh_cm": 75.5, "calf_cm": 45.1, "waist_height_cm": 106.5, "shoulder_width_cm": 45.9,
+        "inseam_cm": 87.8, "arm_length_cm": 62.4})
+    body = T.customer_body(model, fit.weights)
+    plain = T.CustomerBody(body.weights, body.vertices, body.normals)  # no faces: no crease anchors
+    assert body.faces is not None and plain.faces is None
+    nb = model.n_body_vertices
+    X = body.vertices[:nb].astype(np.float64)
+    args = (X, body.normals, model.body_faces, cKDTree(X), vertex_faces(model.body_faces, nb))
+    before = after = 0
+    for name in ("male_casualsuit01", "female_casualsuit02"):
+        g, faces = garments[name]
+        basis = T.build_garment_basis(model, np.stack([g(E) for E in EX]), faces, ex)
+        after += len(penetrations(T.try_on(basis, body)[0], *args)[1])
+        before += len(penetrations(T.try_on(basis, plain)[0], *args)[1])
+    assert before >= 3
+    assert after == 0
 
 
 def test_try_on_pushes_outer_layers_further(model):

@@ -22,6 +22,7 @@ from service.model.body import BodyModel
 from service.model.catalogue import Catalogue, CatalogueItem, Material, Skin, load_catalogue
 from service.model.gltf import MeshTemplate
 from service.model.look import PreparedItem, merge_meshes, prepare_item, visible_body_faces
+from service.model.tryon import surface_body
 
 from service.storage.cache import VersionedLRU
 
@@ -113,7 +114,8 @@ def resolve(gender: str, hair: str | None = None, underwear: bool = True, cat: C
 
 @functools.lru_cache(maxsize=64)
 def _prepared(model: BodyModel, item: CatalogueItem) -> PreparedItem:
-    return prepare_item(item, model.mean, model.n_body_vertices, model.lbs_indices, model.lbs_weights)
+    return prepare_item(item, model.mean, model.n_body_vertices, model.lbs_indices, model.lbs_weights,
+                        model.body_faces)
 
 
 def prepared(model: BodyModel, item: CatalogueItem) -> PreparedItem:
@@ -214,8 +216,9 @@ def _fit_items(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray,
     if look.base_layer:
         groups.append((UNDERWEAR, list(look.base_layer)))
     out = []
+    body = surface_body(model, X, n)  # the push-outs' nearest vertices and crease anchors
     for name, items in groups:
-        mesh = merge_meshes([prepared(model, i).fit(X, n) for i in items])
+        mesh = merge_meshes([prepared(model, i).fit(X, n, body) for i in items])
         mat = items[0].material
         mesh.update(material_fields(mat))
         if mat.base_color_texture is None and mat.normal_texture is None:

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import row_dot
+from service.model.geometry import closest_points_on_mesh, face_bounds, row_dot
 
 CLEARANCE = 0.003  # metres between skin and cloth after push-out
 LAYER_GAP = 0.004  # extra clearance per layer (outer garments over inner ones)
@@ -102,15 +102,82 @@ def laplacian_smoother(faces: np.ndarray, n_vertices: int) -> sp.csc_matrix:
     return S.tocsc().astype(np.float32)
 
 
+CREASE_K = 4  # nearest body vertices looked at for facing skin (crease_anchors)
+CREASE_COS = -0.5  # two of them facing each other: normals' cosine below this
+CREASE_PROBE_M = 0.01  # how far out from a crease's skin the facing skin is looked for
+
+
+def in_crease(nearest: np.ndarray, body_normals: np.ndarray) -> np.ndarray:
+    """Garment vertices in a crease (see :func:`crease_anchors`): nearest (M, k) body vertex ids
+    of each garment vertex, nearest first (k >= ``CREASE_K``; the first ``CREASE_K`` looked
+    at), body_normals (Vb, 3) unit -> (R,) int64 garment vertex ids."""
+    n0 = np.take(body_normals, nearest[:, 0], axis=0)
+    cos = np.einsum("mkd,md->mk", np.take(body_normals, nearest[:, 1:CREASE_K], axis=0), n0)
+    return np.flatnonzero((cos < CREASE_COS).any(axis=1))
+
+
+def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, body: np.ndarray,
+                   body_normals: np.ndarray, faces: np.ndarray, tree, vert_faces: np.ndarray,
+                   bounds: tuple | None = None) -> tuple[np.ndarray, ...]:
+    """Where the nearest body vertex's tangent plane is the wrong skin for a push-out: garment
+    vertices in a crease (crotch, armpit, heavy thighs or a belly fold), where skin faces skin
+    and a vertex can be outside one side's plane but inside the other side. A garment vertex
+    is in a crease when one of its ``CREASE_K`` nearest body vertices has a normal facing the
+    nearest one's (cosine < ``CREASE_COS``); its skin is then the exact closest point of the
+    body surface (``geometry.closest_points_on_mesh``) with that triangle's normal, and the
+    push-out's clearance there is at most half the gap to the facing skin along that normal
+    (the nearer of the facing vertices' tangent planes and the plane of the facing triangle
+    closest to a point ``CREASE_PROBE_M`` out): in a slit narrower than twice the clearance
+    the vertex stops in the middle instead of being pushed into the other side.
+
+    garment (M, 3); idx: :func:`in_crease`; nearest (M, k) body vertex ids, nearest first; body (Vb, 3),
+    body_normals (Vb, 3) unit; faces (F, 3); tree over body; vert_faces of faces; bounds:
+    ``geometry.face_bounds`` of the body (made here when None).
+    Returns (garment vertex ids (R,) int64, skin points (R, 3) float32, unit normals (R, 3)
+    float32, largest clearance (R,) float32, inf where no skin faces), the ``anchors`` of
+    :func:`push_out`."""
+    idx = np.asarray(idx, np.int64)
+    if not len(idx):
+        return idx, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+    V = np.asarray(body, np.float64)
+    F = np.asarray(faces, np.int64)
+    bounds = face_bounds(V, F) if bounds is None else bounds
+    face, q, _ = closest_points_on_mesh(np.asarray(garment, np.float64)[idx], V, F, tree=tree, vert_faces=vert_faces,
+                                        bounds=bounds)
+    t = V[F[face]]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+    # the facing skin along fn: the tangent plane of each of the nearest vertices that faces fn,
+    # and the triangle closest to a probe CREASE_PROBE_M out along fn when it faces fn
+    near = nearest[idx, :CREASE_K]
+    nj = np.take(body_normals, near, axis=0).astype(np.float64)  # (R, K, 3)
+    facing = np.einsum("rkd,rd->rk", nj, fn)
+    reach = np.einsum("rkd,rkd->rk", V[near] - q[:, None, :], nj) / np.minimum(facing, -1e-6)
+    gap = np.where((facing < CREASE_COS) & (reach > 0), reach, np.inf).min(axis=1)
+    face2, q2, _ = closest_points_on_mesh(q + CREASE_PROBE_M * fn, V, F, tree=tree, vert_faces=vert_faces,
+                                          bounds=bounds)
+    t2 = V[F[face2]]
+    n2 = np.cross(t2[:, 1] - t2[:, 0], t2[:, 2] - t2[:, 0])
+    n2 /= np.maximum(np.linalg.norm(n2, axis=1, keepdims=True), 1e-12)
+    facing2 = np.einsum("rd,rd->r", n2, fn)
+    reach2 = np.einsum("rd,rd->r", q2 - q, n2) / np.minimum(facing2, -1e-6)
+    gap = np.minimum(gap, np.where((facing2 < CREASE_COS) & (reach2 > 0), reach2, np.inf))
+    return idx, q.astype(np.float32), fn.astype(np.float32), (0.5 * gap).astype(np.float32)
+
+
 def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, binding: np.ndarray,
-             smoother: sp.csc_matrix | None = None, clearance: float = CLEARANCE) -> tuple[np.ndarray, int]:
+             smoother: sp.csc_matrix | None = None, clearance: float = CLEARANCE,
+             anchors: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, int]:
     """Move garment vertices that are inside the body (or within ``clearance`` of it) out
     along the body normal, then smooth the displacement so the garment stays smooth.
 
     garment (M, 3); body (Vb, 3) and body_normals (Vb, 3) of the customer; binding (M, k)
     body vertices per garment vertex (the nearest of them is used; with k = 1, pass the
     nearest body vertex of this body, see ``tryon.CustomerBody.binding``). The distance to the
-    skin is that to the bound vertex's tangent plane.
+    skin is that to the bound vertex's tangent plane, or, for the garment vertices of
+    ``anchors`` = (indices (R,), skin points (R, 3), unit normals (R, 3), largest clearance
+    (R,)), to the plane of their own skin point, with at most that clearance
+    (:func:`crease_anchors`: where facing skin makes the bound vertex's plane wrong).
     Returns (garment (M, 3) float32, number of vertices moved)."""
     G = np.asarray(garment, np.float32)
     body = np.asarray(body, np.float32)
@@ -122,6 +189,10 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
         nb = binding[np.arange(len(G)), j]
     p, n = np.take(body, nb, axis=0), np.take(body_normals, nb, axis=0)  # ~4x faster than body[nb]
     depth = clearance - row_dot(G - p, n)  # > 0: too close or inside
+    if anchors is not None and len(anchors[0]):
+        a, q, qn, most = anchors
+        p[a], n[a] = q, qn
+        depth[a] = np.minimum(most, clearance) - row_dot(G[a] - q, qn)
     bad = np.flatnonzero(depth > 0)
     if not len(bad):
         return G, 0

@@ -70,22 +70,38 @@ class PreparedItem:
     skin_idx: np.ndarray
     skin_w: np.ndarray
     incidence: sp.csr_matrix
+    prone: np.ndarray | None = None  # (P,) int64 item vertices near a crease of the mean avatar
 
-    def fit_vertices(self, vertices: np.ndarray, body_normals: np.ndarray) -> np.ndarray:
+    def fit_vertices(self, vertices: np.ndarray, body_normals: np.ndarray, body=None) -> np.ndarray:
         """The item on an avatar (V, 3), body normals (Vb, 3) -> (M, 3) float32 item vertices:
-        bound (``Binding.fit``), then pushed out of the body when the item is (``Fit.push_out``)."""
+        bound (``Binding.fit``), then pushed out of the body when the item is (``Fit.push_out``).
+        ``body``: the avatar as a ``tryon.CustomerBody`` with its triangles
+        (``tryon.surface_body``): the push-out then binds the item's vertices near a crease of
+        the mean avatar (``prone``) to their nearest vertex of this avatar (its k-d tree), not
+        to the nearest of ``near``, with the crease anchors (``garment.crease_anchors``)."""
         P = self.item.fit_to(vertices)
         if self.smoother is None:
             return P.astype(np.float32)
         nb = len(body_normals)
-        P, _ = G.push_out(P, np.asarray(vertices[:nb]), body_normals, self.near, self.smoother, self.clearance)
+        X = np.asarray(vertices[:nb])
+        near, anchors = self.near, None
+        if body is not None and body.faces is not None and self.prone is not None and len(self.prone):
+            # near a crease, this avatar's own nearest vertices (the facing skin is rarely among
+            # the candidates found on the mean avatar) and the crease anchors
+            nn = body.nearest(P[self.prone], G.CREASE_K)
+            a, q, qn, most = body.crease_anchors(P[self.prone], nn)
+            anchors = (self.prone[a], q, qn, most)
+            near = near.copy()
+            near[self.prone] = nn[:, :1]
+        P, _ = G.push_out(P, X, body_normals, near, self.smoother, self.clearance, anchors)
         return np.asarray(P, np.float32)
 
-    def fit(self, vertices: np.ndarray, body_normals: np.ndarray) -> dict[str, np.ndarray]:
+    def fit(self, vertices: np.ndarray, body_normals: np.ndarray, body=None) -> dict[str, np.ndarray]:
         """The item on an avatar as a render mesh: {vertices (R, 3) float32, normals (R, 3)
         float32 (smooth across UV seams), faces (F, 3) int64, uv (R, 2) float32 (glTF
-        convention), vertex_joints (R, 4), vertex_weights (R, 4)}."""
-        P = self.fit_vertices(vertices, body_normals)
+        convention), vertex_joints (R, 4), vertex_weights (R, 4)}; ``body`` as in
+        :meth:`fit_vertices`."""
+        P = self.fit_vertices(vertices, body_normals, body)
         n = vertex_normals(P, self.item.faces, self.incidence)
         v = self.layout.vertex
         return {"vertices": P[v], "normals": n[v].astype(np.float32), "faces": self.layout.faces,
@@ -93,13 +109,15 @@ class PreparedItem:
 
 
 def prepare_item(item: CatalogueItem, mean_vertices: np.ndarray, n_body_vertices: int, lbs_indices: np.ndarray,
-                 lbs_weights: np.ndarray) -> PreparedItem:
-    """Precompute what fitting ``item`` to any avatar needs, on the mean avatar (V, 3)."""
+                 lbs_weights: np.ndarray, body_faces: np.ndarray | None = None) -> PreparedItem:
+    """Precompute what fitting ``item`` to any avatar needs, on the mean avatar (V, 3); with
+    ``body_faces`` (F, 3) also the item vertices prone to a crease (:func:`crease_prone`)."""
     X = np.asarray(mean_vertices, np.float64)
     body = X[:n_body_vertices]
     P = item.fit_to(X)
     near = G.bind_to_body(P, body, k=NEAR_K)
     smoother = G.laplacian_smoother(item.faces, len(P)) if item.fit.push_out else None
+    prone = crease_prone(P, body, body_faces) if smoother is not None and body_faces is not None else None
     clearance = item.fit.clearance if item.fit.clearance is not None else G.CLEARANCE + (item.layer or 0) * G.LAYER_GAP
     if item.fit.skinning == "head":
         skin_idx, skin_w = rigid_skin_weights(len(P))
@@ -109,7 +127,20 @@ def prepare_item(item: CatalogueItem, mean_vertices: np.ndarray, n_body_vertices
     for a in (near, skin_idx, skin_w, layout.vertex, layout.uv, layout.faces):
         a.setflags(write=False)
     return PreparedItem(item, layout, near, smoother, float(clearance), skin_idx, skin_w,
-                        face_incidence(item.faces, len(P)))
+                        face_incidence(item.faces, len(P)), prone)
+
+
+CREASE_PRONE_K = 16  # mean-avatar body vertices looked at for a crease near an item vertex
+
+
+def crease_prone(points: np.ndarray, body: np.ndarray, body_faces: np.ndarray) -> np.ndarray:
+    """Item vertices (M, 3) on the mean avatar's body (Vb, 3) whose ``CREASE_PRONE_K`` nearest
+    body vertices include skin facing the nearest one (``garment.in_crease``'s test over more
+    neighbours: a heavier body's crease is deeper and wider than the mean's) -> (P,) int64."""
+    n = vertex_normals(body, body_faces)
+    _, nn = cKDTree(body).query(points, k=CREASE_PRONE_K)
+    cos = np.einsum("mkd,md->mk", n[nn[:, 1:]], n[nn[:, 0]])
+    return np.flatnonzero((cos < G.CREASE_COS).any(axis=1)).astype(np.int64)
 
 
 def merge_meshes(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ process; bases saved before the look existed load without it.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -26,7 +27,7 @@ from service.model import garment as G
 from service.model import skin_weights as SW
 from service.model.body import BONES
 from service.model.catalogue import Material, RenderLayout, Texture
-from service.model.geometry import face_incidence, mesh_edges, row_dot, vertex_normals
+from service.model.geometry import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
 from service.model.gltf import MeshTemplate, vertex_tangents
 from service.model.layering import covered_body
 from service.model.poses import preset_transforms
@@ -337,35 +338,86 @@ class CustomerBody:
     """What a try-on needs of a customer's body, computed once per customer (and, lazily,
     once per garment: the exact nearest body vertex of each synthesized garment vertex)."""
 
-    weights: np.ndarray  # (K,)
+    weights: np.ndarray | None  # (K,); None: a body for push-outs only (tryon.surface_body)
     vertices: np.ndarray  # (V, 3) float32
     normals: np.ndarray  # (n_body, 3) float32
+    faces: np.ndarray | None = None  # (F, 3) the body's triangles; None: no crease anchors
     _tree: object = None
+    _vert_faces: np.ndarray | None = None
+    _face_bounds: tuple | None = None  # geometry.face_bounds of the body, once per customer
     _bindings: dict = field(default_factory=dict)
     _posed: dict = field(default_factory=dict)  # pose set digest -> posed bodies (application.scenes)
 
     def binding(self, basis: "GarmentBasis", garment: np.ndarray) -> np.ndarray:
         """(M, 1) nearest body vertex of each garment vertex on this body (cached per garment)."""
+        return self.push_binding(basis, garment)[0]
+
+    def push_binding(self, basis: "GarmentBasis", garment: np.ndarray) -> tuple[np.ndarray, tuple | None]:
+        """The push-out's binding of a garment on this body, cached per garment: (M, 1) nearest
+        body vertex of each garment vertex and the crease anchors (:func:`crease_anchors`;
+        None without ``faces``)."""
         key = basis.etag() or id(basis)
         hit = self._bindings.get(key)
         if hit is None:
-            if self._tree is None:
-                self._tree = cKDTree(self.vertices[: len(self.normals)])
-            hit = self._tree.query(garment)[1].astype(np.int32)[:, None]
+            if self.faces is None:
+                hit = (self.nearest(garment, 1).astype(np.int32)[:, None], None)
+            else:
+                nn = self.nearest(garment, G.CREASE_K)
+                hit = (nn[:, :1].astype(np.int32), self.crease_anchors(garment, nn))
             if len(self._bindings) >= MAX_BINDINGS_PER_BODY:
                 self._bindings.pop(next(iter(self._bindings)))
             self._bindings[key] = hit
         return hit
 
+    def nearest(self, points: np.ndarray, k: int) -> np.ndarray:
+        """(P,) with k = 1, else (P, k): the nearest body vertices of points (P, 3), nearest
+        first (the body's k-d tree made on first use and kept)."""
+        return self._kdtree().query(points, k=k)[1]
+
+    def _kdtree(self) -> cKDTree:
+        if self._tree is None:  # unbalanced: ~2x faster to build, no slower to query here
+            self._tree = cKDTree(self.vertices[: len(self.normals)], balanced_tree=False, compact_nodes=False)
+        return self._tree
+
+    def crease_anchors(self, garment: np.ndarray, nearest: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``garment.crease_anchors`` of garment (M, 3) on this body (needs ``faces``), nearest
+        (M, k) body vertex ids of each garment vertex on it, nearest first; the k-d tree and the
+        triangles' bounds are made on first need and kept."""
+        nb = len(self.normals)
+        idx = G.in_crease(nearest, self.normals)
+        if len(idx):
+            self._kdtree()
+            if self._vert_faces is None:
+                self._vert_faces = vertex_faces(self.faces, nb)
+            if self._face_bounds is None:
+                self._face_bounds = face_bounds(np.asarray(self.vertices[:nb], np.float64), self.faces)
+        return G.crease_anchors(garment, idx, nearest, self.vertices[:nb], self.normals, self.faces, self._tree,
+                                self._vert_faces, self._face_bounds)
+
 
 MAX_BINDINGS_PER_BODY = 32
+
+
+@functools.lru_cache(maxsize=4)
+def _topology(model) -> tuple[np.ndarray, np.ndarray]:
+    """The body model's triangles (F, 3) int64 and ``geometry.vertex_faces`` of them, once per
+    model (every customer shares them)."""
+    F = np.asarray(model.body_faces, np.int64)
+    return F, vertex_faces(F, model.n_body_vertices)
 
 
 def customer_body(model, weights: np.ndarray) -> CustomerBody:
     X = model.vertices(weights)
     nb = model.n_body_vertices
     n = vertex_normals(X[:nb], model.body_faces).astype(np.float32)
-    return CustomerBody(np.asarray(weights, np.float64), X, n)
+    return surface_body(model, X, n, np.asarray(weights, np.float64))
+
+
+def surface_body(model, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None) -> CustomerBody:
+    """A body of the model's topology for push-outs: vertices (V, 3), body normals (Vb, 3);
+    ``weights`` (K,) when known (a try-on needs them, the look does not)."""
+    F, vf = _topology(model)
+    return CustomerBody(weights, vertices, normals, F, _vert_faces=vf)
 
 
 def try_on(basis: GarmentBasis, body: CustomerBody, layer: int = 0) -> tuple[np.ndarray, int]:
@@ -377,4 +429,5 @@ def try_on(basis: GarmentBasis, body: CustomerBody, layer: int = 0) -> tuple[np.
     cached on the body)."""
     v = G.synthesize(np.asarray(basis.g), np.asarray(basis.B), body.weights)
     clearance = G.CLEARANCE + layer * G.LAYER_GAP
-    return G.push_out(v, body.vertices, body.normals, body.binding(basis, v), basis.smoother(), clearance)
+    nearest, anchors = body.push_binding(basis, v)
+    return G.push_out(v, body.vertices, body.normals, nearest, basis.smoother(), clearance, anchors)
