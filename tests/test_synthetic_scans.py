@@ -16,7 +16,7 @@ from tests.bench.fitting import BodySurface
 from service.model.body import BONES
 from service.model import measurements as M
 from tests.bench import synthetic_scans as SS
-from service.model.geometry import vertex_faces
+from service.model.geometry import vertex_faces, vertex_normals
 
 CLOTHES = shared_data_dir() / "makehuman_clothes"
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not CLOTHES.is_dir(), reason=f"no MakeHuman garments at {CLOTHES}")]
@@ -262,3 +262,25 @@ def test_anatomical_scans_do_not_cross_the_legs_through_each_other(model):
     assert free.unit == scan.unit and free.up == scan.up
     R = lambda s: s.to_model[:3, :3]  # noqa: E731 - the random yaw and up axis
     np.testing.assert_allclose(R(free), R(scan))
+
+
+def test_individual_detail_moves_soft_tissue_not_the_skull_hands_or_soles(model, person):
+    """The off-model person of the fitting bench (``make_scan(detail_mm=...)``): the skin moves
+    by the RMS asked for where there is soft tissue; the head, hands and feet keep their shape,
+    so the stature is the person's; the body model cannot reproduce it."""
+    w, g = person
+    kw = dict(clothed=False, point_cloud=False, n_points=5000, max_pose_deg=10.0)
+    plain = SS.make_scan(model, np.random.default_rng(5), w, g, **kw)
+    off = SS.make_scan(model, np.random.default_rng(5), w, g, detail_mm=4.0, detail_rng=np.random.default_rng(9), **kw)
+    nb = model.n_body_vertices
+    X, Y = plain.true_rest[:nb], off.true_rest[:nb]
+    rigid = np.isin(model.lbs_indices[:nb], SS.DETAIL_RIGID_BONES)
+    mask = 1.0 - np.where(rigid, model.lbs_weights[:nb], 0.0).sum(axis=1)
+    moved = np.einsum("ij,ij->i", Y - X, vertex_normals(X, model.body_faces))
+    assert np.sqrt(np.mean(moved[mask > 0.5] ** 2)) == pytest.approx(0.004, rel=1e-3)
+    assert np.abs(Y - X)[mask < 1e-6].max() < 1e-9  # the skull, hands and soles as they were
+    assert off.measurements["height_cm"] == pytest.approx(plain.measurements["height_cm"], abs=1e-6)
+    assert off.measurements["waist_cm"] != pytest.approx(plain.measurements["waist_cm"], abs=0.05)
+    Z = model.vertices(model.project(off.true_rest))[:nb]
+    assert np.linalg.norm(Z - Y, axis=1).mean() > 0.001  # off the model's space
+    np.testing.assert_allclose(off.rotvecs, plain.rotvecs)  # the same pose and draws otherwise

@@ -104,6 +104,7 @@ class SyntheticScan:
     garments: list[str]
     clothed: bool
     point_is_body: np.ndarray = field(default=None)  # (P,) bool: the point lies on the skin
+    true_rest: np.ndarray = field(default=None)  # (V, 3) the true rest-pose body, model frame
 
     @property
     def point_cloud(self) -> bool:
@@ -458,17 +459,63 @@ def dress(model, X: np.ndarray, transforms: np.ndarray, translation: np.ndarray,
 
 
 # -- the scan --------------------------------------------------------------------------------
+DETAIL_BUMPS = 80  # bumps over the body surface (individual_detail)
+DETAIL_RADIUS_M = (0.04, 0.12)  # their Gaussian radii, uniform in this range
+
+
+DETAIL_RIGID_BONES = (4, 7, 10, 13, 16)  # head, hands, feet (``body.BONES``): no soft tissue to vary
+
+
+def individual_detail(X: np.ndarray, body_faces: np.ndarray, n_body: int, rng: np.random.Generator,
+                      rms_mm: float, mask: np.ndarray | None = None) -> np.ndarray:
+    """The rest body X (V, 3) with a smooth displacement no body model spans: a real person's
+    fat and muscle distribution. DETAIL_BUMPS Gaussian bumps centred on area-uniform points of
+    the skin (faces over the first ``n_body`` vertices), each moving every vertex along the
+    centre's normal by a(k) exp(-|x - c_k|^2 / 2 r_k^2), a zero-mean normal amplitude and r
+    uniform in DETAIL_RADIUS_M, times ``mask`` (V,) in [0, 1] (1: soft tissue; the skull, the
+    hands and the soles keep their shape); scaled so that the skin's displacement along its
+    own normals has RMS ``rms_mm`` where the mask is over 1/2. Applied to every vertex (helper
+    geometry too, so the clothes' bindings follow). Returns (V, 3) float64."""
+    X = np.asarray(X, np.float64)
+    F = np.asarray(body_faces, np.int64)
+    tri = X[F]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    fi = rng.choice(len(F), size=DETAIL_BUMPS, p=area / area.sum())
+    u = rng.dirichlet(np.ones(3), size=DETAIL_BUMPS)
+    centres = np.einsum("kj,kjd->kd", u, tri[fi])
+    fn = np.cross(tri[fi, 1] - tri[fi, 0], tri[fi, 2] - tri[fi, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    radii = rng.uniform(*DETAIL_RADIUS_M, size=DETAIL_BUMPS)
+    amps = rng.normal(size=DETAIL_BUMPS)
+    d2 = ((X[:, None, :] - centres[None]) ** 2).sum(-1)  # (V, K)
+    D = (np.exp(-d2 / (2 * radii ** 2)) * amps) @ fn  # (V, 3)
+    if mask is not None:
+        D *= np.asarray(mask, np.float64)[:, None]
+    soft = np.ones(n_body, bool) if mask is None else np.asarray(mask)[:n_body] > 0.5
+    n = vertex_normals(X[:n_body], F)
+    rms = np.sqrt(np.mean(np.einsum("ij,ij->i", D[:n_body], n)[soft] ** 2))
+    return X + D * (rms_mm / 1000.0 / max(rms, 1e-12))
+
+
 def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str, *, clothed: bool,
               point_cloud: bool, n_points: int = 12_500, noise_mm: float = 2.0, max_pose_deg: float = 45.0,
               garments: list[str] | None = None, clothes_dir: Path | None = None, unit: str | None = None,
-              up: str | None = None, anatomical: bool = False) -> SyntheticScan:
+              up: str | None = None, anatomical: bool = False, detail_mm: float = 0.0,
+              detail_rng: np.random.Generator | None = None) -> SyntheticScan:
     """A synthetic scan of the body ``weights`` (see the module docstring). ``garments``
     (mhclo stems) overrides the random choice; ``unit``/``up`` override the random frame;
     ``anatomical``: the pose within the joint limits (:func:`random_pose`; everything else the
-    same as without)."""
+    same as without). ``detail_mm`` > 0: the person is not in the body model's space, the rest
+    body gets :func:`individual_detail` of that RMS (drawn from ``detail_rng``; the truth,
+    ``weights`` excepted, is the displaced body)."""
     weights = np.asarray(weights, np.float64)
     X = model.vertices(weights).astype(np.float64)
     nb = model.n_body_vertices
+    if detail_mm > 0:
+        rigid = np.isin(model.lbs_indices, DETAIL_RIGID_BONES)
+        mask = 1.0 - np.where(rigid, model.lbs_weights, 0.0).sum(axis=1)
+        X = individual_detail(X, model.body_faces, nb, detail_rng or np.random.default_rng(0), detail_mm,
+                              np.clip(mask, 0.0, 1.0))
     measurements = model.measure(X, gender)
 
     # random draws in a fixed order (same person/pose/frame/garments whether clothed or not)
@@ -556,7 +603,7 @@ def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str,
     return SyntheticScan(points=points, normals=normals, faces=out_faces, unit=unit, up=up, to_model=to_model,
                          weights=weights, rotvecs=rotvecs, translation=translation, true_posed=posed,
                          true_joints=joints, gender=gender, measurements=measurements, garments=chosen,
-                         clothed=bool(clothed), point_is_body=is_body)
+                         clothed=bool(clothed), point_is_body=is_body, true_rest=X)
 
 
 # -- files -----------------------------------------------------------------------------------
