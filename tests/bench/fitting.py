@@ -36,11 +36,13 @@
    of a person in minimal clothing, fitted as unclothed); their "before" is the same scan fitted without the scan cleaning
    (``FitParams(scan_cleanup=False)``), same run. ``bare_hair``: a bare mesh with hair
    (MakeHuman's bob for women, short hair for men) fitted as unclothed; its "before" pairs the
-   scalp as skin (``FitParams(hair_region=False)``). ``off_model``, ``off_model_scanner`` and
+   scalp as skin (``FitParams(hair_region=False)``); ``scanner_hair``: the same with the scanner
+   condition's holes, cut head top and floor. ``off_model``, ``off_model_scanner`` and
    ``off_model_clothed``: the person is not in the body model's space (the held-out people
    are, to 0.02 mm; real people are not): 4 mm RMS of smooth soft-tissue detail on the skin
    (``synthetic_scans.individual_detail``; the skull, hands and soles keep their shape), bare,
-   as the scanner condition's bare scan, and in a random MakeHuman suit; the truth is the
+   as the scanner condition's bare scan, and in a random MakeHuman suit (and
+   ``off_model_scanner_hair``: the scanner's bare scan with hair, fitted as bare); the truth is the
    displaced body, and each scan also reports the model's own best (``model_floor_mm``: the
    true rest body's distance to its least-squares projection on the model's space).
 
@@ -122,6 +124,9 @@ CONDITIONS = (
     # customer in minimal clothing
     Condition("bare_hair", True, False, {"female": ["hair-bob02"], "male": ["hair-short02"]},
               before="hair_region", fit_clothed=False),
+    # the same scanner output with hair (MakeHuman's bob or short hair), fitted as bare
+    Condition("scanner_hair", True, False, {"female": ["hair-bob02"], "male": ["hair-short02"]},
+              degrade=("holes", "cut_head", "scanner_floor"), before="hair_region", fit_clothed=False),
     # a real person is not in the body model's space: smooth individual detail of 4 mm RMS on
     # the skin (the model spans the held-out people to 0.02 mm), bare, as a body scanner's
     # output, and clothed
@@ -129,6 +134,10 @@ CONDITIONS = (
     Condition("off_model_scanner", False, False, degrade=("holes", "cut_head", "scanner_floor"),
               before="scan_cleanup", detail_mm=4.0),
     Condition("off_model_clothed", True, False, before=None, detail_mm=4.0),
+    # the nearest to a body scanner's real output here: off the model's space, bare with hair,
+    # holes, the head top cut and the scanner's floor, fitted as bare
+    Condition("off_model_scanner_hair", True, False, {"female": ["hair-bob02"], "male": ["hair-short02"]},
+              degrade=("holes", "cut_head", "scanner_floor"), before="hair_region", fit_clothed=False, detail_mm=4.0),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
