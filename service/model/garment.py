@@ -107,13 +107,13 @@ CREASE_COS = -0.5  # two of them facing each other: normals' cosine below this
 CREASE_PROBE_M = 0.01  # how far out from a crease's skin the facing skin is looked for
 
 
-def in_crease(nearest: np.ndarray, body_normals: np.ndarray) -> np.ndarray:
-    """Garment vertices in a crease (see :func:`crease_anchors`): nearest (M, k) body vertex ids
-    of each garment vertex, nearest first (k >= ``CREASE_K``; the first ``CREASE_K`` looked
-    at), body_normals (Vb, 3) unit -> (R,) int64 garment vertex ids."""
+def in_crease(nearest: np.ndarray, body_normals: np.ndarray, k: int = CREASE_K) -> np.ndarray:
+    """Garment vertices in a crease (see :func:`crease_anchors`): nearest (M, >= k) body vertex
+    ids of each garment vertex, nearest first (the first k looked at), body_normals (Vb, 3)
+    unit -> (R,) int64 garment vertex ids."""
     n0 = np.take(body_normals, nearest[:, 0], axis=0)
-    cos = np.einsum("mkd,md->mk", np.take(body_normals, nearest[:, 1:CREASE_K], axis=0), n0)
-    return np.flatnonzero((cos < CREASE_COS).any(axis=1))
+    cos = np.einsum("mkd,md->mk", np.take(body_normals, nearest[:, 1:k], axis=0), n0)
+    return np.flatnonzero((cos < CREASE_COS).any(axis=1)).astype(np.int64)
 
 
 def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, body: np.ndarray,

@@ -137,10 +137,8 @@ def crease_prone(points: np.ndarray, body: np.ndarray, body_faces: np.ndarray) -
     """Item vertices (M, 3) on the mean avatar's body (Vb, 3) whose ``CREASE_PRONE_K`` nearest
     body vertices include skin facing the nearest one (``garment.in_crease``'s test over more
     neighbours: a heavier body's crease is deeper and wider than the mean's) -> (P,) int64."""
-    n = vertex_normals(body, body_faces)
     _, nn = cKDTree(body).query(points, k=CREASE_PRONE_K)
-    cos = np.einsum("mkd,md->mk", n[nn[:, 1:]], n[nn[:, 0]])
-    return np.flatnonzero((cos < G.CREASE_COS).any(axis=1)).astype(np.int64)
+    return G.in_crease(nn, vertex_normals(body, body_faces), CREASE_PRONE_K)
 
 
 def merge_meshes(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
