@@ -132,7 +132,8 @@ def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, bo
 
     garment (M, 3); idx: :func:`in_crease`; nearest (M, k) body vertex ids, nearest first; body (Vb, 3),
     body_normals (Vb, 3) unit; faces (F, 3); tree over body; vert_faces of faces; bounds:
-    ``geometry.face_bounds`` of the body (made here when None).
+    ``geometry.face_bounds`` of the body (made here when None; its unit normals are the
+    triangles' normals used here).
     Returns (garment vertex ids (R,) int64, skin points (R, 3) float32, unit normals (R, 3)
     float32, largest clearance (R,) float32, inf where no skin faces), the ``anchors`` of
     :func:`push_out`."""
@@ -144,9 +145,7 @@ def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, bo
     bounds = face_bounds(V, F) if bounds is None else bounds
     face, q, _ = closest_points_on_mesh(np.asarray(garment, np.float64)[idx], V, F, tree=tree, vert_faces=vert_faces,
                                         bounds=bounds)
-    t = V[F[face]]
-    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+    fn = bounds[1][face]  # the closest triangles' unit normals
     # the facing skin along fn: the tangent plane of each of the nearest vertices that faces fn,
     # and the triangle closest to a probe CREASE_PROBE_M out along fn when it faces fn
     near = nearest[idx, :CREASE_K]
@@ -156,9 +155,7 @@ def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, bo
     gap = np.where((facing < CREASE_COS) & (reach > 0), reach, np.inf).min(axis=1)
     face2, q2, _ = closest_points_on_mesh(q + CREASE_PROBE_M * fn, V, F, tree=tree, vert_faces=vert_faces,
                                           bounds=bounds)
-    t2 = V[F[face2]]
-    n2 = np.cross(t2[:, 1] - t2[:, 0], t2[:, 2] - t2[:, 0])
-    n2 /= np.maximum(np.linalg.norm(n2, axis=1, keepdims=True), 1e-12)
+    n2 = bounds[1][face2]
     facing2 = np.einsum("rd,rd->r", n2, fn)
     reach2 = np.einsum("rd,rd->r", q2 - q, n2) / np.minimum(facing2, -1e-6)
     gap = np.minimum(gap, np.where((facing2 < CREASE_COS) & (reach2 > 0), reach2, np.inf))
