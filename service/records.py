@@ -86,6 +86,8 @@ class Customer(Record):
                                                                 "the file's coordinates to the model frame")
     partial: bool | None = Field(default=None, description="scans: a side of the body had no scan surface")
     coverage: dict[str, float] | None = None
+    unseen: list[str] | None = Field(default=None, description="scans: bones the scan hardly showed, posture "
+                                                               "left to the prior")
     scan: ScanInfo | None = None
     job: JobRef | None = None
     fit: FitStats | None = None

@@ -173,6 +173,10 @@ class CustomerResponse(BaseModel):
     coverage: dict[str, float] | None = Field(
         default=None, description="Scans: share of the fitted body's front, back, left and right with scan surface "
                                   "within 5 cm")
+    unseen: list[str] | None = Field(
+        default=None, description="Bare scans: bones of /v1/body-model whose part the scan hardly showed (under "
+                                  "30 % of its surface near a scan point, e.g. a hand in a hole): their posture "
+                                  "is pulled towards the rest pose, not measured")
     scan: ScanInfo | None = Field(default=None, description="Scans: the uploaded file as read")
     job: JobRef | None = Field(default=None, description="Scans: the fitting job")
     fit: FitStats | None = Field(default=None, description="Scans: fitting statistics")

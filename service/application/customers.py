@@ -329,6 +329,7 @@ class CustomerService:
             "unit": str(fit.unit), "up": str(fit.up), "residual_mm": float(fit.residual_mm),
             "frame": [float(x) for x in np.asarray(fit.to_model, np.float64).ravel()],
             "partial": bool(fit.partial), "coverage": {k: float(v) for k, v in fit.coverage.items()},
+            "unseen": [str(b) for b in fit.unseen],
             "fit": FitStats(outer_iterations=int(fit.outer_iterations), inner_iterations=int(fit.inner_iterations),
                             seconds=round(float(fit.seconds), 3)),
         })

@@ -343,12 +343,28 @@ class FitParams:
     # issue 12, hair on a bare scan (a scanner's customer in minimal clothing): the pairs of the
     # head but the face, and of the neck (``scalp_region``), weighted as a clothed scan's (the body
     # may lie inside the scan there), the rest as skin; in the refinement and Alg. 1, not the
-    # initialisation; not when the face is unseen (in a hole, ``_face_seen``): then nothing firm
-    # would hold the head. Clothed scans already weight every pair so. Without it the head and neck
+    # initialisation. Clothed scans already weight every pair so. Without it the head and neck
     # grew into the hair: same run, 12 held-out people with MakeHuman's bob or short hair, 20
     # degrees, fitted bare: 1.43 -> 0.84 mm median, stature worst 1.22 -> 0.59 cm; bare scans
-    # without hair +0.01-0.03 mm
+    # without hair +0.01-0.03 mm. It used to be off when the face was in a hole (nothing firm
+    # would hold the head: held-out avatar 40, bald, 10 degrees, 4.1 mm with the head nodded);
+    # since the rims' rejection (``rim_reject``) and the unseen parts' prior (``unseen_prior``)
+    # that scan is 0.71 mm with it on, and off it turned held-out avatar 1's head 51 degrees
+    # inside his short hair (scanner output, 20 degrees: 4.07 mm; on: 0.97 mm)
     hair_region: bool = True
+    # issue 12, the unseen side left to the prior: on a bare scan, a bone fewer than
+    # UNSEEN_SHARE of whose template vertices have a scan point near them after the
+    # initialisation (``seen_shares``: a hand or the neck in a hole) is pulled towards its rest
+    # posture (the A-pose a scanner's customer stands in), this weight per squared radian as
+    # ``bone_smoothness``, in the refinement and Alg. 1 (Eq. 3). Without it such a bone follows
+    # whatever stray pairs it has: held-out avatar 39's left hand in a hole (17 % seen) turned
+    # over, 83 mm mean error on the hand (scanner output with hair, 20 degrees: 7.41 -> 2.12 mm);
+    # her neck in a hole (18 %), the head nodded and grew 3.2 cm into her bob (off the model's
+    # space: 4.46 -> 2.53 mm, stature +3.24 -> +0.43 cm). A hand whose remaining pairs were right
+    # pays for it: held-out avatar 41's, turned 45 degrees (scanner output, minimal clothing),
+    # 1.35 -> 1.83 mm. 0.1: 2.42 / 2.58 / 2.40 mm; 0.01 lets the neck nod again (3.80 mm,
+    # +2.76 cm). 0: off
+    unseen_prior: float = 0.03
     # issue 12, measurements the customer gives with the scan (``fit_body(known=...)``: the
     # surface of a man in a loose suit is that of a heavier man in a tighter one): soft targets
     # on the rest body in Eq. 4, each residual in units of KNOWN_SIGMA, weighted against the data
@@ -385,6 +401,7 @@ class FitResult:
     posed_vertices: np.ndarray  # (V, 3) fitted body in the model frame
     partial: bool = False  # a side of the body has no scan surface (single-view scan)
     coverage: dict = field(default_factory=dict)  # per side of the body: share with scan surface nearby
+    unseen: list = field(default_factory=list)  # bones the scan hardly shows, left to the prior (unseen_prior)
     outer_iterations: int = 0
     inner_iterations: int = 0
     seconds: float = 0.0
@@ -476,28 +493,34 @@ def scalp_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.n
     return np.isin(bone, [BONES.index(b) for b in HAIR_BONES]) & ~face
 
 
-# the face counts as seen (``_face_seen``) when FACE_SEEN_SHARE of its template vertices, posed as
-# initialised, have a scan point within FACE_SEEN_M that is not on a hole's rim
-FACE_SEEN_M = 0.02
-FACE_SEEN_SHARE = 0.5
+# a template vertex counts as seen (``seen_shares``) when a scan point within SEEN_M (or
+# SEEN_SPACINGS of the scan's point spacings, on a sparse scan) of it, posed as initialised, is
+# not on a hole's rim; a bone with fewer than UNSEEN_SHARE of its vertices seen gets
+# ``FitParams.unseen_prior``. Bare scans of 12 held-out people with holes, 20 degrees: a hand or
+# neck in a hole 8-26 %, seen ones 41-100 % (the neck under a bob: 43-100 %)
+SEEN_M = 0.02
+SEEN_SPACINGS = 2.0
+UNSEEN_SHARE = 0.3
+# ... but not the root (the scan's frame, not a posture) nor the feet: a scanner's floor takes
+# their soles (``scan_cleanup``), 9-21 % seen on good fits, and their tops still hold them; the
+# rest pulled one 45-degree foot 10 -> 17 degrees off
+UNSEEN_FREE_BONES = ("pelvis", "foot_l", "foot_r")
 
 
-def _face_seen(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None) -> bool:
-    """Whether the scan shows the face: the head's vertices outside ``rig.scalp`` (posed by the
-    state ``s``) near scan points P (P, 3), model frame; ``rims`` (rim distance (P,), point
-    spacing) or None. Without the face, ``hair_region`` would leave nothing firm on the head:
-    held-out avatar 40's face in a hole, 10 degrees, 1.15 mm -> 4.1 mm with the head nodded."""
-    from service.model.body import BONES
-
-    face = np.flatnonzero((np.argmax(rig.W, axis=1) == BONES.index("head")) & ~rig.scalp)
-    if not len(face):
-        return True
-    V = _pose_model(rig, s, _subset(rig, face)).v
-    d, j = cKDTree(P).query(V, distance_upper_bound=FACE_SEEN_M)
+def seen_shares(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None) -> np.ndarray:
+    """(17,) per bone (BONES order): the share of the template vertices it moves most, posed by
+    the state ``s``, with a scan point of P (P, 3; model frame) near them (SEEN_M, SEEN_SPACINGS)
+    that is not on a hole's rim (``rims``: (rim distance (P,), point spacing) or None)."""
+    bone = np.argmax(rig.W, axis=1)
+    V = _pose_model(rig, s, _subset(rig, np.arange(len(rig.mean)))).v
+    tree = cKDTree(P)
+    radius = max(SEEN_M, SEEN_SPACINGS * SC.point_spacing(tree, P))
+    d, j = tree.query(V, distance_upper_bound=radius)
     seen = np.isfinite(d)
     if rims is not None:
         seen &= ~(rims[0][np.minimum(j, len(P) - 1)] <= RIM_SPACINGS * rims[1])
-    return bool(seen.mean() >= FACE_SEEN_SHARE)
+    count = np.bincount(bone, minlength=len(rig.parents))
+    return np.bincount(bone, weights=seen, minlength=len(rig.parents)) / np.maximum(count, 1) + (count == 0)
 
 
 def bone_hops(parents: np.ndarray) -> np.ndarray:
@@ -679,22 +702,27 @@ def _smoothness(rig: _Rig, s: _State, p: _Posed, bones: np.ndarray, omega: float
     return H, g
 
 
-def _anchor_terms(rig: _Rig, s: _State, p: _Posed, bones: np.ndarray, rot: np.ndarray, weight: float):
-    """A pull of each bone's local rotation towards an earlier posture ``rot`` (17, 3, 3), the
-    root's too: weight/2 sum_b ||r_b||^2 with r_b = rotvec(rot_b^T R_local_b), as Gauss-Newton
+def _anchor_terms(rig: _Rig, s: _State, p: _Posed, bones: np.ndarray, rot: np.ndarray,
+                  weight: float | np.ndarray):
+    """A pull of each bone's local rotation towards a posture ``rot`` (17, 3, 3), the root's
+    too: 1/2 sum_b weight_b ||r_b||^2 with r_b = rotvec(rot_b^T R_local_b), as Gauss-Newton
     terms with d r_b / d w_b = rot_b^T R_pg^T to first order (as ``_smoothness``; the root:
-    R_pg = I). Returns (H, g) over the pose parameters (3 + 3 len(bones))."""
+    R_pg = I); ``weight`` one for all bones or (17,) per bone. Returns (H, g) over the pose
+    parameters (3 + 3 len(bones))."""
     n = 3 + 3 * len(bones)
     H, g = np.zeros((n, n)), np.zeros(n)
-    if weight <= 0:
+    if np.all(np.asarray(weight) <= 0):
         return H, g
     r = matrix_to_axis_angle(np.einsum("bji,bjk->bik", rot, s.rot))  # rot_b^T R_b
+    wb = np.broadcast_to(np.asarray(weight, np.float64), (len(rig.parents),))
     for c, b in enumerate(bones):
+        if wb[b] <= 0:
+            continue
         par = rig.parents[b]
         Rp = np.eye(3) if par < 0 else p.G[par, :3, :3]
         sl = slice(3 + 3 * c, 6 + 3 * c)
-        H[sl, sl] += weight * np.eye(3)
-        g[sl] += weight * Rp @ rot[b] @ r[b]
+        H[sl, sl] += wb[b] * np.eye(3)
+        g[sl] += wb[b] * Rp @ rot[b] @ r[b]
     return H, g
 
 
@@ -1354,8 +1382,14 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     P = pts_m @ R0.T + t0
     N = nrm @ R0.T
     n = len(rig.mean)
-    if params.hair_region and not clothed:  # the face unseen (in a hole): only the scalp holds the head
-        params = replace(params, hair_region=_face_seen(rig, s, P, rims))
+    from service.model.body import BONES
+
+    seen = seen_shares(rig, s, P, rims)
+    unseen = None  # the unseen bones' pull to the rest posture (FitParams.unseen_prior)
+    if not clothed and params.unseen_prior > 0:
+        w_unseen = np.where(seen < UNSEEN_SHARE, params.unseen_prior, 0.0)
+        w_unseen[[BONES.index(b) for b in UNSEEN_FREE_BONES]] = 0.0
+        unseen = (np.broadcast_to(np.eye(3), s.rot.shape).copy(), w_unseen)
     if params.refine_iterations:
         report(0.12, "refining pose and shape")
         scan = _make_scan(pts_m, nrm, R0, t0, params.refine_points, rng, rims)
@@ -1376,7 +1410,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             omega = params.bone_smoothness if params.bare_smoothness is None else params.bare_smoothness
             s, _ = _coarse(rig, scan, s, rsub, rn, [(ALL_BONES, len(rig.U))] * params.refine_bare_iterations,
                            False, rparams, omega=omega, hole_spacing=holes)
-        anchor = (s.rot.copy(), params.clothed_posture_anchor) if clothed and params.refine_bare_iterations else None
+        anchor = (s.rot.copy(), params.clothed_posture_anchor) if clothed and params.refine_bare_iterations else unseen
         if clothed and params.clothed_shape_prior is not None:  # the body found; now inside the clothes
             params = replace(params, shape_prior=params.clothed_shape_prior)
             rparams = replace(rparams, shape_prior=params.clothed_shape_prior)
@@ -1398,7 +1432,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     full_sub, upd_sub = _subset(rig, np.arange(n)), _subset(rig, upd)
     AtA = rig.posture.T @ rig.posture
     T = _pose_model(rig, s, full_sub).v
-    alg1_anchor = s.rot.copy() if clothed else None
+    alg1_anchor = (s.rot.copy(), params.alg1_posture_anchor) if clothed else unseen
     given = None
     if known and params.known_weight > 0:
         from service.model.shape import estimate_gender
@@ -1433,8 +1467,8 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             g = sw * Jp.T @ r
             Hs, gs = _smoothness(rig, s, p, ALL_BONES, params.bone_smoothness)
             Hl, gl = _joint_limit_terms(rig, s, p, ALL_BONES, params.joint_limit_weight)
-            if alg1_anchor is not None and params.alg1_posture_anchor > 0:
-                Ha, ga = _anchor_terms(rig, s, p, ALL_BONES, alg1_anchor, params.alg1_posture_anchor)
+            if alg1_anchor is not None:
+                Ha, ga = _anchor_terms(rig, s, p, ALL_BONES, *alg1_anchor)
                 Hs, gs = Hs + Ha, gs + ga
             delta = damped_step(H + Hs + Hl, g + gs + gl, damping=params.damping)
             _apply_pose(rig, s, p, ALL_BONES, delta)
@@ -1484,9 +1518,11 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         weights=s.beta.copy(), rotvecs=matrix_to_axis_angle(s.rot), translation=s.trans.copy(), unit=unit, up=up,
         to_model=to_model, residual_mm=residual_mm, posed_vertices=full,
         partial=PC.is_partial(coverage), coverage=coverage,
+        unseen=[] if unseen is None else [BONES[b] for b in np.flatnonzero(unseen[1] > 0)],
         outer_iterations=outer, inner_iterations=inner_total, seconds=time.perf_counter() - t_start,
         stats={"init_seconds": t_init, "refine_seconds": t_refine, "solver": backend, "accepted_fraction": float(accepted.mean()),
                "hair_region": bool(params.hair_region and not clothed),
+               "seen": {b: round(float(x), 3) for b, x in zip(BONES, seen)},
                "person_check": checks, "cleaning": cleaning.stats if cleaning is not None else None,
                "screen_costs_mm": [round(1000 * x, 1) for x in sorted(screen_costs)[:4]]},
         kept=None if cleaning is None else cleaning.kept,

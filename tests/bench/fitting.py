@@ -178,8 +178,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     module data, stays) or ``alg1_outer`` (Alg. 1 with up to 10 outer iterations, not 3:
     ``FitParams(max_outer=10)``) or ``rim_reject`` (no pairs dropped at the holes' rims found on
     the scan, ``FitParams(rim_reject=False)``) or ``hair_region`` (a bare scan's scalp paired as
-    skin, ``FitParams(hair_region=False)``) or ``known`` (the same fit without the measurements
-    given with ``--known``)."""
+    skin, ``FitParams(hair_region=False)``) or ``unseen_prior`` (bones in a hole not pulled to
+    their rest posture, ``FitParams(unseen_prior=0)``) or ``known`` (the same fit without the
+    measurements given with ``--known``)."""
     from service.model.fitting import FitParams
 
     kinds = {
@@ -195,6 +196,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "alg1_outer": {"max_outer": 10},
         "rim_reject": {"rim_reject": False},
         "hair_region": {"hair_region": False},
+        "unseen_prior": {"unseen_prior": 0.0},
         "known": {},
         "loose_regions": {"loose_region_depth": None, "cloth_offset_mean": None},
         "landmark_init": {"landmark_init": False},
