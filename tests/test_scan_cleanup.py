@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from service.model import scan_cleanup as SC
 from tests.bench import synthetic_scans as SS
@@ -218,6 +219,19 @@ def test_synthetic_degradations(model):
     assert not floored.point_is_body[len(scan.points):].any()
     room = SS.with_floor(scan, np.random.default_rng(8), "room").points_in_model_frame()[len(scan.points):]
     assert np.ptp(room[:, [0, 2]], axis=0).min() > 3.0 and np.abs(room[:, 1]).max() < 0.05
+    # dark hair: the crown and the back of the head gone, the face (the head's most forward
+    # points) and everything below the chin kept
+    dark = SS.without_hair_returns(scan)
+    D = dark.points_in_model_frame()
+    gone = np.ones(len(P), bool)
+    gone[cKDTree(P).query(D)[1]] = False
+    assert 50 < gone.sum() < 0.1 * len(P) and np.array_equal(dark.true_posed, scan.true_posed)
+    assert P[gone, 1].min() > top - 0.3 and D[:, 1].max() < top - 0.015  # only the head; the crown gone
+    rest = model.mean[: model.n_body_vertices]
+    upper = np.flatnonzero(rest[:, 1] > rest[:, 1].max() - 0.2)
+    nose = scan.true_posed[upper[np.argmax(rest[upper, 2])]]  # the rest head's most forward vertex
+    near = np.linalg.norm(P - nose, axis=1).min()
+    assert near < 0.03 and np.linalg.norm(D - nose, axis=1).min() == near  # the face's points kept
 
 
 def test_room_floor_wider_than_a_person_is_found_before_the_unit(model):

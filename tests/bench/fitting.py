@@ -42,8 +42,10 @@
    are, to 0.02 mm; real people are not): 4 mm RMS of smooth soft-tissue detail on the skin
    (``synthetic_scans.individual_detail``; the skull, hands and soles keep their shape), bare,
    as the scanner condition's bare scan, and in a random MakeHuman suit (and
-   ``off_model_scanner_hair``: the scanner's bare scan with hair, fitted as bare); the truth is the
-   displaced body, and each scan also reports the model's own best (``model_floor_mm``: the
+   ``off_model_scanner_hair``: the scanner's bare scan with hair, fitted as bare;
+   ``off_model_scanner_dark_hair``: the scanner's bare scan without the crown and the back of the
+   head, as many scanners return dark hair, ``synthetic_scans.without_hair_returns``; its
+   "before" has no unseen bones' prior); the truth is the displaced body, and each scan also reports the model's own best (``model_floor_mm``: the
    true rest body's distance to its least-squares projection on the model's space).
 
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
@@ -138,6 +140,10 @@ CONDITIONS = (
     # holes, the head top cut and the scanner's floor, fitted as bare
     Condition("off_model_scanner_hair", True, False, {"female": ["hair-bob02"], "male": ["hair-short02"]},
               degrade=("holes", "cut_head", "scanner_floor"), before="hair_region", fit_clothed=False, detail_mm=4.0),
+    # dark hair, which many scanners do not see: a bare scanner scan without the crown and the back
+    # of the head (no hair, and no scalp under it), off the model's space
+    Condition("off_model_scanner_dark_hair", False, False, degrade=("dark_hair", "holes", "cut_head", "scanner_floor"),
+              before="unseen_prior", detail_mm=4.0),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500

@@ -737,7 +737,7 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
 
 
 # -- what real scanners add and lose (issue 12) ------------------------------------------------
-DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor")
+DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair")
 ROOM_FLOOR_HALF_M = 1.6  # the room floor's half width (metres)
 
 
@@ -792,6 +792,38 @@ def cut_head_top(scan: SyntheticScan, depth_m: float = 0.04) -> SyntheticScan:
     top = float(scan.true_posed[:, 1].max())
     P = _model_points(scan)
     return keep_points(scan, P[:, 1] <= top - depth_m)
+
+
+# dark hair (``without_hair_returns``): the head's vertices (by their largest skinning weight) on
+# the crown, within DARK_HAIR_CROWN_M of the rest template head's top, or on the back of the head
+# (behind the head's centroid and facing backwards: rest normal z < DARK_HAIR_BACK_NZ; not the
+# nostrils'), and every scan point within DARK_HAIR_M of them posed
+DARK_HAIR_CROWN_M = 0.07
+DARK_HAIR_BACK_NZ = -0.2
+DARK_HAIR_M = 0.015
+
+
+def without_hair_returns(scan: SyntheticScan) -> SyntheticScan:
+    """Dark hair, which many body scanners do not see: no points on the crown and the back of
+    the head (the face, the ears below the crown and the neck stay). Drawn from the body model's
+    rest template, not from the fitting's own scalp region: every point within DARK_HAIR_M of the
+    crown's or the back of the head's vertices in the true posed body is dropped."""
+    from scipy.spatial import cKDTree
+
+    from service.model.body import BONES, load_body_model
+    from service.model.geometry import vertex_normals
+
+    model = load_body_model()
+    n = model.n_body_vertices
+    W = np.zeros((n, len(BONES)))
+    np.add.at(W, (np.repeat(np.arange(n), 4), model.lbs_indices[:n].ravel()), model.lbs_weights[:n].ravel())
+    head = np.argmax(W, axis=1) == BONES.index("head")
+    rest = model.mean[:n].astype(np.float64)
+    nz = vertex_normals(rest, np.asarray(model.body_faces, np.int64))[:, 2]
+    back = (nz < DARK_HAIR_BACK_NZ) & (rest[:, 2] < rest[head, 2].mean())
+    covered = head & ((rest[:, 1] > rest[head, 1].max() - DARK_HAIR_CROWN_M) | back)
+    d, _ = cKDTree(scan.true_posed[:n][covered]).query(_model_points(scan))
+    return keep_points(scan, d > DARK_HAIR_M)
 
 
 def _floor_grid(centre: np.ndarray, half: float, spacing: float, rng: np.random.Generator,
@@ -861,6 +893,8 @@ def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.ran
             scan = with_floor(scan, rng, "scanner")
         elif k == "room_floor":
             scan = with_floor(scan, rng, "room")
+        elif k == "dark_hair":
+            scan = without_hair_returns(scan)
         else:
             raise ValueError(f"unknown degradation {k!r}; expected one of {DEGRADATIONS}")
     return scan
