@@ -1502,6 +1502,11 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         reason, checks = PC.fit_evidence(P, final)
         if reason:
             raise FitError(NOT_A_PERSON + reason)
+        if not clothed:
+            reason, surface = PC.bare_surface(P, final, rig.faces)
+            checks.update(surface)
+            if reason:
+                raise FitError(NOT_A_PERSON + reason)
         reason, part = PC.unexplained_part(P, final)
         checks.update(part)
         if reason:

@@ -484,8 +484,8 @@ N_PARTIAL = 4
 
 def bench_person_check(progress=None) -> dict:
     """Non-person shapes (``synthetic_scans.NON_PERSON_KINDS``, point clouds of 12,500 points)
-    fitted with the person check off (before) and on (after): rejected or not, with the
-    reason; CesiumMan (fitted stature or the refusal); single-view front scans of bare
+    fitted as clothed with the person check off (before) and on (after), and as bare with it on
+    (after_bare): rejected or not, with the reason; CesiumMan (fitted stature or the refusal); single-view front scans of bare
     held-out people (flagged ``partial`` or refused)."""
     from service.model.fitting import FitError, FitParams, fit_body
     from service.model.mesh_io import read_scan
@@ -496,9 +496,10 @@ def bench_person_check(progress=None) -> dict:
     for kind in SS.NON_PERSON_KINDS:
         pts, nrm, unit, up = SS.non_person_scan(model, kind, rng, n_points=N_POINTS)
         row = {"shape": kind}
-        for label, params in (("before", FitParams(person_check=False)), ("after", FitParams())):
+        for label, params, clothed in (("before", FitParams(person_check=False), True), ("after", FitParams(), True),
+                                       ("after_bare", FitParams(), False)):
             try:
-                fit = fit_body(model, pts, nrm, None, clothed=True, params=params)
+                fit = fit_body(model, pts, nrm, None, clothed=clothed, params=params)
                 m = model.measure(model.vertices(fit.weights), "female")
                 row[label] = {"rejected": False, "height_cm": round(m["height_cm"], 1),
                               "weight_kg": round(m["weight_kg"], 1)}
@@ -509,7 +510,8 @@ def bench_person_check(progress=None) -> dict:
             progress(f"non-person {kind}: {row}")
     out: dict = {"shapes": shapes,
                  "rejected_before": sum(r["before"]["rejected"] for r in shapes),
-                 "rejected_after": sum(r["after"]["rejected"] for r in shapes)}
+                 "rejected_after": sum(r["after"]["rejected"] for r in shapes),
+                 "rejected_after_bare": sum(r["after_bare"]["rejected"] for r in shapes)}
     path = shared_data_dir() / "gltf_samples" / "CesiumMan.glb"
     if path.is_file():
         sc = read_scan(path.read_bytes(), path.name)
@@ -715,13 +717,17 @@ def format_result(r: dict) -> str:
     pc = r.get("person_check")
     if pc:
         L.append("")
-        L.append(f"non-person shapes rejected: {pc['rejected_after']} of {len(pc['shapes'])} "
+        L.append(f"non-person shapes rejected: {pc['rejected_after']} of {len(pc['shapes'])} fitted as clothed, "
+                 f"{pc.get('rejected_after_bare', '-')} of {len(pc['shapes'])} as bare "
                  f"(before, person check off, same run: {pc['rejected_before']} of {len(pc['shapes'])}); goal: all")
         for row_ in pc["shapes"]:
             b, a = row_["before"], row_["after"]
+            ab = row_.get("after_bare", {"rejected": True})
             L.append(f"  {row_['shape']:<22} before: " + ("rejected" if b["rejected"] else
                      f"accepted ({b['height_cm']} cm, {b['weight_kg']} kg)") + "; after: "
-                     + (a.get("reason", "rejected") if a["rejected"] else f"ACCEPTED ({a['height_cm']} cm)"))
+                     + (a.get("reason", "rejected") if a["rejected"] else f"ACCEPTED ({a['height_cm']} cm)")
+                     + "; fitted as bare: " + (ab.get("reason", "rejected") if ab["rejected"]
+                                               else f"ACCEPTED ({ab['height_cm']} cm)"))
         cm = pc.get("cesium_man")
         if cm:
             L.append("  CesiumMan (1.51 m, T-pose, clothed): " + (

@@ -657,7 +657,19 @@ __all__ = ["SyntheticScan", "random_pose", "make_scan", "scan_file_bytes", "avai
 
 
 # -- shapes that are not a person (the person check) -------------------------------------------
-NON_PERSON_KINDS = ("box", "ellipsoid", "chair", "two_people", "two_people_touching")
+NON_PERSON_KINDS = ("box", "ellipsoid", "chair", "two_people", "two_people_touching", "stick_figure")
+
+
+def _capsule(a, b, radius: float):
+    """A trimesh capsule of ``radius`` (metres) from point a (3,) to point b (3,)."""
+    import trimesh
+
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    length = float(np.linalg.norm(b - a))
+    m = trimesh.creation.capsule(height=length, radius=radius, count=[16, 16])
+    m.apply_transform(trimesh.geometry.align_vectors([0.0, 0.0, 1.0], (b - a) / length))
+    m.apply_translation((a + b) / 2)
+    return m
 
 
 def _non_person_mesh(model, kind: str, rng: np.random.Generator):
@@ -681,6 +693,12 @@ def _non_person_mesh(model, kind: str, rng: np.random.Generator):
                 parts.append(trimesh.creation.box(extents=(0.04, 0.45, 0.04)).apply_translation((x, 0.225, z)))
         m = trimesh.util.concatenate(parts)
         m = m.subdivide_to_size(0.02)
+    elif kind == "stick_figure":  # a mannequin-like figure: capsule trunk and limbs, a ball for a head
+        parts = [_capsule((0, 0.95, 0), (0, 1.45, 0), 0.15),
+                 trimesh.creation.icosphere(radius=0.11).apply_translation((0, 1.65, 0)),
+                 _capsule((-0.1, 0.05, 0), (-0.1, 0.9, 0), 0.07), _capsule((0.1, 0.05, 0), (0.1, 0.9, 0), 0.07),
+                 _capsule((-0.2, 1.4, 0), (-0.45, 0.95, 0), 0.05), _capsule((0.2, 1.4, 0), (0.45, 0.95, 0), 0.05)]
+        m = trimesh.util.concatenate(parts)
     elif kind in ("two_people", "two_people_touching"):  # two people side by side (T-pose span 1.2 m)
         nb = model.n_body_vertices
         vs, fs = [], []
