@@ -11,6 +11,8 @@ from service.model.body import BONES
 from tests.bench import synthetic_scans as SS
 from tests.bench.fitting import v2v_mm
 from service.model.lbs import axis_angle_to_matrix
+from service.model.geometry import vertex_normals
+from scipy.spatial import cKDTree
 
 
 @pytest.fixture(scope="module")
@@ -857,6 +859,40 @@ def test_a_face_in_a_hole_under_short_hair_keeps_the_head_upright(model):
     fit, stats = _hair_fit(model, 2, "scanner_hair")
     assert stats["hair_region"] is True
     assert fit["p2s_mm"] < 1.2 and fit["worst_joint"][1] < 10.0, fit
+
+
+@pytest.mark.slow
+def test_a_scan_without_its_head_leaves_the_head_to_the_prior(model):
+    """Issue 12, a scanner's output with no head at all (bench condition ``headless``: holes, the
+    scanner's floor): held-out avatar 37 at 20 degrees. The template's head, a quarter of its
+    vertices, was paired with the neck and shoulders, bent and shrank into them: 36 mm off and
+    the stature 20 cm short, yet "ready". The coarse fit again with the head absent
+    (``FitParams.headless_check``, ``absent_bones``) finds no scan where its head is: kept, the
+    head is the prior's (``unseen``), ~2.2 mm and -0.3 cm."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 1, "headless", deg=20.0)
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
+    assert result.stats["headless"]["adopted"] is True and "head" in result.unseen, result.stats["headless"]
+    fit = BF.evaluate(model, scan, result, surface)
+    assert fit["p2s_mm"] < 3.0 and abs(fit["stature_err_cm"]) < 1.0, fit
+    before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                                                 params=BF.BEFORE_PARAMS("headless")), surface)
+    assert before["p2s_mm"] > 10.0 and before["stature_err_cm"] < -10.0, before
+
+
+def test_absent_bones_take_no_pairs(model):
+    """``FitParams.absent_bones``: Alg. 1's pairs (``_correspondences``) leave out every template
+    vertex the absent bone moves most, and only those."""
+    rig = F._rig(model)
+    T = rig.mean
+    tree = cKDTree(T)
+    N = vertex_normals(T, rig.faces)
+    head = np.argmax(rig.W, axis=1) == BONES.index("head")
+    _, _, w_all = F._correspondences(T, rig, tree, T, N, False, F.FitParams())
+    _, _, w = F._correspondences(T, rig, tree, T, N, False, F.FitParams(absent_bones=("head",)))
+    assert w_all[head].all() and not w[head].any() and np.array_equal(w[~head], w_all[~head])
 
 
 @pytest.mark.slow

@@ -9,6 +9,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from service.model import scan_cleanup as SC
+from service.model.body import BONES
+from service.model.fitting import _rig
 from tests.bench import synthetic_scans as SS
 from tests.bench.fitting import v2v_mm
 
@@ -232,6 +234,17 @@ def test_synthetic_degradations(model):
     nose = scan.true_posed[upper[np.argmax(rest[upper, 2])]]  # the rest head's most forward vertex
     near = np.linalg.norm(P - nose, axis=1).min()
     assert near < 0.03 and np.linalg.norm(D - nose, axis=1).min() == near  # the face's points kept
+    # no head: nothing within NO_HEAD_M of the head's vertices (the face included), the neck kept
+    headless = SS.without_head(scan)
+    H = headless.points_in_model_frame()
+    assert np.array_equal(headless.true_posed, scan.true_posed) and headless.faces.max() < len(H)
+    # (the head's top 15 cm: a few points stay on the neck bone's nape, up to the skull's base)
+    assert (H[:, 1] > top - 0.15).sum() < 0.2 * (P[:, 1] > top - 0.15).sum()
+    assert np.linalg.norm(H - nose, axis=1).min() > SS.NO_HEAD_M
+    owner = np.argmax(_rig(model).W, axis=1)
+    body = cKDTree(scan.true_posed[: len(owner)])
+    on_neck = [int((owner[body.query(X)[1]] == BONES.index("neck")).sum()) for X in (P, H)]
+    assert on_neck[1] > 0.5 * on_neck[0] > 0, on_neck  # most of the neck still there
 
 
 def test_room_floor_wider_than_a_person_is_found_before_the_unit(model):

@@ -174,9 +174,10 @@ class CustomerResponse(BaseModel):
         default=None, description="Scans: share of the fitted body's front, back, left and right with scan surface "
                                   "within 5 cm")
     unseen: list[str] | None = Field(
-        default=None, description="Bare scans: bones of /v1/body-model whose part the scan hardly showed (under "
-                                  "30 % of its surface near a scan point, e.g. a hand in a hole): their posture "
-                                  "is pulled towards the rest pose, not measured")
+        default=None, description="Scans: bones of /v1/body-model whose part the scan hardly showed (bare scans: "
+                                  "under 30 % of its surface near a scan point, e.g. a hand in a hole; any scan: "
+                                  "\"head\" when it has no head at all): their posture is pulled towards the rest "
+                                  "pose, not measured (a missing head's size too is the shape prior's)")
     scan: ScanInfo | None = Field(default=None, description="Scans: the uploaded file as read")
     job: JobRef | None = Field(default=None, description="Scans: the fitting job")
     fit: FitStats | None = Field(default=None, description="Scans: fitting statistics")

@@ -122,18 +122,21 @@ def separate_bodies(points: np.ndarray) -> str | None:
     return None
 
 
-def scan_to_body(points: np.ndarray, body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def scan_to_body(points: np.ndarray, body: np.ndarray, tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Distances (P,) from scan points (P, 3) to the nearest fitted body vertex (V, 3), both in
-    the model frame (metres, Y up), and the mask (P,) of points above the floor band."""
-    d, _ = cKDTree(body).query(points)
+    the model frame (metres, Y up), and the mask (P,) of points above the floor band. ``tree``:
+    a k-d tree over ``body``, to reuse."""
+    d, _ = (tree if tree is not None else cKDTree(body)).query(points)
     above = points[:, 1] > body[:, 1].min() + FLOOR_BAND_M
     return d, above
 
 
-def fit_evidence(points: np.ndarray, body: np.ndarray) -> tuple[str | None, dict]:
+def fit_evidence(points: np.ndarray, body: np.ndarray,
+                 near: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[str | None, dict]:
     """(reason or None, figures) from the scan (P, 3) and the fitted posed body (V, 3), model
-    frame: a share of the scan far from the body, or the scan as a whole off the body."""
-    d, above = scan_to_body(points, body)
+    frame: a share of the scan far from the body, or the scan as a whole off the body.
+    ``near``: :func:`scan_to_body` of them, to reuse (as in the other checks below)."""
+    d, above = near if near is not None else scan_to_body(points, body)
     d = d[above] if above.sum() >= 0.5 * len(d) else d
     far = float(np.mean(d > FAR_M))
     med = float(np.median(d))
@@ -150,15 +153,17 @@ def fit_evidence(points: np.ndarray, body: np.ndarray) -> tuple[str | None, dict
 BARE_SURFACE_MAX_M = 0.006  # bare scans: the median scan point's distance to the body's surface
 
 
-def bare_surface(points: np.ndarray, body: np.ndarray, faces: np.ndarray) -> tuple[str | None, dict]:
+def bare_surface(points: np.ndarray, body: np.ndarray, faces: np.ndarray,
+                 near: tuple[np.ndarray, np.ndarray] | None = None,
+                 tree: cKDTree | None = None) -> tuple[str | None, dict]:
     """(reason or None, figures) for a scan fitted as bare: the median distance of the scan
     points (P, 3) to the fitted posed body's surface (vertices (V, 3), faces (F, 3)), model
     frame, floor points left out, against ``BARE_SURFACE_MAX_M``. A bare person's skin lies on
     the body (clothes fitted as bare: 1.8-4.6 mm, the body grown into them); a shape made of
-    other surfaces leaves most of its points off it."""
-    _, above = scan_to_body(points, body)
+    other surfaces leaves most of its points off it. ``tree``: a k-d tree over ``body``."""
+    _, above = near if near is not None else scan_to_body(points, body, tree)
     P = points[above] if above.sum() >= 0.5 * len(points) else points
-    _, q, _ = closest_points_on_mesh(P, body, faces)
+    _, q, _ = closest_points_on_mesh(P, body, faces, tree=tree)
     med = float(np.median(np.linalg.norm(P - q, axis=1)))
     figures = {"median_scan_to_surface_mm": round(1000 * med, 1)}
     if med > BARE_SURFACE_MAX_M:
@@ -168,12 +173,13 @@ def bare_surface(points: np.ndarray, body: np.ndarray, faces: np.ndarray) -> tup
     return None, figures
 
 
-def unexplained_part(points: np.ndarray, body: np.ndarray) -> tuple[str | None, dict]:
+def unexplained_part(points: np.ndarray, body: np.ndarray,
+                     near: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[str | None, dict]:
     """(reason or None, figures): the largest connected cluster (``landmarks.knn_graph``) of scan
     points (P, 3) farther than ``UNEXPLAINED_M`` from the fitted posed body (V, 3), model frame,
     floor points left out. A cluster holding ``UNEXPLAINED_SHARE`` of the scan is a limb (or an
     object held) the fit did not place: the fit is wrong, however well the rest matches."""
-    d, above = scan_to_body(points, body)
+    d, above = near if near is not None else scan_to_body(points, body)
     if above.sum() >= 0.5 * len(d):
         points, d = points[above], d[above]
     idx = np.nonzero(d > UNEXPLAINED_M)[0]

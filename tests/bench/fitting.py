@@ -45,7 +45,10 @@
    ``off_model_scanner_hair``: the scanner's bare scan with hair, fitted as bare;
    ``off_model_scanner_dark_hair``: the scanner's bare scan without the crown and the back of the
    head, as many scanners return dark hair, ``synthetic_scans.without_hair_returns``; its
-   "before" has no unseen bones' prior); the truth is the displaced body, and each scan also reports the model's own best (``model_floor_mm``: the
+   "before" has no unseen bones' prior); ``headless`` and ``headless_clothed``: no head at
+   all (``synthetic_scans.without_head``), bare scanner output (holes, the scanner's floor)
+   and a person in a random MakeHuman suit; their "before" has no second coarse fit with
+   the head absent (``FitParams.headless_check``); the truth is the displaced body, and each scan also reports the model's own best (``model_floor_mm``: the
    true rest body's distance to its least-squares projection on the model's space).
 
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
@@ -61,6 +64,7 @@
 """
 from __future__ import annotations
 
+import functools
 import os
 import random
 import signal
@@ -144,6 +148,10 @@ CONDITIONS = (
     # of the head (no hair, and no scalp under it), off the model's space
     Condition("off_model_scanner_dark_hair", False, False, degrade=("dark_hair", "holes", "cut_head", "scanner_floor"),
               before="unseen_prior", detail_mm=4.0),
+    # no head at all (a field of view ending at the neck, a head hidden): bare scanner output
+    # (holes, the scanner's floor) and a person in a random MakeHuman suit, both without the head
+    Condition("headless", False, False, degrade=("no_head", "holes", "scanner_floor"), before="headless"),
+    Condition("headless_clothed", True, False, degrade=("no_head",), before="headless"),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
@@ -185,7 +193,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     ``FitParams(max_outer=10)``) or ``rim_reject`` (no pairs dropped at the holes' rims found on
     the scan, ``FitParams(rim_reject=False)``) or ``hair_region`` (a bare scan's scalp paired as
     skin, ``FitParams(hair_region=False)``) or ``unseen_prior`` (bones in a hole not pulled to
-    their rest posture, ``FitParams(unseen_prior=0)``) or ``known`` (the same fit without the
+    their rest posture, ``FitParams(unseen_prior=0)``) or ``headless`` (no second
+    coarse fit with the head absent, ``FitParams(headless_check=False)``) or ``known`` (the same fit without the
     measurements given with ``--known``)."""
     from service.model.fitting import FitParams
 
@@ -203,6 +212,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "rim_reject": {"rim_reject": False},
         "hair_region": {"hair_region": False},
         "unseen_prior": {"unseen_prior": 0.0},
+        "headless": {"headless_check": False},
         "known": {},
         "loose_regions": {"loose_region_depth": None, "cloth_offset_mean": None},
         "landmark_init": {"landmark_init": False},
@@ -257,6 +267,14 @@ def v2v_mm(model, scan, fit) -> float:
                                        - scan.true_posed[:nb], axis=1).mean())
 
 
+@functools.lru_cache(maxsize=2)
+def head_vertices(model) -> np.ndarray:
+    """(n_body,) bool: the body vertices the head bone moves most."""
+    from service.model.fitting import _rig
+
+    return np.argmax(_rig(model).W, axis=1) == BONES.index("head")
+
+
 def evaluate(model, scan, fit, surface: BodySurface) -> dict:
     """Errors of a fit against the scan's truth (see the module docstring)."""
     nb = model.n_body_vertices
@@ -266,10 +284,13 @@ def evaluate(model, scan, fit, surface: BodySurface) -> dict:
     _, Jf = posed(model, fit.weights, fit.rotvecs, fit.translation)
     fitted_m = model.measure(model.vertices(fit.weights), scan.gender)
     jerr = np.linalg.norm(_apply(C, Jf) - scan.true_joints, axis=1)
+    p2s = surface.distances(truth, Pf)
     return {
         "worst_joint": [BONES[int(np.argmax(jerr))], round(1000 * float(jerr.max()), 1)],
         "v2v_mm": 1000 * float(np.linalg.norm(Pf[:nb] - truth, axis=1).mean()),
-        "p2s_mm": 1000 * float(surface.distances(truth, Pf).mean()),
+        "p2s_mm": 1000 * float(p2s.mean()),
+        # without the head's vertices: a scan with no head shows nothing of its posture
+        "p2s_no_head_mm": 1000 * float(p2s[~head_vertices(model)].mean()),
         "joints_mm": 1000 * float(np.linalg.norm(_apply(C, Jf) - scan.true_joints, axis=1).mean()),
         "measurements": {n: float(fitted_m[n] - scan.measurements[n]) for n in M.ATTRIBUTES[1:]},
         "unit_ok": fit.unit == scan.unit, "up_ok": fit.up == scan.up,
@@ -406,7 +427,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed,
                                                       params=with_overrides(BEFORE_PARAMS(cond.before), overrides)),
                                 surface)
-                row["before"] = {"p2s_mm": prev["p2s_mm"], "stature_err_cm": prev["stature_err_cm"],
+                row["before"] = {"p2s_mm": prev["p2s_mm"], "p2s_no_head_mm": prev["p2s_no_head_mm"],
+                                 "stature_err_cm": prev["stature_err_cm"],
                                  "measurements": prev["measurements"], "seconds": time.perf_counter() - t1}
             except Exception as exc:  # noqa: BLE001
                 row["before"] = {"error": f"{type(exc).__name__}: {exc}"[:200]}
@@ -437,6 +459,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             "fits": len(r), "failures": len(failures[name]),
             "failure_examples": failures[name][:3],
             "body_p2s_mm": p2s, "body_v2v_mm": _stats([x["v2v_mm"] for x in r]),
+            "body_p2s_no_head_mm": _stats([x["p2s_no_head_mm"] for x in r]),
             "detail_mm": cond.detail_mm,
             "model_floor_p2s_mm": _stats([x["floor_mm"] for x in r if "floor_mm" in x]),
             "baseline_mean_shape_true_pose": {
@@ -456,6 +479,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 "failures": sum("error" in x["before"] for x in r),
                 "seconds": _stats([x["before"]["seconds"] for x in r if "seconds" in x["before"]]),
                 "body_p2s_mm": _stats([x["before"]["p2s_mm"] for x in r if "p2s_mm" in x["before"]]),
+                "body_p2s_no_head_mm": _stats([x["before"]["p2s_no_head_mm"] for x in r if "p2s_mm" in x["before"]]),
                 "body_p2s_mm_all": _stats([x["before"]["p2s_mm"] if "p2s_mm" in x["before"] else np.inf
                                            for x in r if x["before"].get("error") != "RuntimeError: not measured in this condition"]),
                 "stature_abs_err_cm": _stats([abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]]),
@@ -669,6 +693,7 @@ def format_result(r: dict) -> str:
     goals = "goal: " + " / ".join(f"<= {c['goal']['body_p2s_median_mm']:g}" for c in conds.values())
     row("body error, point-to-surface median mm", [_f(c["body_p2s_mm"]["median"]) for c in conds.values()], goals)
     row("  p90 mm", [_f(c["body_p2s_mm"]["p90"]) for c in conds.values()], f"goal: <= {a['goal']['body_p90_mm']:g}")
+    row("  without the head, median mm", [_f(c.get("body_p2s_no_head_mm", {}).get("median")) for c in conds.values()])
     row("body error, vertex-to-vertex median mm", [_f(c["body_v2v_mm"]["median"]) for c in conds.values()])
     row("  p90 mm", [_f(c["body_v2v_mm"]["p90"]) for c in conds.values()])
     row("baseline: mean shape, true pose, p2s mm", [_f(c["baseline_mean_shape_true_pose"]["p2s_mm"]["median"])
@@ -693,6 +718,8 @@ def format_result(r: dict) -> str:
                               for c in conds.values()])
     row("  p2s median mm", [_f(c["before"]["body_p2s_mm"]["median"]) for c in conds.values()])
     row("  p90 mm", [_f(c["before"]["body_p2s_mm"]["p90"]) for c in conds.values()])
+    row("  without the head, median mm", [_f(c["before"].get("body_p2s_no_head_mm", {}).get("median"))
+                                          for c in conds.values()])
     row("  stature |error| median cm", [_f(c["before"]["stature_abs_err_cm"]["median"])
                                         for c in conds.values()])
     row("  worst cm", [_f(c["before"]["stature_worst_cm"]) for c in conds.values()])

@@ -755,7 +755,7 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
 
 
 # -- what real scanners add and lose (issue 12) ------------------------------------------------
-DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair")
+DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair", "no_head")
 ROOM_FLOOR_HALF_M = 1.6  # the room floor's half width (metres)
 
 
@@ -844,6 +844,27 @@ def without_hair_returns(scan: SyntheticScan) -> SyntheticScan:
     return keep_points(scan, d > DARK_HAIR_M)
 
 
+NO_HEAD_M = 0.015  # without_head: scan points this near the true head's vertices are dropped
+
+
+def without_head(scan: SyntheticScan) -> SyntheticScan:
+    """No head at all: a scanner whose field of view ends at the neck, or a head hidden (dark
+    hair and a face turned from the cameras). Every point within NO_HEAD_M of the true posed
+    body's head vertices (those the head bone moves most, the body model's rest template) is
+    dropped (the eyes' and eyebrows' too); the neck stays."""
+    from scipy.spatial import cKDTree
+
+    from service.model.body import BONES, load_body_model
+
+    model = load_body_model()
+    n = len(scan.true_posed)  # the body and its helpers (eyes, eyebrows)
+    W = np.zeros((n, len(BONES)))
+    np.add.at(W, (np.repeat(np.arange(n), 4), model.lbs_indices[:n].ravel()), model.lbs_weights[:n].ravel())
+    head = np.argmax(W, axis=1) == BONES.index("head")
+    d, _ = cKDTree(scan.true_posed[head]).query(_model_points(scan))
+    return keep_points(scan, d > NO_HEAD_M)
+
+
 def _floor_grid(centre: np.ndarray, half: float, spacing: float, rng: np.random.Generator,
                 disc: bool) -> tuple[np.ndarray, np.ndarray]:
     """Floor points (N, 3) on y = 0 around ``centre`` (x, z) jittered on a grid, and their
@@ -913,6 +934,8 @@ def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.ran
             scan = with_floor(scan, rng, "room")
         elif k == "dark_hair":
             scan = without_hair_returns(scan)
+        elif k == "no_head":
+            scan = without_head(scan)
         else:
             raise ValueError(f"unknown degradation {k!r}; expected one of {DEGRADATIONS}")
     return scan
