@@ -1321,7 +1321,7 @@ def _without_head(rig: _Rig, pts_m: np.ndarray, nrm: np.ndarray, clothed: bool, 
     up = joints[head] - joints[BONES.index("neck")]
     up /= max(float(np.linalg.norm(up)), 1e-9)
     d1, j1 = cKDTree(posed.v).query(P1)
-    is_head = np.argmax(rig.W, axis=1) == head
+    is_head = posed.sub.region == head
     owned = float(np.mean(is_head[j1] & (d1 < HEADLESS_NEAR_M) & ((P1 - joints[head]) @ up > HEADLESS_ABOVE_M)))
     adopt = bool(seen1[head] < UNSEEN_SHARE and owned <= HEADLESS_HEAD_SHARE)
     figures = {"head_seen": [round(float(seen0), 3), round(float(seen1[head]), 3)],
@@ -1484,7 +1484,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     unseen = None  # the unseen bones' pull to the rest posture (FitParams.unseen_prior)
     if not clothed and params.unseen_prior > 0:
         w_unseen = np.where(seen < UNSEEN_SHARE, params.unseen_prior, 0.0)
-        w_unseen[[BONES.index(b) for b in UNSEEN_FREE_BONES]] = 0.0
+        w_unseen[_bone_ids(UNSEEN_FREE_BONES)] = 0.0
         w_unseen[_bone_ids(params.absent_bones)] = params.unseen_prior
         unseen = (np.broadcast_to(np.eye(3), s.rot.shape).copy(), w_unseen)
     if params.refine_iterations:

@@ -821,6 +821,15 @@ DARK_HAIR_BACK_NZ = -0.2
 DARK_HAIR_M = 0.015
 
 
+def _head_vertices(model, n: int) -> np.ndarray:
+    """(n,) bool: the model's first ``n`` vertices that the head bone moves most."""
+    from service.model.body import BONES
+
+    W = np.zeros((n, len(BONES)))
+    np.add.at(W, (np.repeat(np.arange(n), 4), model.lbs_indices[:n].ravel()), model.lbs_weights[:n].ravel())
+    return np.argmax(W, axis=1) == BONES.index("head")
+
+
 def without_hair_returns(scan: SyntheticScan) -> SyntheticScan:
     """Dark hair, which many body scanners do not see: no points on the crown and the back of
     the head (the face, the ears below the crown and the neck stay). Drawn from the body model's
@@ -828,14 +837,12 @@ def without_hair_returns(scan: SyntheticScan) -> SyntheticScan:
     crown's or the back of the head's vertices in the true posed body is dropped."""
     from scipy.spatial import cKDTree
 
-    from service.model.body import BONES, load_body_model
+    from service.model.body import load_body_model
     from service.model.geometry import vertex_normals
 
     model = load_body_model()
     n = model.n_body_vertices
-    W = np.zeros((n, len(BONES)))
-    np.add.at(W, (np.repeat(np.arange(n), 4), model.lbs_indices[:n].ravel()), model.lbs_weights[:n].ravel())
-    head = np.argmax(W, axis=1) == BONES.index("head")
+    head = _head_vertices(model, n)
     rest = model.mean[:n].astype(np.float64)
     nz = vertex_normals(rest, np.asarray(model.body_faces, np.int64))[:, 2]
     back = (nz < DARK_HAIR_BACK_NZ) & (rest[:, 2] < rest[head, 2].mean())
@@ -854,13 +861,9 @@ def without_head(scan: SyntheticScan) -> SyntheticScan:
     dropped (the eyes' and eyebrows' too); the neck stays."""
     from scipy.spatial import cKDTree
 
-    from service.model.body import BONES, load_body_model
+    from service.model.body import load_body_model
 
-    model = load_body_model()
-    n = len(scan.true_posed)  # the body and its helpers (eyes, eyebrows)
-    W = np.zeros((n, len(BONES)))
-    np.add.at(W, (np.repeat(np.arange(n), 4), model.lbs_indices[:n].ravel()), model.lbs_weights[:n].ravel())
-    head = np.argmax(W, axis=1) == BONES.index("head")
+    head = _head_vertices(load_body_model(), len(scan.true_posed))  # the body and its helpers (eyes, eyebrows)
     d, _ = cKDTree(scan.true_posed[head]).query(_model_points(scan))
     return keep_points(scan, d > NO_HEAD_M)
 
