@@ -17,7 +17,8 @@ class Settings(BaseSettings):
     ``TRYON_BODY_MODEL``, ``TRYON_MAX_UPLOAD_BYTES``, ``TRYON_RETAILER_KEYS``,
     ``TRYON_EMBEDDED_WORKER``, ``TRYON_FIT_TIMEOUT``, ``TRYON_GARMENT_TIMEOUT``, ``TRYON_CORS_ORIGINS``,
     ``TRYON_RATE_LIMIT_CLIENT``, ``TRYON_RATE_LIMIT_RETAILER``, ``TRYON_MAX_INFLIGHT``,
-    ``TRYON_MAX_UPLOADS``, ``TRYON_DEMO_ITEMS``. Fields may also be passed by name (``Settings(data_dir=...)``).
+    ``TRYON_MAX_UPLOADS``, ``TRYON_DEMO_ITEMS``, ``TRYON_POSE_WORKERS``. Fields may also be passed
+    by name (``Settings(data_dir=...)``).
     """
 
     model_config = SettingsConfigDict(env_prefix="", populate_by_name=True, extra="ignore")
@@ -105,6 +106,14 @@ class Settings(BaseSettings):
         validation_alias="TRYON_MAX_INFLIGHT",
         ge=1,
         description="Requests one server process works on at once; more get 503 with Retry-After.",
+    )
+    pose_workers: int = Field(
+        default=2,
+        validation_alias="TRYON_POSE_WORKERS",
+        ge=1,
+        le=16,
+        description="Threads one server process makes a new outfit's pose targets on, one pose each "
+        "(1: on the request's own thread; the same results).",
     )
     max_uploads: int = Field(
         default=1,

@@ -32,6 +32,24 @@ def test_settings_from_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> N
     assert s.max_upload_bytes == 50 * 1024 * 1024
 
 
+def test_pose_workers_setting_reaches_the_pose_threads(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, model) -> None:
+    from service.application import parallel
+    from service.application.context import Context
+
+    monkeypatch.setattr(parallel, "WORKERS", parallel.WORKERS)
+    monkeypatch.setenv("TRYON_POSE_WORKERS", "3")
+    assert Settings().pose_workers == 3
+    ctx = Context.open(Settings(data_dir=tmp_path), model=model)
+    try:
+        assert parallel.WORKERS == 3
+        assert parallel.per_pose(lambda x: x * x, range(7)) == [x * x for x in range(7)]
+    finally:
+        ctx.close()
+    monkeypatch.setenv("TRYON_POSE_WORKERS", "0")
+    with pytest.raises(ValueError):
+        Settings()
+
+
 def test_settings_defaults(monkeypatch: pytest.MonkeyPatch) -> None:
     for var in ("TRYON_DATA_DIR", "REDIS_URL", "TRYON_BODY_MODEL", "TRYON_MAX_UPLOAD_BYTES"):
         monkeypatch.delenv(var, raising=False)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.application import scenes
+from service.application import parallel, scenes
 from service.model import correctives as C
 from service.model import lbs as L
 from service.model import poses as P
@@ -20,6 +20,7 @@ from service.model.catalogue import load_catalogue
 from service.model.geometry import vertex_faces
 from service.model.gltf import read_glb
 from service.records import Garment
+from service.storage.cache import VersionedLRU
 from tests.bench.tryon import INSIDE_DEPTH, penetration_depths
 from tests.conftest import format_issues
 
@@ -119,6 +120,22 @@ def test_outfit_glb_carries_the_pose_targets(model, setup, compression,
     assert av["target_names"] == names, av["target_names"]
     assert 0 < np.abs(av["targets"]).max() < 1.5 * (C.TUCK_MAX_DEPTH + C.TUCK_MARGIN)
     assert all(m["targets"] is None for m in ref["meshes"])
+
+
+def test_pose_targets_on_threads_are_those_of_one_thread(model, setup, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An outfit's pose targets and posed bodies made one pose per thread (parallel.WORKERS)
+    give the same GLB bytes as made one after another, on a body new to both."""
+    bases, body, poses = setup
+    worn = [(record("blouse", 0), bases["pinstripe-blouse"]), (record("jacket", 1), bases["casual-jacket"])]
+    out = {}
+    for workers in (1, 3):
+        monkeypatch.setattr(parallel, "WORKERS", workers)
+        monkeypatch.setattr(scenes, "_correctives", VersionedLRU(scenes.CORRECTIVES_CACHE_SIZE))
+        fresh = T.customer_body(model, body.weights)  # no posed bodies cached on it
+        out[workers] = scenes.outfit_glb(model, fresh, worn, None, with_avatar=True, poses=poses, cache=False)
+        assert len(fresh._posed) == 1
+    assert out[1] == out[3]
+    assert np.abs(read_glb(out[3])["meshes"][-1]["targets"]).max() > 0.002
 
 
 def test_round_trip_values(model, setup) -> None:

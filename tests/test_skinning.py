@@ -532,6 +532,54 @@ def test_push_inside_only_where_covered() -> None:
     assert outside0 > 0
 
 
+def _grid(n: int, size: float, z: float, x0: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A flat n x n grid of side ``size`` at height z (vertices (n*n, 3), faces facing +z)."""
+    t = np.linspace(0, size, n)
+    X, Y = np.meshgrid(t + x0, t, indexing="ij")
+    V = np.stack([X.ravel(), Y.ravel(), np.full(n * n, z)], 1)
+    i = np.arange(n * n).reshape(n, n)
+    F = np.concatenate([np.stack([i[:-1, :-1].ravel(), i[1:, :-1].ravel(), i[1:, 1:].ravel()], 1),
+                        np.stack([i[:-1, :-1].ravel(), i[1:, 1:].ravel(), i[:-1, 1:].ravel()], 1)])
+    return V, F
+
+
+def test_the_layering_figure_leaves_out_a_hand_resting_on_the_clothes() -> None:
+    """A "hip" of skin (joint 0) under two sheets of cloth that move with it, the inner one
+    inside, and a "hand" (joint 1) resting on the outer sheet, palm down: seen from the palm the
+    inner sheet is farther out than the outer one, so without the skin test the hand counts as
+    covered by both with the inner one outside; with it, neither sheet covers the hand."""
+    hip, _ = _grid(11, 0.2, 0.0)
+    hand, _ = _grid(5, 0.06, 0.03, x0=0.07)
+    body = np.concatenate([hip, hand])
+    bn = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(hip), 1)), np.tile([0.0, 0.0, -1.0], (len(hand), 1))])
+    inner, IF = _grid(21, 0.24, 0.006)
+    outer, OF = _grid(21, 0.24, 0.012)
+    inner -= [0.02, 0.02, 0.0]
+    outer -= [0.02, 0.02, 0.0]
+
+    def skin(n: int, joint: int) -> tuple[np.ndarray, np.ndarray]:
+        idx = np.zeros((n, 2), np.int64)
+        idx[:, 0] = joint
+        return idx, np.tile([1.0, 0.0], (n, 1))
+
+    body_skin = tuple(np.concatenate(p) for p in zip(skin(len(hip), 0), skin(len(hand), 1)))
+    skins = (body_skin, skin(len(inner), 0), skin(len(outer), 0))
+    both, outside = LY.inner_outside_share(inner, outer, OF, IF, body, bn, None)
+    assert both == len(body) and outside == len(hand)  # the hand counted against the layering
+    both, outside = LY.inner_outside_share(inner, outer, OF, IF, body, bn, None, skins=skins)
+    assert both == len(hip) and outside == 0
+    # cloth that moves with the hip and is in the wrong order there still counts
+    both, outside = LY.inner_outside_share(outer, inner, IF, OF, body, bn, None, skins=skins)
+    assert both == len(hip) and outside == len(hip)
+    # a garment weighted partly (>= MOVES_WITH) on the hand's joint covers it
+    def partly_on_the_hand(n: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.tile([0, 1], (n, 1)), np.tile([1 - LY.MOVES_WITH, LY.MOVES_WITH], (n, 1))
+
+    half, outer_half = partly_on_the_hand(len(inner)), partly_on_the_hand(len(outer))
+    both, outside = LY.inner_outside_share(inner, outer, OF, IF, body, bn, None, skins=(body_skin, half, outer_half))
+    assert both == len(body) and outside == len(hand)
+
+
 @pytest.fixture(scope="module")
 def shirt_and_jacket(model):
     """The catalogue's striped shirt (layer 2) and casual jacket (layer 3) as clothing bases with

@@ -17,6 +17,7 @@ from service.storage.limits import RateLimiter
 from service.storage.queue import JobQueue, current_connection
 from service.storage.records import CustomerRepo, GarmentRepo
 
+from . import parallel
 from .customers import CustomerService
 from .editing import EditingService
 from .examples import Examples
@@ -46,6 +47,7 @@ class Context:
 
     def __post_init__(self) -> None:
         prefix = self.settings.redis_prefix
+        parallel.WORKERS = self.settings.pose_workers
         self.customers_repo = CustomerRepo(self.conn, prefix)
         self.garments_repo = GarmentRepo(self.conn, prefix)
         self.bases = BasisStore(self.settings.data_dir)

@@ -20,6 +20,7 @@ from service.records import Garment
 from service.storage.cache import VersionedLRU
 
 from . import look as looks
+from .parallel import per_pose
 from .look import Look
 
 AVATAR_COLOR = (0.8, 0.7, 0.62, 1.0)
@@ -267,8 +268,8 @@ def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarr
     key = h.hexdigest()
     hit = body._posed.get(key)
     if hit is None:
-        hit = {name: correctives.posed_body(model, body.vertices, p) for name, p in poses.items()}
-        hit[REST] = correctives.posed_body(model, body.vertices, np.zeros((len(BONES), 3)))
+        todo = {**poses, REST: np.zeros((len(BONES), 3))}
+        hit = dict(zip(todo, per_pose(lambda p: correctives.posed_body(model, body.vertices, p), list(todo.values()))))
         if len(body._posed) >= POSED_BODIES_PER_CUSTOMER:
             body._posed.pop(next(iter(body._posed)))
         body._posed[key] = hit
@@ -304,7 +305,17 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
         nb = model.n_body_vertices
         covers = [correctives.cover_map(worn[i], worn[i + 1], bases[i + 1].faces, body.vertices[:nb], body.normals)
                   for i in range(len(worn) - 1)]
-        for k, name in enumerate(poses):
+        body_deltas = np.zeros((len(poses), nb, 3), np.float32) if tucks else None
+        shown = _shown(avatar, nb) if tucks else None
+        for b in bases:
+            b.smoother()  # the smoothers made once, before the threads share them
+        if tucks:
+            correctives.body_smoother(model)
+
+        names = list(poses)
+
+        def one_pose(k: int) -> None:
+            name = names[k]
             above = None  # the posed pushes of the garment over this one
             for i in range(len(worn) - 1, -1, -1):  # outermost first
                 d, _ = correctives.posed_pushes(worn[i], *sk[i], bodies[name], bases[i].smoother(), i,
@@ -313,7 +324,10 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
                     d = correctives.follow_outer(d, covers[i], above, bases[i + 1].faces)
                 deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
                 above = d
-        body_deltas = _body_tucks(model, bodies, poses, bases, worn, sk, deltas, avatar) if tucks else None
+            if body_deltas is not None:
+                body_deltas[k] = _body_tuck(model, bodies[name], [dl[k] for dl in deltas], bases, worn, sk, shown)
+
+        per_pose(one_pose, list(range(len(poses))))
         for d in (*deltas, *([body_deltas] if body_deltas is not None else [])):
             d.setflags(write=False)
         hit = (deltas, body_deltas)
@@ -327,25 +341,23 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
         mesh.update(targets=d, target_names=correctives.target_names(poses), sparse_targets=True)
 
 
-def _body_tucks(model: BodyModel, bodies: dict[str, correctives.PosedBody],
-                poses: dict[str, np.ndarray], bases: list[GarmentBasis], worn: list[np.ndarray],
-                sk: list[tuple[np.ndarray, np.ndarray]], deltas: list[np.ndarray],
-                avatar: dict[str, Any]) -> np.ndarray:
-    """The avatar's rest-space pose targets (P, Vb, 3) float32: per pose, the garments posed as
-    the page shows them (rest + their pose target, skinned) and ``correctives.body_tucks`` of
-    the body's drawn vertices (those on the avatar mesh's faces) back under them."""
-    nb = model.n_body_vertices
+def _shown(avatar: dict[str, Any], nb: int) -> np.ndarray:
+    """(Vb,) bool: the body vertices the avatar scene mesh draws (those on its faces)."""
     shown = np.zeros(nb, bool)
     shown[np.asarray(avatar["faces"]).ravel()] = True
-    out = np.zeros((len(poses), nb, 3), np.float32)
-    smoother = correctives.body_smoother(model)
-    for k, name in enumerate(poses):
-        G = bodies[name].transforms
-        posed = [(lbs.skin(np.asarray(v, np.float64) + d[k], G, *s), b.faces)
-                 for v, d, s, b in zip(worn, deltas, sk, bases)]
-        d = correctives.body_tucks(bodies[name], posed, shown, smoother, model.body_faces)
-        out[k] = correctives.to_rest(d, G, model.lbs_indices[:nb], model.lbs_weights[:nb])
-    return out
+    return shown
+
+
+def _body_tuck(model: BodyModel, posed: correctives.PosedBody, deltas: list[np.ndarray], bases: list[GarmentBasis],
+               worn: list[np.ndarray], sk: list[tuple[np.ndarray, np.ndarray]], shown: np.ndarray) -> np.ndarray:
+    """The avatar's rest-space target (Vb, 3) float32 for one pose: the garments posed as the
+    page shows them (rest + their pose target ``deltas`` (M_i, 3), skinned) and
+    ``correctives.body_tucks`` of the drawn body vertices (``shown``) back under them."""
+    nb = model.n_body_vertices
+    G = posed.transforms
+    garments = [(lbs.skin(np.asarray(v, np.float64) + d, G, *s), b.faces) for v, d, s, b in zip(worn, deltas, sk, bases)]
+    d = correctives.body_tucks(posed, garments, shown, correctives.body_smoother(model), model.body_faces)
+    return correctives.to_rest(d, G, model.lbs_indices[:nb], model.lbs_weights[:nb])
 
 
 def basis_glb(basis: GarmentBasis, record: Garment, compression: str | None, components: int | None = None) -> bytes:
