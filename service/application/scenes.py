@@ -24,7 +24,7 @@ from .parallel import per_pose
 from .look import Look
 
 AVATAR_COLOR = (0.8, 0.7, 0.62, 1.0)
-SCENE_VERSION = 5  # bump when the GLB assembly changes: every scene ETag changes with it
+SCENE_VERSION = 6  # bump when the GLB assembly changes: every scene ETag changes with it
 
 
 def etag(kind: str, body_model: str, weights: list[float] | None, compression: str | None,
@@ -247,7 +247,9 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
         poses = poses()
     if poses:
         avatar = next((m for m in meshes if m.get("name") == "avatar"), None)
-        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses, avatar)
+        base = None if under is None else (np.asarray(under["vertices"]), np.asarray(under["faces"]),
+                                           (np.asarray(under["vertex_joints"]), np.asarray(under["vertex_weights"])))
+        add_pose_correctives(garment_meshes, model, body, [b for _, b in garments], worn, skins, poses, avatar, base)
     meshes += garment_meshes
     return gltf.scene_to_glb(meshes, skin=skeleton(model, body.vertices), compression=compression)
 
@@ -279,7 +281,8 @@ def posed_bodies(model: BodyModel, body: CustomerBody, poses: dict[str, np.ndarr
 def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: CustomerBody,
                          bases: list[GarmentBasis], worn: list[np.ndarray],
                          skins: list[tuple[np.ndarray, np.ndarray] | None], poses: dict[str, np.ndarray],
-                         avatar: dict[str, Any] | None = None) -> None:
+                         avatar: dict[str, Any] | None = None,
+                         base: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
     """Give an outfit's garment scene meshes (:func:`look_mesh` of ``worn`` (M_i, 3) skinned with
     ``skins``, or the bases' own skin; inner first) one morph target per pose, ``pose:<name>``:
     rest-space deltas that keep each garment outside the posed body
@@ -287,14 +290,18 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
     the garment over it where covered (``correctives.follow_outer``: the layers keep their
     order), gathered into the render layout, stored sparse. With the ``avatar`` scene mesh
     (:func:`avatar_mesh`, its drawn faces), the body gets one too: skin still showing through
-    the posed garments pulled back under them (``correctives.body_tucks``). Cached per process
-    by the digest of everything they are made of (the same customer and outfit asked again)."""
+    the posed garments pulled back under them (``correctives.body_tucks``), the look's ``base``
+    layer included ((M, 3) vertices, faces, skin as layered under the garments; it has no pose
+    targets of its own: under a loose jacket the trunks move with the jacket, and in the walking
+    step the forward thigh came up through them). Cached per process by the digest of
+    everything they are made of (the same customer and outfit asked again)."""
     sk = [(b.skin_idx, b.skin_w) if s is None else s for b, s in zip(bases, skins)]
     bodies = posed_bodies(model, body, poses)
     tucks = avatar is not None and correctives.BODY_TUCKS
     h = hashlib.sha1(json.dumps([sorted(bodies), tucks]).encode())
     for a in (*worn, *[x for pair in sk for x in pair], *[b.faces for b in bases],
-              *[bodies[k].transforms for k in sorted(bodies)], *([avatar["faces"]] if tucks else [])):
+              *[bodies[k].transforms for k in sorted(bodies)], *([avatar["faces"]] if tucks else []),
+              *((base[0], base[1], *base[2]) if tucks and base is not None else ())):
         a = np.ascontiguousarray(a)
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
@@ -325,7 +332,8 @@ def add_pose_correctives(meshes: list[dict[str, Any]], model: BodyModel, body: C
                 deltas[i][k] = correctives.to_rest(d, bodies[name].transforms, *sk[i])
                 above = d
             if body_deltas is not None:
-                body_deltas[k] = _body_tuck(model, bodies[name], [dl[k] for dl in deltas], bases, worn, sk, shown)
+                body_deltas[k] = _body_tuck(model, bodies[name], [dl[k] for dl in deltas], bases, worn, sk, shown,
+                                            base)
 
         per_pose(one_pose, list(range(len(poses))))
         for d in (*deltas, *([body_deltas] if body_deltas is not None else [])):
@@ -349,13 +357,17 @@ def _shown(avatar: dict[str, Any], nb: int) -> np.ndarray:
 
 
 def _body_tuck(model: BodyModel, posed: correctives.PosedBody, deltas: list[np.ndarray], bases: list[GarmentBasis],
-               worn: list[np.ndarray], sk: list[tuple[np.ndarray, np.ndarray]], shown: np.ndarray) -> np.ndarray:
+               worn: list[np.ndarray], sk: list[tuple[np.ndarray, np.ndarray]], shown: np.ndarray,
+               base: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
     """The avatar's rest-space target (Vb, 3) float32 for one pose: the garments posed as the
-    page shows them (rest + their pose target ``deltas`` (M_i, 3), skinned) and
-    ``correctives.body_tucks`` of the drawn body vertices (``shown``) back under them."""
+    page shows them (rest + their pose target ``deltas`` (M_i, 3), skinned), and the look's
+    ``base`` layer (vertices, faces, skin) posed, and ``correctives.body_tucks`` of the drawn
+    body vertices (``shown``) back under them."""
     nb = model.n_body_vertices
     G = posed.transforms
     garments = [(lbs.skin(np.asarray(v, np.float64) + d, G, *s), b.faces) for v, d, s, b in zip(worn, deltas, sk, bases)]
+    if base is not None:
+        garments.append((lbs.skin(np.asarray(base[0], np.float64), G, *base[2]), base[1]))
     d = correctives.body_tucks(posed, garments, shown, correctives.body_smoother(model), model.body_faces)
     return correctives.to_rest(d, G, model.lbs_indices[:nb], model.lbs_weights[:nb])
 
