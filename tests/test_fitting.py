@@ -882,6 +882,39 @@ def test_a_scan_without_its_head_leaves_the_head_to_the_prior(model):
     assert before["p2s_mm"] > 10.0 and before["stature_err_cm"] < -10.0, before
 
 
+@pytest.mark.slow
+def test_long_hair_down_the_back_is_not_taken_for_skin(model):
+    """Issue 12, a bare scanner scan with long hair down the back to the shoulder blades (bench
+    condition ``long_hair``): held-out avatar 37 at 20 degrees. With only the head and neck
+    treated as possibly hair, the upper back grew out into the hair (0.95 mm); with the upper
+    back among where hair may hang (``FitParams.hair_back``) the fit is as good as without
+    hair (0.44 mm; the same scan without hair 0.40 mm)."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 1, "long_hair", deg=20.0)
+    assert (~scan.point_is_body).sum() > 300  # the hair is there
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    fit = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False), surface)
+    before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                                                 params=BF.BEFORE_PARAMS("hair_back")), surface)
+    assert fit["p2s_mm"] < 0.7 and abs(fit["stature_err_cm"]) < 0.5, fit
+    assert before["p2s_mm"] > 1.5 * fit["p2s_mm"], (before["p2s_mm"], fit["p2s_mm"])
+
+
+def test_hair_back_region_is_the_upper_back(model):
+    """``fitting.hair_back_region`` on the rest template: vertices on the back of the torso
+    (facing backwards, behind the torso's middle), between the shoulders, above the middle of
+    the back, none of the scalp's."""
+    rig = F._rig(model)
+    m = rig.hair_back
+    V = rig.mean
+    head = rig.jmean[BONES.index("head")]
+    assert 100 < m.sum() < 0.05 * len(m) and not (m & rig.scalp).any()
+    torso = np.isin(np.argmax(rig.W, axis=1), [BONES.index("spine"), BONES.index("chest")])
+    assert (V[m, 2] < np.median(V[torso, 2])).all() and (vertex_normals(V, rig.faces)[m, 2] < 0).all()
+    assert (V[m, 1] > head[1] - F.HAIR_BACK_BELOW_M).all() and V[m, 1].max() < head[1]
+
+
 def test_absent_bones_take_no_pairs(model):
     """``FitParams.absent_bones``: Alg. 1's pairs (``_correspondences``) leave out every template
     vertex the absent bone moves most, and only those."""

@@ -245,6 +245,22 @@ def test_synthetic_degradations(model):
     body = cKDTree(scan.true_posed[: len(owner)])
     on_neck = [int((owner[body.query(X)[1]] == BONES.index("neck")).sum()) for X in (P, H)]
     assert on_neck[1] > 0.5 * on_neck[0] > 0, on_neck  # most of the neck still there
+    # long hair: the skin under a curtain down the back (and only there) replaced by the hair's
+    # surface, new points that are not body points, off the skin, with faces
+    haired = SS.with_long_hair(scan)
+    L = haired.points_in_model_frame()
+    assert scan.point_is_body.all() and np.array_equal(haired.true_posed, scan.true_posed)
+    hair = ~haired.point_is_body
+    assert hair.sum() > 100 and haired.faces.max() == len(L) - 1 and (haired.faces >= (~hair).sum()).any()
+    head = scan.true_joints[BONES.index("head")]
+    assert L[hair, 1].min() > head[1] - SS.LONG_HAIR_BELOW_M - 0.01 and L[hair, 1].max() <= top + 0.01
+    skin = cKDTree(scan.true_posed[: model.n_body_vertices])
+    assert np.percentile(skin.query(L[hair])[0], 10) > 0.5 * SS.LONG_HAIR_THICK_M
+    dropped = np.ones(len(P), bool)
+    dropped[cKDTree(P).query(L[~hair])[1]] = False
+    assert dropped.sum() > 50 and (~hair).sum() == len(P) - dropped.sum()
+    assert (P[dropped, 1] > head[1] - SS.LONG_HAIR_BELOW_M).all()
+    assert (np.linalg.norm((P[dropped] - head)[:, [0, 2]], axis=1) < 0.25).all()
 
 
 def test_room_floor_wider_than_a_person_is_found_before_the_unit(model):

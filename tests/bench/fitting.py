@@ -152,6 +152,11 @@ CONDITIONS = (
     # (holes, the scanner's floor) and a person in a random MakeHuman suit, both without the head
     Condition("headless", False, False, degrade=("no_head", "holes", "scanner_floor"), before="headless"),
     Condition("headless_clothed", True, False, degrade=("no_head",), before="headless"),
+    # long hair down the back to the shoulder blades (synthetic_scans.with_long_hair) on bare
+    # scanner output (holes, a cut head top, the scanner's floor), fitted as bare: the same scans
+    # as scanner_minimal but for the hair
+    Condition("long_hair", False, False, degrade=("holes", "long_hair", "cut_head", "scanner_floor"),
+              before="hair_back"),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
@@ -192,7 +197,8 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     module data, stays) or ``alg1_outer`` (Alg. 1 with up to 10 outer iterations, not 3:
     ``FitParams(max_outer=10)``) or ``rim_reject`` (no pairs dropped at the holes' rims found on
     the scan, ``FitParams(rim_reject=False)``) or ``hair_region`` (a bare scan's scalp paired as
-    skin, ``FitParams(hair_region=False)``) or ``unseen_prior`` (bones in a hole not pulled to
+    skin, ``FitParams(hair_region=False)``) or ``hair_back`` (the upper back paired as skin on a
+    bare scan, ``FitParams(hair_back=False)``) or ``unseen_prior`` (bones in a hole not pulled to
     their rest posture, ``FitParams(unseen_prior=0)``) or ``headless`` (no second
     coarse fit with the head absent, ``FitParams(headless_check=False)``) or ``known`` (the same fit without the
     measurements given with ``--known``)."""
@@ -211,6 +217,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "alg1_outer": {"max_outer": 10},
         "rim_reject": {"rim_reject": False},
         "hair_region": {"hair_region": False},
+        "hair_back": {"hair_back": False},
         "unseen_prior": {"unseen_prior": 0.0},
         "headless": {"headless_check": False},
         "known": {},

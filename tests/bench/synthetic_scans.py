@@ -755,7 +755,8 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
 
 
 # -- what real scanners add and lose (issue 12) ------------------------------------------------
-DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair", "no_head")
+DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair", "no_head",
+                "long_hair")
 ROOM_FLOOR_HALF_M = 1.6  # the room floor's half width (metres)
 
 
@@ -868,6 +869,88 @@ def without_head(scan: SyntheticScan) -> SyntheticScan:
     return keep_points(scan, d > NO_HEAD_M)
 
 
+# long hair (``with_long_hair``): a curtain of hair hanging straight down from the back of the head
+# to LONG_HAIR_BELOW_M under the skull base (the head joint; about the shoulder blades), across
+# LONG_HAIR_HALF_WIDTH either side of the spine, LONG_HAIR_THICK_M out from the back-most skin over
+# each point (hanging hair bridges the nape's hollow)
+LONG_HAIR_BELOW_M = 0.25
+LONG_HAIR_HALF_WIDTH = 0.09
+LONG_HAIR_THICK_M = 0.012
+LONG_HAIR_BIN_M = 0.015  # the heightfield's cells (the body's vertices are ~1 cm apart)
+LONG_HAIR_HIDES_M = 0.03  # scan points this near the back-most skin under the hair are hidden by it
+
+
+def with_long_hair(scan: SyntheticScan) -> SyntheticScan:
+    """Long hair down the back, which a body scan of a bare person shows over the nape and the
+    upper back: the skin under the curtain (within LONG_HAIR_HIDES_M of the back-most skin) is
+    dropped and the hair's surface added, sampled at the spacing of the scan's body points with 1
+    mm of noise from its own generator (the bench's random draws after it stay those of the same
+    scan without hair; a mesh gets its grid's triangles). The curtain is a heightfield in the body's frame (the
+    shoulders' line across, model +Y up, backwards): over each cell, the back-most skin at or
+    above it, plus LONG_HAIR_THICK_M. Its points are not body points."""
+    from dataclasses import replace
+
+    from scipy.spatial import cKDTree
+
+    from service.model.body import BONES, load_body_model
+
+    J = scan.true_joints
+    up = np.array([0.0, 1.0, 0.0])
+    u = J[BONES.index("upper_arm_l")] - J[BONES.index("upper_arm_r")]
+    u = u - up * u[1]
+    u /= np.linalg.norm(u)
+    back = np.cross(up, u)  # the model faces +Z with its left arm at +X: back = -Z at rest
+    h = J[BONES.index("head")]
+    B = scan.true_posed[: load_body_model().n_body_vertices] - h
+    a, y, d = B @ u, B[:, 1], B @ back
+    top = float(y.max())
+    lo = -LONG_HAIR_BELOW_M
+    sel = (np.abs(a) <= LONG_HAIR_HALF_WIDTH) & (y >= lo) & (d > 0.0)
+    na = int(np.ceil(2 * LONG_HAIR_HALF_WIDTH / LONG_HAIR_BIN_M))
+    ny = int(np.ceil((top - lo) / LONG_HAIR_BIN_M))
+    ia = np.clip(((a[sel] + LONG_HAIR_HALF_WIDTH) / LONG_HAIR_BIN_M).astype(int), 0, na - 1)
+    iy = np.clip(((top - y[sel]) / LONG_HAIR_BIN_M).astype(int), 0, ny - 1)  # row 0 at the top
+    skin = np.full((ny, na), -np.inf)
+    np.maximum.at(skin, (iy, ia), d[sel])
+    hang = np.maximum.accumulate(skin, axis=0)  # hanging straight down: the back-most skin above
+    P = _model_points(scan) - h
+    pa, py, pd = P @ u, P[:, 1], P @ back
+    inside = (np.abs(pa) < LONG_HAIR_HALF_WIDTH) & (py >= lo) & (py <= top)
+    ja = np.clip(((pa + LONG_HAIR_HALF_WIDTH) / LONG_HAIR_BIN_M).astype(int), 0, na - 1)
+    jy = np.clip(((top - py) / LONG_HAIR_BIN_M).astype(int), 0, ny - 1)
+    under = inside & np.isfinite(hang[jy, ja]) & (pd > hang[jy, ja] - LONG_HAIR_HIDES_M)
+    # the hair's surface on a grid at the scan's spacing (its body points' median nearest-neighbour
+    # distance)
+    body = P if scan.point_is_body is None else P[scan.point_is_body]
+    spacing = float(np.median(cKDTree(body).query(body, k=2)[0][:, 1]))
+    rng = np.random.default_rng(len(scan.points))
+    scan = keep_points(scan, ~under)
+    ga = np.arange(-LONG_HAIR_HALF_WIDTH, LONG_HAIR_HALF_WIDTH + 1e-9, spacing)
+    gy = np.arange(top, lo - 1e-9, -spacing)
+    A, Y = np.meshgrid(ga, gy)
+    ka = np.clip(((A + LONG_HAIR_HALF_WIDTH) / LONG_HAIR_BIN_M).astype(int), 0, na - 1)
+    ky = np.clip(((top - Y) / LONG_HAIR_BIN_M).astype(int), 0, ny - 1)
+    D = hang[ky, ka] + LONG_HAIR_THICK_M + rng.normal(scale=0.001, size=A.shape)
+    ok = np.isfinite(D)
+    H = h + A[..., None] * u + Y[..., None] * up + np.where(ok, D, 0.0)[..., None] * back
+    ids = -np.ones(A.shape, np.int64)
+    ids[ok] = np.arange(int(ok.sum())) + len(scan.points)
+    faces = None
+    if scan.faces is not None:
+        c00, c01, c10, c11 = ids[:-1, :-1], ids[:-1, 1:], ids[1:, :-1], ids[1:, 1:]
+        quads = (c00 >= 0) & (c01 >= 0) & (c10 >= 0) & (c11 >= 0)
+        tri = np.concatenate([np.stack([c00[quads], c10[quads], c01[quads]], 1),
+                              np.stack([c01[quads], c10[quads], c11[quads]], 1)])
+        faces = np.concatenate([scan.faces, tri])
+    new = H[ok]
+    normals = None
+    if scan.normals is not None:
+        normals = np.concatenate([scan.normals, np.tile(back @ _model_rotation(scan), (len(new), 1))])
+    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(new), bool)])
+    return replace(scan, points=np.concatenate([scan.points, _from_model(scan, new)]), normals=normals,
+                   faces=faces, point_is_body=is_body)
+
+
 def _floor_grid(centre: np.ndarray, half: float, spacing: float, rng: np.random.Generator,
                 disc: bool) -> tuple[np.ndarray, np.ndarray]:
     """Floor points (N, 3) on y = 0 around ``centre`` (x, z) jittered on a grid, and their
@@ -939,6 +1022,8 @@ def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.ran
             scan = without_hair_returns(scan)
         elif k == "no_head":
             scan = without_head(scan)
+        elif k == "long_hair":
+            scan = with_long_hair(scan)
         else:
             raise ValueError(f"unknown degradation {k!r}; expected one of {DEGRADATIONS}")
     return scan
