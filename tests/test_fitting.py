@@ -917,6 +917,33 @@ def test_hair_back_region_is_the_upper_back(model):
     assert (V[m, 1] > head[1] - F.HAIR_BACK_BELOW_M).all() and V[m, 1].max() < head[1]
 
 
+@pytest.mark.slow
+def test_a_dense_scan_is_fitted_on_a_random_share_of_its_points(model):
+    """A body scanner's mesh has 100k-1M vertices; the fit takes ``FitParams.max_points`` of
+    them at random once the floor is gone (a 450k-point mesh: 14.4 s -> 8.0 s). Here a
+    36k-point bare scanner mesh fitted on 12k of its points is as good as fitted on all."""
+    import dataclasses
+
+    from tests.bench import fitting as BF
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 1)[0]
+    scan = SS.make_scan(model, np.random.default_rng([BF.SEED, person["index"]]), person["weights"], person["gender"],
+                        clothed=False, point_cloud=False, n_points=36_000, noise_mm=1.0, max_pose_deg=20, anatomical=True)
+    scan = SS.degrade(scan, ("holes", "cut_head", "scanner_floor"), np.random.default_rng(3))
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    out = {}
+    for cap in (12_000, None):
+        result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                            params=dataclasses.replace(F.FitParams(), max_points=cap))
+        out[cap] = (BF.evaluate(model, scan, result, surface), result.stats["points"], result.kept)
+    (few, p_few, kept_few), (full, p_full, kept_full) = out[12_000], out[None]
+    assert p_few["fitted"] == 12_000 and p_full["fitted"] == p_few["scan"] == p_full["scan"] > 30_000
+    assert np.array_equal(kept_few, kept_full) and (~kept_few).sum() > 1000  # the floor, dropped either way
+    assert few["p2s_mm"] < 1.0 and abs(few["p2s_mm"] - full["p2s_mm"]) < 0.3, (few["p2s_mm"], full["p2s_mm"])
+    assert abs(few["stature_err_cm"]) < 0.6, few
+
+
 def test_absent_bones_take_no_pairs(model):
     """``FitParams.absent_bones``: Alg. 1's pairs (``_correspondences``) leave out every template
     vertex the absent bone moves most, and only those."""
