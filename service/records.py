@@ -64,6 +64,7 @@ class FitStats(BaseModel):
     outer_iterations: int
     inner_iterations: int
     seconds: float
+    points_fitted: int | None = None  # the scan's points the fit used (None: fitted before 2026-11-27)
 
 
 class Customer(Record):

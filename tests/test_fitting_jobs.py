@@ -107,6 +107,7 @@ def _check_ready_customer(server: Server, cid: str, scan: S.SyntheticScan, unit:
     assert list(c["pose"]) == list(BONES) and all(len(v) == 3 and all(map(np.isfinite, v)) for v in c["pose"].values())
     assert len(c["translation"]) == 3 and c["unit"] == unit and c["up"] == scan.up
     assert 0 <= c["residual_mm"] < 30 and c["fit"]["outer_iterations"] >= 1 and c["fit"]["seconds"] > 0
+    assert 0.9 * c["scan"]["points"] <= c["fit"]["points_fitted"] <= c["scan"]["points"], (c["fit"], c["scan"])
     assert c["scan"]["points"] == len(scan.points) or c["scan"]["faces"] is not None
     # the avatar and a try-on work like any customer's
     r = server.client.get(f"/v1/customers/{cid}/avatar.glb")
@@ -246,6 +247,34 @@ def test_a_scan_without_its_head_is_fitted_and_said(server: Server, scans: dict,
     assert c["status"] == "ready" and "head" in c["unseen"], c
     assert abs(c["measurements"]["height_cm"] - scan.measurements["height_cm"]) < 2.0, \
         (c["measurements"]["height_cm"], scan.measurements["height_cm"])
+
+
+def test_a_dense_scanner_mesh_is_fitted(tmp_path: Path, model: BodyModel) -> None:
+    """Issue 12: a body scanner's mesh is dense (here ~240k vertices after 8 holes, the head's
+    top cut and the scanner's floor, a binary PLY in millimetres, Z up). Over HTTP on the
+    embedded backend it becomes a ready customer at the person's height, fitted on a random
+    100,000 of its points (``FitParams.max_points``; ``fit.points_fitted``)."""
+    from tests.bench.common import heldout_people
+
+    person = heldout_people(model, 3)[2]
+    scan = S.make_scan(model, np.random.default_rng([5, person["index"]]), person["weights"], person["gender"],
+                       clothed=False, point_cloud=False, n_points=240_000, noise_mm=1.0, max_pose_deg=15,
+                       anatomical=True, unit="mm", up="+z")
+    scan = S.degrade(scan, ("holes", "cut_head", "scanner_floor"), np.random.default_rng(3))
+    assert len(scan.points) > 200_000
+    data = S.scan_file_bytes(scan, "ply")
+    with run_server(tmp_path, "embedded") as server:  # the default upload limit (50 MB)
+        server.client.headers["X-API-Key"] = RETAILERS["acme"]  # its customers and jobs open with it
+        r = _post_scan(server, "dense.ply", data, clothed="false")
+        assert r.status_code == 202, (len(data), r.text)
+        cid = r.json()["id"]
+        states = _wait_job(server, r.json()["job"]["url"])
+        assert states[-1]["status"] == "done", states[-1]
+        c = server.client.get(f"/v1/customers/{cid}").json()
+    assert c["status"] == "ready" and c["unit"] == "mm" and c["up"] == "+z" and c["editable"], c
+    assert abs(c["measurements"]["height_cm"] - scan.measurements["height_cm"]) < 1.0, \
+        (c["measurements"]["height_cm"], scan.measurements["height_cm"])
+    assert c["fit"]["points_fitted"] == 100_000 and c["fit"]["seconds"] < 60, c["fit"]
 
 
 def test_scan_customer_end_to_end(server: Server, scans: dict, model: BodyModel,

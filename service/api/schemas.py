@@ -115,6 +115,9 @@ class FitStats(BaseModel):
     outer_iterations: int
     inner_iterations: int
     seconds: float = Field(description="Fitting time on the worker")
+    points_fitted: int | None = Field(
+        default=None, description="The scan's points the fit used once its floor and stray clusters were dropped: "
+        "all of them, or 100,000 drawn at random from a denser scan")
 
 
 class ScanInfo(BaseModel):

@@ -331,7 +331,7 @@ class CustomerService:
             "partial": bool(fit.partial), "coverage": {k: float(v) for k, v in fit.coverage.items()},
             "unseen": [str(b) for b in fit.unseen],
             "fit": FitStats(outer_iterations=int(fit.outer_iterations), inner_iterations=int(fit.inner_iterations),
-                            seconds=round(float(fit.seconds), 3)),
+                            seconds=round(float(fit.seconds), 3), points_fitted=int(fit.stats["points"]["fitted"])),
         })
 
     def _fail(self, record: Customer, message: str, progress: Progress) -> dict[str, Any]:
