@@ -391,34 +391,40 @@ def test_body_tucks_pull_skin_showing_through_the_cloth_under_it() -> None:
     assert not C.body_tucks(dataclasses.replace(posed), [(cloth + [0, 0, 0.01], CF)], shown, smoother, BF).any()
 
 
+def drawn_pokes(model, body, glb: dict, mesh: dict, pose: np.ndarray, name: str, tucked: bool) -> int:
+    """Body vertices drawn by the avatar (``body``'s, the first mesh of ``glb``, read_glb) and
+    poking through ``mesh`` (with its own ``pose:<name>`` target, if it has one) in ``pose``,
+    the avatar's own target for it applied or not (``tucked``); counted exactly
+    (:func:`exact_pokes`)."""
+    import dataclasses
+
+    from service.model.geometry import vertex_normals
+
+    av = glb["meshes"][0]
+    shown = np.zeros(model.n_body_vertices, bool)
+    shown[np.asarray(av["indices"]).ravel()] = True
+    posed = C.posed_body(model, body.vertices, pose)
+    tuck = av["targets"][av["target_names"].index(f"pose:{name}")] if tucked else 0.0
+    pb = L.skin(np.asarray(av["positions"], np.float64) + tuck, posed.transforms, av["joints"], av["weights"])
+    pp = dataclasses.replace(posed, vertices=pb, normals=vertex_normals(pb, model.body_faces),
+                             ids=posed.ids[shown[posed.ids]])
+    own = mesh["targets"][mesh["target_names"].index(f"pose:{name}")] if mesh.get("targets") is not None else 0.0
+    pv = L.skin(np.asarray(mesh["positions"], np.float64) + own, posed.transforms, mesh["joints"], mesh["weights"])
+    return exact_pokes(pv, np.asarray(mesh["indices"]), pp)
+
+
 def test_body_tucks_hide_the_skin_showing_through_an_outfit_in_the_page_poses(model, setup) -> None:
     """The heavy man in the blouse under the jacket (``outfit.glb`` with pose targets): body
     vertices drawn and poking through a garment, counted exactly over the page's poses with
     the garments' targets, are at most a fifth with the avatar's own targets (body_tucks)
     than without (measured: 36 -> 0)."""
-    import dataclasses
-
-    from service.model.geometry import vertex_normals
-
     bases, body, poses = setup
     worn = [(record("blouse", 0), bases["pinstripe-blouse"]), (record("jacket", 1), bases["casual-jacket"])]
     out = read_glb(scenes.outfit_glb(model, body, worn, None, with_avatar=True, poses=poses))
-    av, garments = out["meshes"][0], out["meshes"][1:]
-    nb = model.n_body_vertices
-    shown = np.zeros(nb, bool)
-    shown[np.asarray(av["indices"]).ravel()] = True
     counts = np.zeros(2, int)
     for name in poses:
-        posed = C.posed_body(model, body.vertices, poses[name])
-        k = av["target_names"].index(f"pose:{name}")
-        for c, tuck in enumerate((0.0, av["targets"][k])):
-            pb = L.skin(np.asarray(av["positions"], np.float64) + tuck, posed.transforms, av["joints"], av["weights"])
-            pp = dataclasses.replace(posed, vertices=pb, normals=vertex_normals(pb, model.body_faces),
-                                     ids=posed.ids[shown[posed.ids]])
-            for g in garments:
-                pv = L.skin(np.asarray(g["positions"], np.float64) + g["targets"][g["target_names"].index(f"pose:{name}")],
-                            posed.transforms, g["joints"], g["weights"])
-                counts[c] += exact_pokes(pv, np.asarray(g["indices"]), pp)
+        for c, tucked in enumerate((False, True)):
+            counts[c] += sum(drawn_pokes(model, body, out, g, poses[name], name, tucked) for g in out["meshes"][1:])
     print("skin through the outfit without / with the body's targets:", counts)
     assert counts[0] >= 10 and counts[1] <= 0.2 * counts[0], counts
 
@@ -430,27 +436,13 @@ def test_body_tucks_hide_the_skin_showing_through_the_underwear(model, setup) ->
     them. The trunks are among what the body's targets tuck the skin under (measured: 12 body
     vertices through them without the body's targets, 0 with them; 12 with them too before the
     trunks were among what they tuck under)."""
-    import dataclasses
-
     from service.application import look as LK
-    from service.model.geometry import vertex_normals
 
     bases, body, poses = setup
     out = read_glb(scenes.outfit_glb(model, body, [(record("jacket", 0), bases["casual-jacket"])], None,
                                      with_avatar=True, look=LK.resolve("male"), poses=poses))
-    av = out["meshes"][0]
     trunks = next(m for m in out["meshes"] if m["name"] == "underwear")
-    nb = model.n_body_vertices
-    shown = np.zeros(nb, bool)
-    shown[np.asarray(av["indices"]).ravel()] = True
-    posed = C.posed_body(model, body.vertices, poses["walking"])
-    pv = L.skin(np.asarray(trunks["positions"], np.float64), posed.transforms, trunks["joints"], trunks["weights"])
-    counts = []
-    for tuck in (0.0, av["targets"][av["target_names"].index("pose:walking")]):
-        pb = L.skin(np.asarray(av["positions"], np.float64) + tuck, posed.transforms, av["joints"], av["weights"])
-        pp = dataclasses.replace(posed, vertices=pb, normals=vertex_normals(pb, model.body_faces),
-                                 ids=posed.ids[shown[posed.ids]])
-        counts.append(exact_pokes(pv, np.asarray(trunks["indices"]), pp))
+    counts = [drawn_pokes(model, body, out, trunks, poses["walking"], "walking", tucked) for tucked in (False, True)]
     assert counts[0] >= 5 and counts[1] == 0, counts
 
 

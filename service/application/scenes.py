@@ -365,7 +365,8 @@ def _body_tuck(model: BodyModel, posed: correctives.PosedBody, deltas: list[np.n
     body vertices (``shown``) back under them."""
     nb = model.n_body_vertices
     G = posed.transforms
-    garments = [(lbs.skin(np.asarray(v, np.float64) + d, G, *s), b.faces) for v, d, s, b in zip(worn, deltas, sk, bases)]
+    garments = [(lbs.skin(np.asarray(v, np.float64) + d, G, *s), b.faces)
+                for v, d, s, b in zip(worn, deltas, sk, bases)]
     if base is not None:
         garments.append((lbs.skin(np.asarray(base[0], np.float64), G, *base[2]), base[1]))
     d = correctives.body_tucks(posed, garments, shown, correctives.body_smoother(model), model.body_faces)
