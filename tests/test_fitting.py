@@ -921,7 +921,8 @@ def test_hair_back_region_is_the_upper_back(model):
 def test_a_dense_scan_is_fitted_on_a_random_share_of_its_points(model):
     """A body scanner's mesh has 100k-1M vertices; the fit takes ``FitParams.max_points`` of
     them at random once the floor is gone (a 450k-point mesh: 14.4 s -> 8.0 s). Here a
-    36k-point bare scanner mesh fitted on 12k of its points is as good as fitted on all."""
+    36k-point bare scanner mesh fitted on 12k of its points is as good as fitted on all; as a
+    point cloud without normals, they are estimated on the 12k."""
     import dataclasses
 
     from tests.bench import fitting as BF
@@ -942,6 +943,11 @@ def test_a_dense_scan_is_fitted_on_a_random_share_of_its_points(model):
     assert np.array_equal(kept_few, kept_full) and (~kept_few).sum() > 1000  # the floor, dropped either way
     assert few["p2s_mm"] < 1.0 and abs(few["p2s_mm"] - full["p2s_mm"]) < 0.3, (few["p2s_mm"], full["p2s_mm"])
     assert abs(few["stature_err_cm"]) < 0.6, few
+    # the same points as a bare cloud (no faces, no normals): the normals estimated on the share
+    result = F.fit_body(model, scan.points, None, None, clothed=False,
+                        params=dataclasses.replace(F.FitParams(), max_points=12_000))
+    cloud = BF.evaluate(model, scan, result, surface)
+    assert result.stats["points"]["fitted"] == 12_000 and cloud["p2s_mm"] < 1.5, (result.stats["points"], cloud)
 
 
 def test_absent_bones_take_no_pairs(model):

@@ -270,7 +270,8 @@ class FitParams:
     # refinement before Alg. 1: the same parametric ICP on more points with every component
     refine_points: int = 8000
     # a dense scan (a body scanner's mesh: 100k-1M vertices) is fitted on this many of its points,
-    # drawn at random once its floor and strays are gone and its normals made (None: all). The
+    # drawn at random once its floor and strays are gone (a mesh's normals from the whole mesh, a
+    # point cloud's estimated on the share: 4.5 s for 450k points) (None: all). The
     # bench's scans have 12.5k; a 450k-point scanner mesh took 14.4 s (10.7 s initialising, 2.9 s
     # of it finding holes' rims), a 192k one 8.1 s
     max_points: int | None = 100_000
@@ -1484,6 +1485,11 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             pts_m, normals, faces, cleaning = SC.clean_scan(pts_m, normals, faces)
     if params.person_check:
         check_person_before(pts_m)
+    n_scan, pick = len(pts_m), None
+    if params.max_points is not None and n_scan > params.max_points:  # a dense scan: a random share
+        pick = np.sort(np.random.default_rng([seed, 7]).choice(n_scan, size=params.max_points, replace=False))
+        if faces is None or not len(faces):  # a point cloud: its normals (if estimated) from the share
+            pts_m, normals, pick = pts_m[pick], None if normals is None else np.asarray(normals)[pick], None
     if normals is None:
         if faces is not None and len(faces):
             nrm = vertex_normals(pts_m, np.asarray(faces, np.int64))
@@ -1492,11 +1498,9 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     else:
         nrm = np.asarray(normals, np.float64)
         nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    nrm = orient_outward(pts_m, nrm)
-    n_scan = len(pts_m)
-    if params.max_points is not None and n_scan > params.max_points:  # a dense scan: a random share
-        pick = np.sort(np.random.default_rng([seed, 7]).choice(n_scan, size=params.max_points, replace=False))
+    if pick is not None:  # a mesh: its normals from the whole mesh, then the share
         pts_m, nrm = pts_m[pick], nrm[pick]
+    nrm = orient_outward(pts_m, nrm)
     rig = _rig(model)
     rng = np.random.default_rng(seed)
     if clothed:  # hair is then clothes like the rest (FitParams.hair_region: bare scans)
