@@ -58,6 +58,7 @@ class ScanInfo(BaseModel):
     format: str
     points: int
     faces: int | None = None
+    points_uploaded: int | None = None  # the file's points when it was simplified to ``points``
 
 
 class FitStats(BaseModel):

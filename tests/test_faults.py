@@ -200,12 +200,13 @@ def _text(rows: np.ndarray, fmt: str) -> bytes:
 
 
 def big_uploads() -> list[tuple[str, bytes]]:
-    """Six ~45 MB scans: three OBJ meshes just under the 500,000-point limit (~1 M faces, 9
-    decimals) and three XYZ clouds of 1.5 M points (over it)."""
+    """Six ~45 MB scans: three OBJ meshes of 500,000 vertices (~1 M faces, 9 decimals; kept
+    simplified to ``KEPT_SCAN_POINTS``) and three XYZ clouds of 2.4 M points in millimetres
+    (over the 2,000,000-point limit)."""
     pts, faces = _person_tube(1000, 500)
     obj = _text(pts, "v %.9f %.9f %.9f") + _text(faces + 1, "f %d %d %d")
-    cloud = np.random.default_rng(1).uniform(size=(1_500_000, 3)) * [0.4, 1.7, 0.3]
-    xyz = _text(cloud, "%.8f %.8f %.8f")
+    cloud = np.random.default_rng(1).uniform(size=(2_400_000, 3)) * [400, 1700, 300]
+    xyz = _text(cloud, "%.1f %.1f %.1f")
     return [("scan.obj", obj)] * 3 + [("cloud.xyz", xyz)] * 3
 
 

@@ -196,17 +196,17 @@ def test_redis_outage_is_503_then_recovers(tmp_path: Path) -> None:
 
 # -- point counts before parsing --------------------------------------------------------------
 def test_point_counts_refused_before_parsing() -> None:
-    n = 600_001
+    n = 2_000_001
     xyz = b"0.1 0.2 0.3\n" * n
     assert declared_size(xyz, "xyz") == (n, 0)
-    ply = (b"ply\nformat binary_little_endian 1.0\nelement vertex 900000\nproperty float x\nproperty float y\n"
+    ply = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3000000\nproperty float x\nproperty float y\n"
            b"property float z\nend_header\n")  # no data at all: refused on its header alone
     obj = b"v 0 0 0\n" * n
     for data, name in ((xyz, "a.xyz"), (ply, "a.ply"), (obj, "a.obj")):
         t0 = time.perf_counter()
-        with pytest.raises(ScanError, match="at most 500000"):
+        with pytest.raises(ScanError, match="at most 2000000"):
             read_mesh_file(data, name)
         assert time.perf_counter() - t0 < 0.5, name
-    faces = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 3\n" * 2_000_001
+    faces = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 3\n" * 8_000_001
     with pytest.raises(ScanError, match="faces"):
         read_mesh_file(faces, "f.obj")

@@ -15,7 +15,9 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
+from service.model.geometry import cluster_vertices, closest_points_on_mesh, simplify
 from service.model.mesh_io import (
+    KEPT_SCAN_POINTS,
     MAX_SCAN_POINTS,
     MIN_SCAN_POINTS,
     SCAN_TYPES,
@@ -26,6 +28,7 @@ from service.model.mesh_io import (
     scan_from_npz_bytes,
     scan_to_npz_bytes,
     scan_type,
+    simplified,
 )
 
 RADII = np.array([0.25, 0.85, 0.15])  # a 1.7 m tall ellipsoid
@@ -275,9 +278,9 @@ def test_gltf_scene_size_is_checked_before_loading():
     doc["scenes"] = [{"nodes": list(range(10_001))}]
     with pytest.raises(ScanError, match="nodes"):
         read_scan(json.dumps(doc).encode(), "many.gltf")
-    doc["nodes"], doc["scenes"] = doc["nodes"][:2000], [{"nodes": list(range(2000))}]  # 1.3M instanced points
+    doc["nodes"], doc["scenes"] = doc["nodes"][:10_000], [{"nodes": list(range(10_000))}]  # 6.4M instanced points
     t0 = time.perf_counter()
-    with pytest.raises(ScanError, match="at most 500000"):
+    with pytest.raises(ScanError, match="at most 2000000"):
         read_scan(json.dumps(doc).encode(), "instances.gltf")
     assert time.perf_counter() - t0 < 1.0
 
@@ -379,7 +382,7 @@ def test_point_count_limits(tmp_path):
     with pytest.raises(ScanError, match="at most 500"):
         read_scan(*write(tmp_path, "c.xyz", "".join(f"{a} {b} {c}\n" for a, b, c in ellipsoid_points(700))),
                   max_points=500)
-    assert MAX_SCAN_POINTS == 500_000 and MIN_SCAN_POINTS == 500
+    assert MAX_SCAN_POINTS == 2_000_000 and KEPT_SCAN_POINTS == 250_000 and MIN_SCAN_POINTS == 500
 
 
 def test_face_index_out_of_range(tmp_path):
@@ -509,3 +512,68 @@ def test_npz_round_trip(tmp_path):
     for bad in (b"", b"not an npz", scan_to_npz_bytes(cloud)[:50]):
         with pytest.raises(ValueError):
             scan_from_npz_bytes(bad)
+
+
+# -- dense scans simplified (issue 12: a body scanner's raw mesh has 0.2-2 M vertices) -----------
+def _cluster_reference(vertices, faces, h, offset):
+    """cluster_vertices, slowly: a dict of cells, each cell's member nearest to its mean, then
+    the faces mapped, collapsed ones dropped, repeats (as vertex sets) dropped in order."""
+    cells: dict = {}
+    for i, v in enumerate(vertices):
+        cells.setdefault(tuple(np.floor((v - offset) / h).astype(int)), []).append(i)
+    rep_of, rep = {}, {}
+    for key, members in cells.items():
+        mean = vertices[members].mean(0)
+        best = min(members, key=lambda i: (float(((vertices[i] - mean) ** 2).sum()), i))
+        for i in members:
+            rep_of[i] = key
+        rep[key] = best
+    out, seen = [], set()
+    for f in faces:
+        keys = [rep_of[int(i)] for i in f]
+        if len(set(keys)) < 3 or frozenset(keys) in seen:
+            continue
+        seen.add(frozenset(keys))
+        out.append([rep[k] for k in keys])
+    return out
+
+
+def test_vertex_clustering_against_a_slow_reference():
+    m = trimesh.creation.icosphere(subdivisions=3)
+    V = m.vertices * [0.3, 0.8, 0.2] + [0.05, 0.9, 0.0]
+    for h, off in ((0.05, np.zeros(3)), (0.12, np.array([0.013, 0.07, 0.031]))):
+        keep, F = cluster_vertices(V, m.faces, h, off)
+        got = [list(keep[f]) for f in F]  # faces as original vertex ids, in order
+        assert got == _cluster_reference(V, m.faces, h, off)
+        assert len(set(keep)) == len(keep) and set(keep) == set(np.unique(np.array(got)))
+        cloud, none = cluster_vertices(V, None, h, off)  # a cloud: one point per occupied cell
+        assert none is None and len(cloud) == len({tuple(np.floor((v - off) / h).astype(int)) for v in V})
+
+
+def test_simplify_brings_a_dense_mesh_or_cloud_under_the_cap_on_its_own_surface():
+    m = trimesh.creation.icosphere(subdivisions=6)  # 40,962 vertices, radius 1
+    V = m.vertices * [0.25, 0.85, 0.15]
+    keep, F = simplify(V, m.faces, 5_000)
+    assert 0.8 * 5_000 <= len(keep) <= 5_000, len(keep)  # near the cap, never over it
+    assert F.min() == 0 and F.max() == len(keep) - 1 and len(F) >= 1.8 * len(keep)
+    assert len(np.unique(keep)) == len(keep) and keep.min() >= 0 and keep.max() < len(V)  # the file's own points
+    _, q, _ = closest_points_on_mesh(V, V[keep], F)  # the dense surface is within a cell of it
+    assert np.linalg.norm(V - q, axis=1).max() < 0.01
+    cloud, none = simplify(V, None, 5_000)
+    assert none is None and 0.8 * 5_000 <= len(cloud) <= 5_000
+    whole, same = simplify(V, m.faces, len(V))  # small enough: as it is
+    assert np.array_equal(whole, np.arange(len(V))) and np.array_equal(same, m.faces)
+
+
+def test_a_dense_scan_is_kept_simplified_with_its_own_normals(tmp_path):
+    m = trimesh.creation.icosphere(subdivisions=5)  # 10,242 vertices
+    V = m.vertices * RADII + CENTER
+    scan = read_scan(*write(tmp_path, "dense.ply", trimesh.Trimesh(V, m.faces, process=False).export(file_type="ply")))
+    small = simplified(scan, 2_000)
+    assert small.source_points == len(scan.points) == 10_242 and len(small.points) <= 2_000
+    assert small.kind == "ply" and small.faces is not None
+    idx = cKDTree(scan.points).query(small.points)[1]
+    assert np.array_equal(scan.points[idx], small.points) and np.array_equal(scan.normals[idx], small.normals)
+    assert simplified(scan, 20_000) is scan and scan.source_points is None
+    round_trip = scan_from_npz_bytes(scan_to_npz_bytes(small))
+    assert np.array_equal(round_trip.faces, small.faces) and len(round_trip.points) == len(small.points)

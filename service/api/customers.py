@@ -21,6 +21,7 @@ from service.application import poses as _poses
 from service.application.errors import Conflict, Invalid, NotFound
 from service.application.uploads import (KNOWN_FIELD_DOC, KNOWN_FIELDS, SCAN_FORMATS, parse_bool, parse_gender,
                                          parse_known_measurements)
+from service.model.mesh_io import KEPT_SCAN_POINTS, MAX_SCAN_POINTS
 from service.records import Customer
 
 router = APIRouter(tags=["customers"])
@@ -46,7 +47,9 @@ CUSTOMER_BODY = {
                                  "description": "An avatar mesh in the template topology (/v1/body-model/"
                                                 "template.obj: the body or full vertex count; OBJ/PLY/GLB) -> "
                                                 "201, ready; or any other 3D scan, clothed avatar or point "
-                                                f"cloud ({SCAN_FORMATS}; at most 500,000 points) -> 202, "
+                                                f"cloud ({SCAN_FORMATS}; at most {MAX_SCAN_POINTS:,} points, more "
+                                                f"than {KEPT_SCAN_POINTS:,} simplified to that by vertex "
+                                                "clustering) -> 202, "
                                                 "fitted by a job. Any unit (m, cm, mm), any up axis"},
                         "gender": {"type": "string", "enum": ["female", "male"],
                                    "description": "Optional; estimated from the shape if omitted"},

@@ -12,6 +12,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from service.model.body import model_path
 from service.model.measurements import ATTRIBUTES
+from service.model.mesh_io import KEPT_SCAN_POINTS
 
 
 def _measurement_value(value: Any) -> float | str:
@@ -124,8 +125,12 @@ class ScanInfo(BaseModel):
     """The uploaded scan as read."""
 
     format: str = Field(description="obj, ply, stl, glb, gltf or xyz")
-    points: int = Field(description="Vertices or points used")
+    points: int = Field(description="Vertices or points used (kept for the fit and for editing)")
     faces: int | None = Field(description="Triangles (null: a point cloud)")
+    points_uploaded: int | None = Field(
+        default=None, description=f"The file's vertices or points when there were more than {KEPT_SCAN_POINTS:,}: the "
+                                  "scan was then simplified to `points` by vertex clustering (each kept point one of "
+                                  "the file's); null otherwise")
 
 
 class CustomerResponse(BaseModel):

@@ -142,7 +142,8 @@ class CustomerService:
         record, token = self._new(status="fitting", source="scan", owner=owner, gender_given=gender,
                                   clothed=bool(clothed), entered=dict(known) if known else None,
                                   scan=ScanInfo(format=scan.kind, points=int(len(scan.points)),
-                                                faces=None if scan.faces is None else int(len(scan.faces))))
+                                                faces=None if scan.faces is None else int(len(scan.faces)),
+                                                points_uploaded=scan.source_points))
         cid = record.id
         job_id = fit_job_id(cid)
         record = record.model_copy(update={"job": JobRef(id=job_id, url=f"/v1/jobs/{job_id}")})

@@ -46,7 +46,8 @@ BodyUpload = TemplateAvatar | Scan
 def read_body_upload(model: BodyModel, data: bytes, filename: str | None, loc: tuple = ("body", "mesh")) -> BodyUpload:
     """An uploaded body: a :class:`TemplateAvatar` when the mesh has the template's body or
     full vertex count (``/v1/body-model/template.obj``), else the :class:`Scan` to fit (any
-    topology, or a point cloud), checked to be person-sized in m, cm or mm."""
+    topology, or a point cloud), checked to be person-sized in m, cm or mm, and simplified to
+    ``mesh_io.KEPT_SCAN_POINTS`` when denser (``Scan.source_points``)."""
     counts = (model.n_body_vertices, int(model.mean.shape[0]))
     try:
         mesh = mesh_io.read_mesh_file(data, filename, keep_unused=True, min_points=MIN_GARMENT_VERTICES)
@@ -64,7 +65,7 @@ def read_body_upload(model: BodyModel, data: bytes, filename: str | None, loc: t
         hint = (f" (an avatar in the template topology has {counts[0]} vertices: /v1/body-model/template.obj)"
                 if mesh.faces is not None else "")
         raise Invalid(loc, f"{exc}{hint}") from exc
-    return scan
+    return mesh_io.simplified(scan)  # a body scanner's dense mesh: KEPT_SCAN_POINTS of it
 
 
 def read_garment_mesh(data: bytes, filename: str | None, loc: tuple, label: str) -> tuple[np.ndarray, np.ndarray]:
@@ -384,7 +385,7 @@ def read_draped_avatar(data: bytes, filename: str | None, garment: np.ndarray) -
     unit)."""
     loc = ("body", "avatar")
     try:
-        avatar = mesh_io.compact(mesh_io.read_mesh_file(data, filename, keep_unused=True))
+        avatar = mesh_io.simplified(mesh_io.compact(mesh_io.read_mesh_file(data, filename, keep_unused=True)))
         unit, scale = detect_unit(avatar.points, what="the avatar")
     except (ScanError, UnitError) as exc:
         raise Invalid(loc, f"avatar: {exc}") from exc

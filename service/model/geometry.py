@@ -356,3 +356,78 @@ def estimate_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
     vote = np.bincount(labels, weights=np.sign(out), minlength=n_comp)
     normals[vote[labels] < 0] *= -1.0
     return normals[rank]
+
+
+def _cell_keys(vertices: np.ndarray, h: float, offset: np.ndarray) -> np.ndarray:
+    """(V,) int64: the grid cell of voxel size ``h`` (grid shifted by ``offset`` (3,)) of each
+    vertex (V, 3), one integer per cell."""
+    k = np.floor((vertices - offset) / h).astype(np.int64)
+    k -= k.min(0)
+    return (k[:, 0] * (k[:, 1].max() + 1) + k[:, 1]) * (k[:, 2].max() + 1) + k[:, 2]
+
+
+def cluster_vertices(vertices: np.ndarray, faces: np.ndarray | None, h: float,
+                     offset: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertex clustering on a grid (Rossignac-Borrel): the vertices (V, 3) in each cell of
+    voxel size ``h`` (the grid shifted by ``offset`` (3,)) become one, the member nearest to
+    their mean (so it lies on the original surface). Returns (the representatives' indices
+    (C,) into ``vertices``, faces (F', 3) into the representatives: triangles that collapsed
+    or repeat dropped, representatives on no face left out; None for a point cloud, whose
+    every cell keeps its representative)."""
+    vertices = np.asarray(vertices, np.float64)
+    _, cid, counts = np.unique(_cell_keys(vertices, h, offset), return_inverse=True, return_counts=True)
+    cid = cid.reshape(-1)
+    C = len(counts)
+    mean = np.zeros((C, 3))
+    np.add.at(mean, cid, vertices)
+    mean /= counts[:, None]
+    d2 = np.einsum("ij,ij->i", vertices - mean[cid], vertices - mean[cid])
+    order = np.lexsort((d2, cid))  # within each cluster, nearest to the mean first
+    first = np.ones(len(order), bool)
+    first[1:] = cid[order][1:] != cid[order][:-1]
+    rep = np.empty(C, np.int64)
+    rep[cid[order][first]] = order[first]
+    if faces is None:
+        return rep, None
+    F = cid[np.asarray(faces, np.int64)]
+    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])]
+    S = np.sort(F, axis=1)
+    _, uniq = np.unique((S[:, 0] * C + S[:, 1]) * C + S[:, 2], return_index=True)
+    F = F[np.sort(uniq)]
+    used = np.unique(F)
+    remap = np.full(C, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return rep[used], remap[F]
+
+
+SIMPLIFY_PASSES = 6  # grid sizes ``simplify`` tries
+SIMPLIFY_AIM = 0.95  # ... each aimed at this share of its target (cells vary a little with h)
+
+
+def simplify(vertices: np.ndarray, faces: np.ndarray | None,
+             max_vertices: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """A dense mesh or point cloud (vertices (V, 3), faces (F, 3) or None) down to at most
+    ``max_vertices`` by :func:`cluster_vertices`, on the finest of SIMPLIFY_PASSES grids whose
+    occupied cells are no more than that (each voxel size from the last by the square root of
+    the ratio of its cells to SIMPLIFY_AIM of the target: a surface's cells go with 1 / h^2);
+    the grid sits at the points' lower corner (deterministic). Returns (indices (C,) of the
+    kept vertices, faces (F', 3) into them or None); a cloud or mesh already small enough
+    comes back whole, ``(arange(V), faces)``."""
+    vertices = np.asarray(vertices, np.float64)
+    n = len(vertices)
+    if n <= max_vertices:
+        return np.arange(n), None if faces is None else np.asarray(faces, np.int64)
+    lo = vertices.min(0)
+    h = float(np.ptp(vertices, axis=0).max()) / np.sqrt(max_vertices)  # max_vertices on a sheet
+    best, coarsest = None, h
+    for _ in range(SIMPLIFY_PASSES):
+        cells = len(np.unique(_cell_keys(vertices, h, lo)))
+        if cells <= max_vertices and (best is None or h < best):
+            best = h
+        coarsest = max(coarsest, h)
+        h *= np.sqrt(cells / (SIMPLIFY_AIM * max_vertices))
+    while best is None:  # not there yet (a very uneven cloud): coarser until it is
+        coarsest *= 1.5
+        if len(np.unique(_cell_keys(vertices, coarsest, lo))) <= max_vertices:
+            best = coarsest
+    return cluster_vertices(vertices, faces, best, lo)

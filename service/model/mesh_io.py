@@ -24,13 +24,17 @@ import numpy as np
 import trimesh
 from trimesh.grouping import unique_rows
 
-from service.model.geometry import estimate_normals, vertex_normals  # noqa: F401 (re-exported)
+from service.model.geometry import estimate_normals, simplify, vertex_normals  # noqa: F401 (re-exported)
 from service.model.gltf import FLOAT, _parse_glb
 from service.model.obj_io import ObjError, read_obj
 
 log = logging.getLogger("tryon.scan_io")
 
-MAX_SCAN_POINTS = 500_000  # vertices/points accepted
+MAX_SCAN_POINTS = 2_000_000  # vertices/points accepted from a file
+# ... and kept of a body scan (:func:`simplified`): a body scanner's raw mesh has 0.2-2 M
+# vertices, the fit draws 100,000 of them (``FitParams.max_points``), and the mesh kept for
+# editing costs ~1.5 kB of editor memory per vertex (930k vertices: 1.4 GB, an 11 s build)
+KEPT_SCAN_POINTS = 250_000
 MIN_SCAN_POINTS = 500
 SCAN_TYPES = ("obj", "ply", "stl", "glb", "gltf", "xyz")
 MAX_FACES_PER_POINT = 4  # a closed triangle mesh has ~2 faces per vertex; more is padding or an attack
@@ -56,6 +60,7 @@ class Scan:
     faces: np.ndarray | None
     normals: np.ndarray | None
     kind: str
+    source_points: int | None = None  # the file's point count, when :func:`simplified` kept fewer
 
     @property
     def is_point_cloud(self) -> bool:
@@ -437,6 +442,18 @@ def compact(scan: Scan, min_points: int = MIN_SCAN_POINTS) -> Scan:
     if len(out.points) < min_points:
         raise ScanError(f"the file has only {len(out.points)} points; at least {min_points} are needed")
     return out
+
+
+def simplified(scan: Scan, max_points: int = KEPT_SCAN_POINTS) -> Scan:
+    """The scan with at most ``max_points`` points: a denser one by vertex clustering
+    (``geometry.simplify``: each kept point is one of the scan's own, with its normal from
+    the whole scan), ``source_points`` its count before; a smaller one as it is."""
+    if len(scan.points) <= max_points:
+        return scan
+    keep, faces = simplify(scan.points, scan.faces, max_points)
+    return Scan(points=np.ascontiguousarray(scan.points[keep]), faces=None if faces is None else np.ascontiguousarray(faces),
+                normals=None if scan.normals is None else np.ascontiguousarray(scan.normals[keep]), kind=scan.kind,
+                source_points=int(len(scan.points)))
 
 
 def read_scan(data: bytes, filename: str | None = None, *, max_points: int = MAX_SCAN_POINTS) -> Scan:

@@ -68,7 +68,7 @@ from scipy.spatial import cKDTree
 from service.model import garment as G_
 from service.model import lbs, mhclo
 from tests.bench.common import shared_data_dir
-from service.model.geometry import vertex_normals
+from service.model.geometry import cluster_vertices, vertex_normals
 
 UNIT_SCALE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}  # file units per metre
 UPS = ("+y", "+z")
@@ -372,34 +372,6 @@ def _visible_faces(vertices: np.ndarray, faces: np.ndarray, face_label: np.ndarr
 
 
 # -- re-meshing ------------------------------------------------------------------------------
-def _cluster(vertices: np.ndarray, faces: np.ndarray, h: float, offset: np.ndarray):
-    """Vertex clustering on a grid of voxel size h: (vertex index of each cluster's
-    representative (C,), new faces (F', 3) into the clusters)."""
-    k = np.floor((vertices - offset) / h).astype(np.int64)
-    k -= k.min(0)
-    key = (k[:, 0] * (k[:, 1].max() + 1) + k[:, 1]) * (k[:, 2].max() + 1) + k[:, 2]
-    _, cid, counts = np.unique(key, return_inverse=True, return_counts=True)
-    C = len(counts)
-    mean = np.zeros((C, 3))
-    np.add.at(mean, cid, vertices)
-    mean /= counts[:, None]
-    d2 = np.einsum("ij,ij->i", vertices - mean[cid], vertices - mean[cid])
-    order = np.lexsort((d2, cid))  # within each cluster, nearest to the mean first
-    first = np.ones(len(order), bool)
-    first[1:] = cid[order][1:] != cid[order][:-1]
-    rep = np.empty(C, np.int64)
-    rep[cid[order][first]] = order[first]
-    F = cid[faces]
-    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])]
-    S = np.sort(F, axis=1)
-    _, uniq = np.unique((S[:, 0] * C + S[:, 1]) * C + S[:, 2], return_index=True)
-    F = F[np.sort(uniq)]
-    used = np.unique(F)
-    remap = np.full(C, -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return rep[used], remap[F]
-
-
 def remesh(vertices: np.ndarray, faces: np.ndarray, n_points: int, rng: np.random.Generator,
            face_labels: np.ndarray | None = None, iterations: int = 4):
     """Re-mesh by vertex clustering to about ``n_points`` vertices (module docstring, step 5):
@@ -414,7 +386,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_points: int, rng: np.rando
     offset = rng.uniform(0.0, 1.0, size=3)
     best = None
     for _ in range(iterations):
-        rep, F = _cluster(Vs, Fs, h, offset * h)
+        rep, F = cluster_vertices(Vs, Fs, h, offset * h)
         if best is None or abs(len(rep) - n_points) < abs(len(best[0]) - n_points):
             best = (rep, F)
         h *= np.sqrt(len(rep) / n_points)
