@@ -505,7 +505,8 @@ def _bench_scan(model, k: int, condition: str = "clothed_mesh", deg: float = 45.
                         noise_mm=BF.NOISE_MM, max_pose_deg=deg, clothes_dir=SS.default_clothes_dir(),
                         garments=None if cond.garments is None else cond.garments[person["gender"]],
                         anatomical=True, detail_mm=cond.detail_mm,
-                        detail_rng=np.random.default_rng([BF.SEED, 13, person["index"]]))
+                        detail_rng=np.random.default_rng([BF.SEED, 13, person["index"]]),
+                        finger_curl_deg=cond.finger_curl_deg)
     if cond.degrade:
         scan = SS.degrade(scan, cond.degrade, np.random.default_rng([BF.SEED, 11, person["index"]]))
     return person, scan
@@ -915,6 +916,46 @@ def test_hair_back_region_is_the_upper_back(model):
     torso = np.isin(np.argmax(rig.W, axis=1), [BONES.index("spine"), BONES.index("chest")])
     assert (V[m, 2] < np.median(V[torso, 2])).all() and (vertex_normals(V, rig.faces)[m, 2] < 0).all()
     assert (V[m, 1] > head[1] - F.HAIR_BACK_BELOW_M).all() and V[m, 1].max() < head[1]
+
+
+@pytest.mark.slow
+def test_relaxed_fingers_do_not_pull_the_body(model):
+    """Issue 12, real hands: a scanned person's fingers are curled (bench condition
+    ``relaxed_hands``: 70 degrees towards the palm, bare scanner output, 20 degrees; held-out
+    avatar 37), which the model's bones cannot follow, and the hands hold 24 % of the template's
+    vertices. With every vertex alike (``finger_scale`` None) the fingers pulled the arms short
+    and the body off elsewhere (0.91 mm without the hands, arm -0.9 cm); with the fingers' pairs
+    weighted by their residuals (``FitParams.finger_scale``) 0.52 mm and -0.3 cm."""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 1, "relaxed_hands", deg=20.0)
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    fit = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False), surface)
+    before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                                                 params=BF.BEFORE_PARAMS("finger_weight")), surface)
+    assert fit["p2s_no_hands_mm"] < 0.7 and abs(fit["measurements"]["arm_length_cm"]) < 0.6, fit
+    assert before["p2s_no_hands_mm"] > 1.4 * fit["p2s_no_hands_mm"], (before["p2s_no_hands_mm"], fit["p2s_no_hands_mm"])
+    assert before["measurements"]["arm_length_cm"] < -0.7, before["measurements"]
+
+
+def test_finger_region_is_the_fingers(model):
+    """``fitting.finger_region`` on the rest template: on the hands only, beyond the wrist,
+    most of each hand's vertices (the fingers are dense), the same count on both hands, and
+    farther along the hand than any of the hand's vertices it leaves out."""
+    rig = F._rig(model)
+    bone = np.argmax(rig.W, axis=1)
+    for name in ("hand_l", "hand_r"):
+        hand = bone == BONES.index(name)
+        fingers = rig.fingers & hand
+        assert 0.6 * hand.sum() < fingers.sum() < 0.95 * hand.sum()
+        wrist = rig.jmean[BONES.index(name)]
+        tip = rig.mean[hand][np.argmax(np.linalg.norm(rig.mean[hand] - wrist, axis=1))]
+        axis = (tip - wrist) / np.linalg.norm(tip - wrist)
+        along = (rig.mean - wrist) @ axis
+        assert along[fingers].min() > 0.3 * along[hand].max()
+        assert np.median(along[fingers]) > np.percentile(along[hand & ~fingers], 90)
+    assert not (rig.fingers & ~np.isin(bone, [BONES.index("hand_l"), BONES.index("hand_r")])).any()
+    assert (rig.fingers & (bone == BONES.index("hand_l"))).sum() == (rig.fingers & (bone == BONES.index("hand_r"))).sum()
 
 
 @pytest.mark.slow

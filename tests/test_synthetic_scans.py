@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from tests.bench.common import HELDOUT_AVATARS, shared_data_dir
 from tests.bench.tryon import penetration_depths
 from tests.bench.fitting import BodySurface
+from service.model import fitting as F
 from service.model.body import BONES
 from service.model import measurements as M
 from tests.bench import synthetic_scans as SS
@@ -284,3 +285,30 @@ def test_individual_detail_moves_soft_tissue_not_the_skull_hands_or_soles(model,
     Z = model.vertices(model.project(off.true_rest))[:nb]
     assert np.linalg.norm(Z - Y, axis=1).mean() > 0.001  # off the model's space
     np.testing.assert_allclose(off.rotvecs, plain.rotvecs)  # the same pose and draws otherwise
+
+
+def test_relaxed_hands_curl_the_fingers_towards_the_palms(model, person):
+    """The fitting bench's relaxed hands (``make_scan(finger_curl_deg=...)``, ``curl_fingers``):
+    only the hands' vertices beyond the knuckles move, the fingertips come nearer the wrist and
+    the thigh beside them (the palms face the body), both hands alike; the measurements and
+    every draw are the person's own."""
+    w, g = person
+    kw = dict(clothed=False, point_cloud=False, n_points=5000, max_pose_deg=0.0)
+    plain = SS.make_scan(model, np.random.default_rng(5), w, g, **kw)
+    relaxed = SS.make_scan(model, np.random.default_rng(5), w, g, finger_curl_deg=70.0, **kw)
+    X, Y = plain.true_rest, relaxed.true_rest
+    bone = np.argmax(F._rig(model).W, axis=1)
+    nb = model.n_body_vertices
+    moved = np.linalg.norm(Y[:nb] - X[:nb], axis=1) > 1e-9
+    assert moved.any() and np.isin(bone[moved], [BONES.index("hand_l"), BONES.index("hand_r")]).all()
+    J = model.forward(pose=np.zeros((len(BONES), 3)), vertices=X).joints
+    for name in ("hand_l", "hand_r"):
+        b = BONES.index(name)
+        hand = np.flatnonzero(bone == b)
+        tip = hand[np.argmax(np.linalg.norm(X[hand] - J[b], axis=1))]
+        assert np.linalg.norm(Y[tip] - J[b]) < 0.85 * np.linalg.norm(X[tip] - J[b])  # curled in
+        assert abs(Y[tip, 0] - J[0, 0]) < abs(X[tip, 0] - J[0, 0])  # towards the body (the palm's side)
+        assert 0.3 < moved[hand].mean() < 0.95
+    assert (moved & (bone == BONES.index("hand_l"))).sum() == (moved & (bone == BONES.index("hand_r"))).sum()
+    assert relaxed.measurements == plain.measurements
+    np.testing.assert_allclose(relaxed.rotvecs, plain.rotvecs)

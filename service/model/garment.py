@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh, face_bounds, row_dot
+from service.model.geometry import closest_points_on_mesh, face_bounds, neighbour_mean, row_dot
 
 CLEARANCE = 0.003  # metres between skin and cloth after push-out
 LAYER_GAP = 0.004  # extra clearance per layer (outer garments over inner ones)
@@ -89,12 +89,7 @@ def bind_to_body(garment: np.ndarray, body: np.ndarray, k: int = BIND_K) -> np.n
 def laplacian_smoother(faces: np.ndarray, n_vertices: int) -> sp.csc_matrix:
     """The displacement diffusion operator S = ((1 - a) I + a A)^k (CSC), A the uniform
     (row-normalised) adjacency, a and k from ``SMOOTHING``. Precompute once per garment."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    A = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
-    A.data[:] = 1.0
-    deg = np.asarray(A.sum(1)).ravel()
-    A = sp.diags(1.0 / np.maximum(deg, 1)) @ A
+    A = neighbour_mean(faces, n_vertices)
     step = (1 - SMOOTHING["alpha"]) * sp.identity(n_vertices, format="csr") + SMOOTHING["alpha"] * A
     S = sp.identity(n_vertices, format="csr")
     for _ in range(SMOOTHING["iterations"]):

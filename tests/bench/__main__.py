@@ -54,9 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", choices=("anatomical", "free"), default="anatomical",
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
     ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
-    ap.add_argument("--before", choices=("refine_damping", "pose_prior", "scan_cleanup", "clothing_contact",
-                                         "landmark_init", "landmark_candidates", "refine_bare", "blas_threads", "wrong_fit", "clothed_prior", "bone_smoothness", "refine_holes", "loose_regions", "cloth_offsets", "posture_anchor", "hidden_limbs", "alg1_outer", "rim_reject", "hair_region", "hair_back", "unseen_prior", "headless", "known", "none"),
-                    default=None,
+    from tests.bench.fitting import before_kinds
+
+    ap.add_argument("--before", choices=(*before_kinds(), "none"), default=None,
                     help="fitting: what every condition's 'before' refit leaves out (default: per condition)")
     ap.add_argument("--fit-params", default=None,
                     help="fitting: FitParams fields overridden in every fit (experiments), e.g. "

@@ -103,6 +103,7 @@ class Condition:
     before: str | None = "refine_damping"
     fit_clothed: bool | None = None  # the fit's ``clothed`` flag when not ``clothed`` (hair on a bare body)
     detail_mm: float = 0.0  # the person off the body model's space (synthetic_scans.individual_detail)
+    finger_curl_deg: float = 0.0  # relaxed hands (synthetic_scans.curl_fingers)
 
     @property
     def fitted_clothed(self) -> bool:
@@ -157,6 +158,13 @@ CONDITIONS = (
     # as scanner_minimal but for the hair
     Condition("long_hair", False, False, degrade=("holes", "long_hair", "cut_head", "scanner_floor"),
               before="hair_back"),
+    # relaxed hands: a scanned person's fingers curled 70 degrees towards the palm, which the model
+    # cannot bend (synthetic_scans.curl_fingers), on bare scanner output (holes, a cut head top, the
+    # scanner's floor) and on a person in a random MakeHuman suit; their body error is also given
+    # without the hands, whose fingers no fit can match
+    Condition("relaxed_hands", False, False, degrade=("holes", "cut_head", "scanner_floor"), before="finger_weight",
+              finger_curl_deg=70.0),
+    Condition("relaxed_hands_clothed", True, False, before="finger_weight", finger_curl_deg=70.0),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
@@ -201,11 +209,27 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     bare scan, ``FitParams(hair_back=False)``) or ``unseen_prior`` (bones in a hole not pulled to
     their rest posture, ``FitParams(unseen_prior=0)``) or ``headless`` (no second
     coarse fit with the head absent, ``FitParams(headless_check=False)``) or ``known`` (the same fit without the
-    measurements given with ``--known``)."""
+    measurements given with ``--known``) or ``finger_weight`` (the fingers' pairs weighed as any
+    other vertex's, ``FitParams(finger_scale=None)``)."""
     from service.model.fitting import FitParams
 
-    kinds = {
+    kinds = _before_kinds()
+    if kind not in kinds:
+        raise ValueError(f"unknown 'before' kind {kind!r}")
+    return FitParams(**kinds[kind])
+
+
+def before_kinds() -> tuple[str, ...]:
+    """The names ``BEFORE_PARAMS`` knows (``tryon bench fitting --before``)."""
+    return tuple(_before_kinds())
+
+
+def _before_kinds() -> dict[str, dict]:
+    from service.model.fitting import FitParams
+
+    return {
         "wrong_fit": {"area_weighted": False, "clothed_posture_anchor": 0.0, "alg1_posture_anchor": 0.0},
+        "finger_weight": {"finger_scale": None},
         "bone_smoothness": {"bone_smoothness": 0.1},
         "refine_holes": {"refine_hole_reject": False, "refine_normal_reject_deg": None},
         "clothed_prior": {"clothed_shape_prior": None},
@@ -229,9 +253,6 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
         "clothing_contact": {"clothing_contact": None},
         "pose_prior": {"joint_limit_weight": 0.0, "bone_smoothness": 0.1, "coarse_bone_smoothness": 0.1},
     }
-    if kind not in kinds:
-        raise ValueError(f"unknown 'before' kind {kind!r}")
-    return FitParams(**kinds[kind])
 
 
 def posed(model, weights: np.ndarray, rotvecs: np.ndarray, translation: np.ndarray):
@@ -282,6 +303,14 @@ def head_vertices(model) -> np.ndarray:
     return np.argmax(_rig(model).W, axis=1) == BONES.index("head")
 
 
+@functools.lru_cache(maxsize=2)
+def hand_vertices(model) -> np.ndarray:
+    """(n_body,) bool: the body vertices a hand bone moves most."""
+    from service.model.fitting import _rig
+
+    return np.isin(np.argmax(_rig(model).W, axis=1), [BONES.index("hand_l"), BONES.index("hand_r")])
+
+
 def evaluate(model, scan, fit, surface: BodySurface) -> dict:
     """Errors of a fit against the scan's truth (see the module docstring)."""
     nb = model.n_body_vertices
@@ -298,6 +327,8 @@ def evaluate(model, scan, fit, surface: BodySurface) -> dict:
         "p2s_mm": 1000 * float(p2s.mean()),
         # without the head's vertices: a scan with no head shows nothing of its posture
         "p2s_no_head_mm": 1000 * float(p2s[~head_vertices(model)].mean()),
+        # without the hands: relaxed fingers (synthetic_scans.curl_fingers) no fit can follow
+        "p2s_no_hands_mm": 1000 * float(p2s[~hand_vertices(model)].mean()),
         "joints_mm": 1000 * float(np.linalg.norm(_apply(C, Jf) - scan.true_joints, axis=1).mean()),
         "measurements": {n: float(fitted_m[n] - scan.measurements[n]) for n in M.ATTRIBUTES[1:]},
         "unit_ok": fit.unit == scan.unit, "up_ok": fit.up == scan.up,
@@ -412,7 +443,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                                 noise_mm=NOISE_MM, max_pose_deg=max_pose_deg, clothes_dir=clothes,
                                 garments=None if cond.garments is None else cond.garments[person["gender"]],
                                 anatomical=anatomical, detail_mm=cond.detail_mm,
-                                detail_rng=np.random.default_rng([SEED, 13, person["index"]]))
+                                detail_rng=np.random.default_rng([SEED, 13, person["index"]]),
+                                finger_curl_deg=cond.finger_curl_deg)
             if cond.degrade:
                 scan = SS.degrade(scan, cond.degrade, np.random.default_rng([SEED, 11, person["index"]]))
             scan_seconds.append(time.perf_counter() - t0)
@@ -435,6 +467,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                                                       params=with_overrides(BEFORE_PARAMS(cond.before), overrides)),
                                 surface)
                 row["before"] = {"p2s_mm": prev["p2s_mm"], "p2s_no_head_mm": prev["p2s_no_head_mm"],
+                                 "p2s_no_hands_mm": prev["p2s_no_hands_mm"],
                                  "stature_err_cm": prev["stature_err_cm"],
                                  "measurements": prev["measurements"], "seconds": time.perf_counter() - t1}
             except Exception as exc:  # noqa: BLE001
@@ -467,7 +500,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             "failure_examples": failures[name][:3],
             "body_p2s_mm": p2s, "body_v2v_mm": _stats([x["v2v_mm"] for x in r]),
             "body_p2s_no_head_mm": _stats([x["p2s_no_head_mm"] for x in r]),
-            "detail_mm": cond.detail_mm,
+            "body_p2s_no_hands_mm": _stats([x["p2s_no_hands_mm"] for x in r]),
+            "detail_mm": cond.detail_mm, "finger_curl_deg": cond.finger_curl_deg,
             "model_floor_p2s_mm": _stats([x["floor_mm"] for x in r if "floor_mm" in x]),
             "baseline_mean_shape_true_pose": {
                 "p2s_mm": _stats([b["p2s_mm"] for b in base[name]]),
@@ -487,6 +521,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 "seconds": _stats([x["before"]["seconds"] for x in r if "seconds" in x["before"]]),
                 "body_p2s_mm": _stats([x["before"]["p2s_mm"] for x in r if "p2s_mm" in x["before"]]),
                 "body_p2s_no_head_mm": _stats([x["before"]["p2s_no_head_mm"] for x in r if "p2s_mm" in x["before"]]),
+                "body_p2s_no_hands_mm": _stats([x["before"]["p2s_no_hands_mm"] for x in r if "p2s_mm" in x["before"]]),
                 "body_p2s_mm_all": _stats([x["before"]["p2s_mm"] if "p2s_mm" in x["before"] else np.inf
                                            for x in r if x["before"].get("error") != "RuntimeError: not measured in this condition"]),
                 "stature_abs_err_cm": _stats([abs(x["before"]["stature_err_cm"]) for x in r if "p2s_mm" in x["before"]]),
@@ -701,6 +736,7 @@ def format_result(r: dict) -> str:
     row("body error, point-to-surface median mm", [_f(c["body_p2s_mm"]["median"]) for c in conds.values()], goals)
     row("  p90 mm", [_f(c["body_p2s_mm"]["p90"]) for c in conds.values()], f"goal: <= {a['goal']['body_p90_mm']:g}")
     row("  without the head, median mm", [_f(c.get("body_p2s_no_head_mm", {}).get("median")) for c in conds.values()])
+    row("  without the hands, median mm", [_f(c.get("body_p2s_no_hands_mm", {}).get("median")) for c in conds.values()])
     row("body error, vertex-to-vertex median mm", [_f(c["body_v2v_mm"]["median"]) for c in conds.values()])
     row("  p90 mm", [_f(c["body_v2v_mm"]["p90"]) for c in conds.values()])
     row("baseline: mean shape, true pose, p2s mm", [_f(c["baseline_mean_shape_true_pose"]["p2s_mm"]["median"])
@@ -727,10 +763,12 @@ def format_result(r: dict) -> str:
     row("  p90 mm", [_f(c["before"]["body_p2s_mm"]["p90"]) for c in conds.values()])
     row("  without the head, median mm", [_f(c["before"].get("body_p2s_no_head_mm", {}).get("median"))
                                           for c in conds.values()])
+    row("  without the hands, median mm", [_f(c["before"].get("body_p2s_no_hands_mm", {}).get("median"))
+                                           for c in conds.values()])
     row("  stature |error| median cm", [_f(c["before"]["stature_abs_err_cm"]["median"])
                                         for c in conds.values()])
     row("  worst cm", [_f(c["before"]["stature_worst_cm"]) for c in conds.values()])
-    for attr in ("waist_cm", "weight_kg"):
+    for attr in ("waist_cm", "weight_kg", "arm_length_cm"):
         row(f"  {attr} mean |error|", [_f(c["before"].get("measurements_mae", {}).get(attr)) for c in conds.values()])
     row("  time per fit, median s", [_f(c["before"]["seconds"]["median"]) for c in conds.values()])
     row("    p90 s", [_f(c["before"]["seconds"]["p90"]) for c in conds.values()])

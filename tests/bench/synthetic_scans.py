@@ -469,17 +469,65 @@ def individual_detail(X: np.ndarray, body_faces: np.ndarray, n_body: int, rng: n
     return X + D * (rms_mm / 1000.0 / max(rms, 1e-12))
 
 
+# relaxed hands (``curl_fingers``): the fingers beyond the knuckles (this share of the hand's
+# length from the wrist, along the hand) turn towards the palm about the knuckles' line, by an
+# angle growing linearly to the full curl at the fingertips
+CURL_KNUCKLE_SHARE = 0.45
+
+
+def curl_fingers(model, X: np.ndarray, degrees: float) -> np.ndarray:
+    """A rest body's vertices X (V, 3), model frame, with relaxed hands: a scanned person's
+    fingers are curled towards the palm (in an A-pose, the palms face the thighs), which the
+    model's 17 bones cannot do. Per hand (the vertices its bone moves most): the hand's axis
+    from its joint (the wrist) to its farthest vertices, the palm's normal its thinnest
+    direction turned medially; a vertex further along the axis than CURL_KNUCKLE_SHARE of the
+    hand's length turns about the knuckles' line (axis x palm) towards the palm by ``degrees``
+    times its share of the way from the knuckles to the fingertips (the thumb's tip with them).
+    The hand's axis and knuckles are found here, not taken from the fitting's ``finger_region``:
+    the truth does not lean on the method it tests."""
+    from service.model.body import BONES
+
+    X = np.array(X, np.float64)
+    W = np.zeros((len(X), len(BONES)))
+    np.add.at(W, (np.repeat(np.arange(len(X)), 4), model.lbs_indices.ravel()), model.lbs_weights.ravel())
+    bone = np.argmax(W, axis=1)
+    J = model.forward(pose=np.zeros((len(BONES), 3)), vertices=X).joints
+    for name in ("hand_l", "hand_r"):
+        b = BONES.index(name)
+        at = np.flatnonzero(bone == b)
+        P = X[at] - J[b]
+        reach = np.linalg.norm(P, axis=1)
+        a = P[reach >= np.percentile(reach, 95)].mean(0)
+        a /= np.linalg.norm(a)
+        palm = np.linalg.svd(P - P.mean(0), full_matrices=False)[2][2]
+        palm -= a * (palm @ a)
+        palm /= np.linalg.norm(palm)
+        if palm[0] * np.sign(J[b, 0] - J[0, 0]) > 0:  # the palm faces the body's midline
+            palm = -palm
+        k = np.cross(a, palm)  # turning about k takes a towards the palm
+        along = P @ a
+        knuckle = CURL_KNUCKLE_SHARE * along.max()
+        f = along > knuckle
+        theta = np.radians(degrees) * np.clip((along[f] - knuckle) / (along.max() - knuckle), 0.0, 1.0)
+        Q = P[f] - a * knuckle
+        c, sn = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        Q = Q * c + np.cross(k, Q) * sn + k * (Q @ k)[:, None] * (1.0 - c)  # Rodrigues
+        X[at[f]] = J[b] + a * knuckle + Q
+    return X
+
+
 def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str, *, clothed: bool,
               point_cloud: bool, n_points: int = 12_500, noise_mm: float = 2.0, max_pose_deg: float = 45.0,
               garments: list[str] | None = None, clothes_dir: Path | None = None, unit: str | None = None,
               up: str | None = None, anatomical: bool = False, detail_mm: float = 0.0,
-              detail_rng: np.random.Generator | None = None) -> SyntheticScan:
+              detail_rng: np.random.Generator | None = None, finger_curl_deg: float = 0.0) -> SyntheticScan:
     """A synthetic scan of the body ``weights`` (see the module docstring). ``garments``
     (mhclo stems) overrides the random choice; ``unit``/``up`` override the random frame;
     ``anatomical``: the pose within the joint limits (:func:`random_pose`; everything else the
     same as without). ``detail_mm`` > 0: the person is not in the body model's space, the rest
     body gets :func:`individual_detail` of that RMS (drawn from ``detail_rng``; the truth,
-    ``weights`` excepted, is the displaced body)."""
+    ``weights`` excepted, is the displaced body). ``finger_curl_deg`` > 0: relaxed hands,
+    :func:`curl_fingers` by that angle (the truth too: its measurements do not change)."""
     weights = np.asarray(weights, np.float64)
     X = model.vertices(weights).astype(np.float64)
     nb = model.n_body_vertices
@@ -489,6 +537,8 @@ def make_scan(model, rng: np.random.Generator, weights: np.ndarray, gender: str,
         X = individual_detail(X, model.body_faces, nb, detail_rng or np.random.default_rng(0), detail_mm,
                               np.clip(mask, 0.0, 1.0))
     measurements = model.measure(X, gender)
+    if finger_curl_deg > 0:
+        X = curl_fingers(model, X, finger_curl_deg)
 
     # random draws in a fixed order (same person/pose/frame/garments whether clothed or not)
     rotvecs = random_pose(rng, max_pose_deg, anatomical)
