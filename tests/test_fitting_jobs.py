@@ -147,6 +147,16 @@ def test_one_embedded_worker_per_data_dir(tmp_path: Path) -> None:
 
 
 # -- uploads refused in the request -----------------------------------------------------------
+def _slivers_ply(rng: np.random.Generator) -> bytes:
+    """A binary PLY of 84,000 separate triangles 10 um across, spread over a person's size:
+    more points than ``mesh_io.KEPT_SCAN_POINTS``, and no surface once simplified."""
+    import trimesh
+
+    centres = rng.uniform(size=(84_000, 1, 3)) * [0.5, 1.7, 0.3]
+    points = (centres + rng.normal(scale=1e-5, size=(84_000, 3, 3))).reshape(-1, 3)
+    return trimesh.Trimesh(points, np.arange(len(points)).reshape(-1, 3), process=False).export(file_type="ply")
+
+
 @pytest.mark.parametrize("server", ["embedded"], indirect=True)
 def test_bad_scans_rejected_without_a_job(server: Server, scans: dict) -> None:
     before = _queue_keys(server)
@@ -257,7 +267,8 @@ def test_a_dense_scanner_mesh_is_fitted(tmp_path: Path, model: BodyModel) -> Non
     (up to ``mesh_io.MAX_SCAN_POINTS``), kept simplified to at most ``KEPT_SCAN_POINTS`` (the
     customer's ``scan.points``, ``scan.points_uploaded`` the file's) and becomes a ready,
     editable customer at the person's height, fitted on a random 100,000 of its points
-    (``FitParams.max_points``; ``fit.points_fitted``)."""
+    (``FitParams.max_points``; ``fit.points_fitted``). A dense mesh of slivers, whose every
+    triangle collapses when simplified, is refused with a 422."""
     from dataclasses import replace
 
     import trimesh
@@ -276,6 +287,9 @@ def test_a_dense_scanner_mesh_is_fitted(tmp_path: Path, model: BodyModel) -> Non
     data = S.scan_file_bytes(scan, "ply")
     with run_server(tmp_path, "embedded") as server:  # the default upload limit (50 MB)
         server.client.headers["X-API-Key"] = RETAILERS["acme"]  # its customers and jobs open with it
+        # dense, but slivers: nothing is left once simplified, refused in the request
+        assert_422(_post_scan(server, "slivers.ply", _slivers_ply(np.random.default_rng(4))), ["body", "mesh"],
+                   ("make no surface",))
         r = _post_scan(server, "dense.ply", data, clothed="false")
         assert r.status_code == 202, (len(data), r.text)
         assert r.json()["scan"]["points_uploaded"] == len(np.unique(scan.faces)), r.json()["scan"]  # on a face

@@ -601,3 +601,15 @@ def test_a_dense_scan_is_kept_simplified_with_its_own_normals(tmp_path):
     assert simplified(scan, 20_000) is scan and scan.source_points is None
     round_trip = scan_from_npz_bytes(scan_to_npz_bytes(small))
     assert np.array_equal(round_trip.faces, small.faces) and len(round_trip.points) == len(small.points)
+
+
+def test_a_dense_mesh_of_slivers_is_refused_when_simplified():
+    """700 separate tiny triangles spread over a metre: each collapses into one cell, no surface
+    is left, and the scan is refused with a reason rather than stored empty."""
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(size=(700, 1, 3))
+    points = (centres + rng.normal(scale=1e-5, size=(700, 3, 3))).reshape(-1, 3)
+    faces = np.arange(len(points)).reshape(-1, 3)
+    scan = Scan(points=points, faces=faces, normals=None, kind="obj")
+    with pytest.raises(ScanError, match="make no surface"):
+        simplified(scan, 600)

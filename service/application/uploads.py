@@ -65,7 +65,10 @@ def read_body_upload(model: BodyModel, data: bytes, filename: str | None, loc: t
         hint = (f" (an avatar in the template topology has {counts[0]} vertices: /v1/body-model/template.obj)"
                 if mesh.faces is not None else "")
         raise Invalid(loc, f"{exc}{hint}") from exc
-    return mesh_io.simplified(scan)  # a body scanner's dense mesh: KEPT_SCAN_POINTS of it
+    try:
+        return mesh_io.simplified(scan)  # a body scanner's dense mesh: KEPT_SCAN_POINTS of it
+    except ScanError as exc:
+        raise Invalid(loc, str(exc)) from exc
 
 
 def read_garment_mesh(data: bytes, filename: str | None, loc: tuple, label: str) -> tuple[np.ndarray, np.ndarray]:

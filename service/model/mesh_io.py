@@ -447,10 +447,13 @@ def compact(scan: Scan, min_points: int = MIN_SCAN_POINTS) -> Scan:
 def simplified(scan: Scan, max_points: int = KEPT_SCAN_POINTS) -> Scan:
     """The scan with at most ``max_points`` points: a denser one by vertex clustering
     (``geometry.simplify``: each kept point is one of the scan's own, with its normal from
-    the whole scan), ``source_points`` its count before; a smaller one as it is."""
+    the whole scan), ``source_points`` its count before; a smaller one as it is. Raises
+    :class:`ScanError` when fewer than ``MIN_SCAN_POINTS`` are left."""
     if len(scan.points) <= max_points:
         return scan
     keep, faces = simplify(scan.points, scan.faces, max_points)
+    if len(keep) < MIN_SCAN_POINTS:  # a mesh of slivers whose every triangle collapsed
+        raise ScanError(f"the scan's {len(scan.points)} points make no surface: simplified, {len(keep)} are left")
     return Scan(points=np.ascontiguousarray(scan.points[keep]), faces=None if faces is None else np.ascontiguousarray(faces),
                 normals=None if scan.normals is None else np.ascontiguousarray(scan.normals[keep]), kind=scan.kind,
                 source_points=int(len(scan.points)))
