@@ -66,6 +66,7 @@ class FitStats(BaseModel):
     inner_iterations: int
     seconds: float
     points_fitted: int | None = None  # the scan's points the fit used (None: fitted before 2026-11-27)
+    flat_cap_points: int | None = None  # a flat cap over the head, left out of the fit (None: before 2026-11-28)
 
 
 class Customer(Record):

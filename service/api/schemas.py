@@ -119,6 +119,10 @@ class FitStats(BaseModel):
     points_fitted: int | None = Field(
         default=None, description="The scan's points the fit used once its floor and stray clusters were dropped: "
         "all of them, or 100,000 drawn at random from a denser scan")
+    flat_cap_points: int | None = Field(
+        default=None, description="Points of a flat cap closing the top of the head (a scanner's software filling "
+        "the opening where its view ended below the crown), left out of the fit so that the head's top is the body "
+        "model's; 0 when the scan has none")
 
 
 class ScanInfo(BaseModel):

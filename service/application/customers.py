@@ -332,7 +332,8 @@ class CustomerService:
             "partial": bool(fit.partial), "coverage": {k: float(v) for k, v in fit.coverage.items()},
             "unseen": [str(b) for b in fit.unseen],
             "fit": FitStats(outer_iterations=int(fit.outer_iterations), inner_iterations=int(fit.inner_iterations),
-                            seconds=round(float(fit.seconds), 3), points_fitted=int(fit.stats["points"]["fitted"])),
+                            seconds=round(float(fit.seconds), 3), points_fitted=int(fit.stats["points"]["fitted"]),
+                            flat_cap_points=int(fit.stats["points"].get("flat_cap", 0))),
         })
 
     def _fail(self, record: Customer, message: str, progress: Progress) -> dict[str, Any]:

@@ -349,6 +349,11 @@ class FitParams:
     # uneven sampling makes false ones (same run, 12 held-out avatars at 45 degrees, clothed
     # cloud 1.46 -> 1.67 mm median, one scan 1.32 -> 2.17; clothed mesh 3 worse, none better)
     rim_reject: bool = True
+    # issue 12, a processed scan whose open head top a scanner's software closed with a flat cap
+    # of new points (``scan_cleanup.flat_cap``, with ``scan_cleanup``): found after the
+    # initialisation (the up axis known) and dropped, so the head's top is the model's, as under
+    # a cut. A cap 4 cm below the crown pulled the head down to it (see README, **A flat cap**)
+    flat_cap: bool = True
     # issue 12, hair on a bare scan (a scanner's customer in minimal clothing): the pairs of the
     # head but the face, and of the neck (``scalp_region``), weighted as a clothed scan's (the body
     # may lie inside the scan there), the rest as skin; in the refinement and Alg. 1, not the
@@ -1387,6 +1392,13 @@ def _initialise(rig: _Rig, points_m: np.ndarray, normals: np.ndarray, clothed: b
     return up, R, t, s, [c[0] for c in screened]
 
 
+def _rims(pts_m: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, float]:
+    """The scan's holes' rims for ``FitParams.rim_reject``: (distance (P,) metres from each point
+    to the nearest rim point, the scan's point spacing). pts_m, nrm (P, 3)."""
+    tree = cKDTree(pts_m)
+    return SC.rim_distance(pts_m, SC.rim_points(pts_m, nrm, tree)), SC.point_spacing(tree, pts_m)
+
+
 def _without_head(rig: _Rig, pts_m: np.ndarray, nrm: np.ndarray, clothed: bool, params: FitParams, seed: int,
                   rims: tuple | None, s: _State, R0: np.ndarray, t0: np.ndarray) -> tuple[tuple | None, dict]:
     """The initialisation's coarse stage again with the head absent (``FitParams.headless_check``),
@@ -1563,14 +1575,20 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     if not clothed:  # the initialisation's distances per template vertex (see FitParams.area_weighted)
         params = replace(params, area_weighted=False)
     report(0.02, "initialising: units, up axis, facing, coarse pose")
-    rims = rim = None
-    if params.scan_cleanup and params.rim_reject and not clothed:  # holes' rims (FitParams.rim_reject)
-        rim_tree = cKDTree(pts_m)
-        rims = (SC.rim_distance(pts_m, SC.rim_points(pts_m, nrm, rim_tree)), SC.point_spacing(rim_tree, pts_m))
+    find_rims = params.scan_cleanup and params.rim_reject and not clothed  # holes' rims (FitParams.rim_reject)
+    rims = _rims(pts_m, nrm) if find_rims else None
+    rim = None
     # the initialisation pairs the scalp as skin: its template starts far from the scan, where
     # hair_region's down-weighted pairs changed one of 48 bare 45-degree fits' path to a wrong minimum
     arms = _arms(model, params)
     up, R0, t0, s, screen_costs = _initialise(rig, pts_m, nrm, clothed, replace(params, hair_region=False), rng, arms)
+    capped = 0
+    if params.scan_cleanup and params.flat_cap:  # a flat cap over the head: no data (FitParams.flat_cap)
+        cap = SC.flat_cap(pts_m @ R0.T + t0)
+        if cap.any() and len(pts_m) - cap.sum() >= 100:
+            capped = int(cap.sum())
+            pts_m, nrm = pts_m[~cap], nrm[~cap]
+            rims = _rims(pts_m, nrm) if find_rims else None
     P = pts_m @ R0.T + t0
     n = len(rig.mean)
     from service.model.body import BONES
@@ -1739,7 +1757,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
                "hair_region": bool(params.hair_region and not clothed),
                "seen": {b: round(float(x), 3) for b, x in zip(BONES, seen)}, "headless": headless,
                "person_check": checks, "cleaning": cleaning.stats if cleaning is not None else None,
-               "points": {"scan": n_scan, "fitted": len(pts_m)},
+               "points": {"scan": n_scan, "fitted": len(pts_m), "flat_cap": capped},
                "screen_costs_mm": [round(1000 * x, 1) for x in sorted(screen_costs)[:4]]},
         kept=None if cleaning is None else cleaning.kept,
     )

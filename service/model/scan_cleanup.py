@@ -21,6 +21,11 @@ the field of view ends below it. :func:`clean_scan` removes what is not the pers
    ``CLUSTER_NEAR_M`` from every larger one are dropped; a part split off the body by a hole
    (a head above a cut neck, a hand) is large or near, and stays.
 
+A processed scan may have its open head top closed by a flat cap of new points (software
+making the mesh watertight); :func:`flat_cap` finds one (a filled plane patch at the top that the
+scan lies below, ending in an edge), and the fit, once it knows the up axis, leaves it out so
+that the head is open again.
+
 Holes and a cut head top are kept as they are: they are handled in the fit's data term by
 :func:`over_hole`, which rejects a correspondence whose nearest scan point lies off to the side
 of the template vertex (on the rim of a hole, or of the cut) rather than below or above it, so
@@ -55,6 +60,21 @@ FLOOR_SAMPLE = 4000  # points scored per hypothesis (a random subset of larger s
 # -- isolated clusters --------------------------------------------------------------------------
 CLUSTER_MIN_SHARE = 0.005  # smaller components are dropped when isolated ...
 CLUSTER_NEAR_M = 0.05  # ... i.e. farther than this from every larger component
+
+# -- a flat cap over the head (a scanner's hole filling) -----------------------------------------
+CAP_DEPTH_M = 0.05  # cap planes through points this near the scan's top ...
+CAP_RANSAC_ITERATIONS = 200
+CAP_MAX_TILT_DEG = 30.0  # ... with normals within this of the up axis
+CAP_INLIER_M = 0.004  # a point this near the plane is on the cap
+CAP_BELOW_SHARE = 0.999  # the whole scan (but this share: noise) lies below a cap
+CAP_MIN_EXTENT_M = 0.08  # and it spreads this far both ways (5th-95th percentile): a crown's 5-8 cm
+CAP_MIN_POINTS = 30
+CAP_FILLED_SHARE = 0.8  # ... and fills it: cells of its hull holding a point (a cut's rim is a ring)
+CAP_CELL_SPACINGS = 3.0  # cells this many of the scan's point spacings wide (at least 1 cm)
+CAP_RING_M = 0.015  # the scan within this of the patch (along the plane), outside it ...
+CAP_RING_DEPTH_M = 0.06  # ... and at most this far below it, is its edge
+CAP_MIN_RING_POINTS = 10
+CAP_MIN_SLOPE = 0.95  # ... falling at least this steeply from it (median depth / distance): crowns 0.3-0.9
 
 # -- holes in the data term ----------------------------------------------------------------------
 HOLE_MIN_M = 0.015  # a correspondence this far beside the template vertex (tangentially) is
@@ -252,6 +272,115 @@ def clean_wide_scan(points: np.ndarray, normals: np.ndarray | None = None, faces
             cleaning.stats["wide_floor"] = True
             return name, scale, kept, nrm, F, cleaning
     return None
+
+
+def flat_cap(points: np.ndarray, up: np.ndarray | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
+    """(P,) bool: the points of a flat cap closing the top of the scan, or none. A scanner whose
+    field of view ends below the crown leaves the head open; software that makes the mesh
+    watertight may close it with a plane of new points, which would pull the fitted head down
+    to it (a flat cap 4 cm below the crown: rest-pose stature 0.9 cm short). A cap is a plane
+    (RANSAC over triples of points within ``CAP_DEPTH_M`` of the top, normals within
+    ``CAP_MAX_TILT_DEG`` of ``up``; refitted by total least squares) that the whole scan lies
+    below (but ``1 - CAP_BELOW_SHARE``), holding at least ``CAP_MIN_POINTS`` points within
+    ``CAP_INLIER_M`` that spread at least ``CAP_MIN_EXTENT_M`` both ways (5th-95th percentile
+    along their own axes), fill their hull as densely as the scan (``CAP_FILLED_SHARE`` of the
+    cells ``CAP_CELL_SPACINGS`` of the scan's point spacings wide hold a point; a cut's rim is a
+    ring) and end in an edge: the scan just outside the patch (within ``CAP_RING_M`` of it, seen
+    along the plane's normal) falls away from it at a median slope of ``CAP_MIN_SLOPE`` or more
+    (depth below the band over distance from the patch), where a crown (or hair) touching a
+    plane curves away gradually (0.3-0.9 on the bench's heads, a cut's walls 1.0-2.6). The cap's points are then no data:
+    dropped, the head is open and its top the body model's (as a cut head). points (P, 3)
+    metres; ``up`` (3,) the scan's up direction (default +Y, the model frame)."""
+    on, figures = cap_candidate(points, up, rng)
+    ok = (on is not None and figures["extent_m"] >= CAP_MIN_EXTENT_M and figures["filled"] >= CAP_FILLED_SHARE
+          and figures["ring_points"] >= CAP_MIN_RING_POINTS and figures["slope"] >= CAP_MIN_SLOPE)
+    out = np.zeros(len(points), bool)
+    if ok:
+        out[on] = True
+    return out
+
+
+def cap_candidate(points: np.ndarray, up: np.ndarray | None = None,
+                  rng: np.random.Generator | None = None) -> tuple[np.ndarray | None, dict]:
+    """The plane patch :func:`flat_cap` judges: (indices of its points or None, figures:
+    ``extent_m`` (the smaller 5th-95th percentile extent), ``filled`` (share of its hull's cells
+    holding a point), ``ring_points``, ``drop_m`` and ``slope`` (how many points lie just outside
+    it, their median depth below it and the median of depth over distance)). points (P, 3)
+    metres, ``up`` (3,)."""
+    P = np.asarray(points, np.float64)
+    up = np.array([0.0, 1.0, 0.0]) if up is None else np.asarray(up, np.float64) / np.linalg.norm(up)
+    rng = rng or np.random.default_rng(0)
+    h = P @ up
+    cand = np.flatnonzero(h >= h.max() - CAP_DEPTH_M)
+    if len(cand) < CAP_MIN_POINTS:
+        return None, {}
+    tri = P[cand[rng.integers(0, len(cand), size=(CAP_RANSAC_ITERATIONS, 3))]]
+    n, d = _plane_through(tri[:, 0], tri[:, 1], tri[:, 2])
+    flip = n @ up < 0
+    n[flip], d[flip] = -n[flip], -d[flip]
+    ok = n @ up >= np.cos(np.radians(CAP_MAX_TILT_DEG))
+    if not ok.any():
+        return None, {}
+    n, d = n[ok], d[ok]
+    top = P[cand]
+    S = P[rng.choice(len(P), FLOOR_SAMPLE, replace=False)] if len(P) > FLOOR_SAMPLE else P
+    below = (S @ n.T + d <= CAP_INLIER_M).mean(0)
+    score = np.where(below >= CAP_BELOW_SHARE, (np.abs(top @ n.T + d) <= CAP_INLIER_M).sum(0), 0)
+    k = int(np.argmax(score))
+    if score[k] < CAP_MIN_POINTS:
+        return None, {}
+    n, d = n[k], d[k]
+    on = cand[np.abs(top @ n + d) <= CAP_INLIER_M]
+    n2, d2, _ = _tls_plane(P[on])
+    if n2 @ n < 0:
+        n2, d2 = -n2, -d2
+    on = cand[np.abs(top @ n2 + d2) <= CAP_INLIER_M]
+    depth = -(P @ n2 + d2)
+    if len(on) < CAP_MIN_POINTS or (depth >= -CAP_INLIER_M).mean() < CAP_BELOW_SHARE:
+        return None, {}
+    centre = P[on].mean(0)
+    _, _, Vt = np.linalg.svd(P[on] - centre, full_matrices=False)  # the patch's own in-plane axes
+    xy = (P[on] - centre) @ Vt[:2].T
+    ext = np.ptp(np.percentile(xy, [5, 95], axis=0), axis=0)
+    cell = max(0.01, CAP_CELL_SPACINGS * point_spacing(cKDTree(P), P, rng))
+    # the scan just outside the patch, below it: a cap's edge drops, a crown curves away
+    near = np.flatnonzero((depth > CAP_INLIER_M) & (depth < CAP_RING_DEPTH_M))
+    rxy = (P[near] - centre) @ Vt[:2].T
+    dist, _ = cKDTree(xy).query(rxy, distance_upper_bound=CAP_RING_M)
+    out = np.isfinite(dist) & ~_inside_hull(xy, rxy)
+    ring = near[out]
+    slope = (depth[ring] - CAP_INLIER_M) / np.maximum(dist[out], 1e-3)
+    figures = {"points": int(len(on)), "extent_m": float(ext.min()), "filled": _filled_share(xy, cell),
+               "ring_points": int(len(ring)), "drop_m": float(np.median(depth[ring])) if len(ring) else 0.0,
+               "slope": float(np.median(slope)) if len(ring) else 0.0}
+    return on, figures
+
+
+def _inside_hull(xy: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(Q,) bool: the 2D points q (Q, 2) inside the convex hull of xy (N, 2) (none when xy
+    spans no area)."""
+    from scipy.spatial import ConvexHull, Delaunay, QhullError
+
+    try:
+        return Delaunay(xy[ConvexHull(xy).vertices]).find_simplex(q) >= 0
+    except QhullError:  # collinear or too few points: no area
+        return np.zeros(len(q), bool)
+
+
+def _filled_share(xy: np.ndarray, cell: float) -> float:
+    """The share of the square cells ``cell`` wide (metres) whose centre is inside the convex
+    hull of the 2D points xy (N, 2) that hold a point: ~1 for a patch as dense as the scan, low
+    for a ring of points around a hole or a sparse slice through hair."""
+    ij = np.floor((xy - xy.min(0)) / cell).astype(np.int64)
+    shape = ij.max(0) + 1
+    gi, gj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    centres = (np.stack([gi.ravel(), gj.ravel()], 1) + 0.5) * cell + xy.min(0)
+    inside = _inside_hull(xy, centres)
+    if not inside.any():
+        return 0.0
+    held = np.zeros(shape, bool)
+    held[ij[:, 0], ij[:, 1]] = True
+    return float(held.ravel()[inside].mean())
 
 
 def point_spacing(tree: cKDTree, points: np.ndarray, rng: np.random.Generator | None = None) -> float:

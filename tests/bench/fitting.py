@@ -127,6 +127,9 @@ CONDITIONS = (
     # what a body scanner gives: the person in minimal clothing (bare here), the mesh with holes,
     # a cut head top and the scanner's floor; fitted as unclothed
     Condition("scanner_minimal", False, False, degrade=("holes", "cut_head", "scanner_floor"), before="scan_cleanup"),
+    # the same with the cut head's opening closed by a flat cap, as a scanner's software that makes
+    # the mesh watertight leaves it (synthetic_scans.capped_head)
+    Condition("scanner_capped", False, False, degrade=("holes", "capped_head", "scanner_floor"), before="flat_cap"),
     # a bare person with hair (MakeHuman's bob or short hair), fitted as bare: a body scanner's
     # customer in minimal clothing
     Condition("bare_hair", True, False, {"female": ["hair-bob02"], "male": ["hair-short02"]},
@@ -240,6 +243,7 @@ def _before_kinds() -> dict[str, dict]:
         "hidden_limbs": {"arm_inside_cost": 0.0, "exclusive_hops": None, "alg1_matched_only": False},
         "alg1_outer": {"max_outer": 10},
         "rim_reject": {"rim_reject": False},
+        "flat_cap": {"flat_cap": False},
         "hair_region": {"hair_region": False},
         "hair_back": {"hair_back": False},
         "unseen_prior": {"unseen_prior": 0.0},

@@ -777,8 +777,8 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
 
 
 # -- what real scanners add and lose (issue 12) ------------------------------------------------
-DEGRADATIONS = ("holes", "cut_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair", "no_head",
-                "long_hair")
+DEGRADATIONS = ("holes", "cut_head", "capped_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair",
+                "no_head", "long_hair")
 ROOM_FLOOR_HALF_M = 1.6  # the room floor's half width (metres)
 
 
@@ -833,6 +833,42 @@ def cut_head_top(scan: SyntheticScan, depth_m: float = 0.04) -> SyntheticScan:
     top = float(scan.true_posed[:, 1].max())
     P = _model_points(scan)
     return keep_points(scan, P[:, 1] <= top - depth_m)
+
+
+def capped_head(scan: SyntheticScan, depth_m: float = 0.04, noise_m: float = 0.001) -> SyntheticScan:
+    """The head's top cut off ``depth_m`` below the true crown and the opening closed by a flat
+    cap, as a scanner's software that makes the mesh watertight fills it: points as dense as the
+    scan's (the median over its points of 8 neighbours per disc to the 8th), uniformly at random
+    on the cut's plane inside the convex hull of the rim (the points within 1 cm below the cut,
+    15 cm around the crown), with
+    ``noise_m`` of noise, normals up; a mesh gets their Delaunay triangles (not joined to the
+    rim). The cap is the scan's, not the body's (``point_is_body`` false)."""
+    from dataclasses import replace
+
+    from scipy.spatial import ConvexHull, Delaunay, cKDTree
+
+    scan = cut_head_top(scan, depth_m)
+    crown = scan.true_posed[np.argmax(scan.true_posed[:, 1])]
+    level = float(crown[1]) - depth_m
+    P = _model_points(scan)
+    rim = P[(P[:, 1] > level - 0.01) & (np.linalg.norm(P[:, [0, 2]] - crown[[0, 2]], axis=1) < 0.15)][:, [0, 2]]
+    r8 = cKDTree(P).query(P, k=9)[0][:, -1]
+    density = float(np.median(8 / (np.pi * r8**2)))  # points per square metre of the surface
+    hull = ConvexHull(rim)
+    rng = np.random.default_rng(len(P))
+    lo, hi = rim.min(0), rim.max(0)
+    xz = lo + rng.uniform(size=(int(density * np.prod(hi - lo)), 2)) * (hi - lo)
+    xz = xz[Delaunay(rim[hull.vertices]).find_simplex(xz) >= 0]
+    cap = np.column_stack([xz[:, 0], level + rng.normal(scale=noise_m, size=len(xz)), xz[:, 1]])
+    n0 = len(scan.points)
+    normals = None
+    if scan.normals is not None:
+        up = np.array([0.0, 1.0, 0.0]) @ _model_rotation(scan)
+        normals = np.concatenate([scan.normals, np.tile(up, (len(cap), 1))])
+    faces = None if scan.faces is None else np.concatenate([scan.faces, Delaunay(xz).simplices.astype(np.int64) + n0])
+    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(cap), bool)])
+    return replace(scan, points=np.concatenate([scan.points, _from_model(scan, cap)]), normals=normals, faces=faces,
+                   point_is_body=is_body)
 
 
 # dark hair (``without_hair_returns``): the head's vertices (by their largest skinning weight) on
@@ -1034,6 +1070,8 @@ def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.ran
             scan = with_holes(scan, rng)
         elif k == "cut_head":
             scan = cut_head_top(scan)
+        elif k == "capped_head":
+            scan = capped_head(scan)
         elif k == "floor_disc":
             scan = with_floor(scan, rng, "disc")
         elif k == "scanner_floor":
