@@ -288,9 +288,10 @@ def flat_cap(points: np.ndarray, up: np.ndarray | None = None, rng: np.random.Ge
     ring) and end in an edge: the scan just outside the patch (within ``CAP_RING_M`` of it, seen
     along the plane's normal) falls away from it at a median slope of ``CAP_MIN_SLOPE`` or more
     (depth below the band over distance from the patch), where a crown (or hair) touching a
-    plane curves away gradually (0.3-0.9 on the bench's heads, a cut's walls 1.0-2.6). The cap's points are then no data:
-    dropped, the head is open and its top the body model's (as a cut head). points (P, 3)
-    metres; ``up`` (3,) the scan's up direction (default +Y, the model frame)."""
+    plane curves away gradually (0.3-0.9 on the bench's heads, a cut's walls 1.0-2.6). The
+    cap's points are then no data: dropped, the head is open and its top the body model's (as a
+    cut head). points (P, 3) metres; ``up`` (3,) the scan's up direction (default +Y, the model
+    frame)."""
     on, figures = cap_candidate(points, up, rng)
     ok = (on is not None and figures["extent_m"] >= CAP_MIN_EXTENT_M and figures["filled"] >= CAP_FILLED_SHARE
           and figures["ring_points"] >= CAP_MIN_RING_POINTS and figures["slope"] >= CAP_MIN_SLOPE)
