@@ -797,6 +797,20 @@ def _model_rotation(scan: SyntheticScan) -> np.ndarray:
     return A / np.cbrt(np.linalg.det(A))
 
 
+def _with_points(scan: SyntheticScan, P: np.ndarray, normal: np.ndarray, tri: np.ndarray | None) -> SyntheticScan:
+    """The scan with points P (N, 3) (model frame) added: not the body's, all with the model-frame
+    ``normal`` (3,), and a mesh's triangles ``tri`` (T, 3) indexing P (added to its faces)."""
+    from dataclasses import replace
+
+    n0 = len(scan.points)
+    normals = None if scan.normals is None else np.concatenate([scan.normals, np.tile(normal @ _model_rotation(scan),
+                                                                                      (len(P), 1))])
+    faces = None if scan.faces is None else np.concatenate([scan.faces, np.asarray(tri, np.int64) + n0])
+    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(P), bool)])
+    return replace(scan, points=np.concatenate([scan.points, _from_model(scan, P)]), normals=normals, faces=faces,
+                   point_is_body=is_body)
+
+
 def keep_points(scan: SyntheticScan, keep: np.ndarray) -> SyntheticScan:
     """The scan with only the points ``keep`` (P,) bool; a mesh keeps the faces whose three
     vertices stay. The truth is the scan's."""
@@ -843,8 +857,6 @@ def capped_head(scan: SyntheticScan, depth_m: float = 0.04, noise_m: float = 0.0
     15 cm around the crown), with
     ``noise_m`` of noise, normals up; a mesh gets their Delaunay triangles (not joined to the
     rim). The cap is the scan's, not the body's (``point_is_body`` false)."""
-    from dataclasses import replace
-
     from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
     scan = cut_head_top(scan, depth_m)
@@ -860,15 +872,7 @@ def capped_head(scan: SyntheticScan, depth_m: float = 0.04, noise_m: float = 0.0
     xz = lo + rng.uniform(size=(int(density * np.prod(hi - lo)), 2)) * (hi - lo)
     xz = xz[Delaunay(rim[hull.vertices]).find_simplex(xz) >= 0]
     cap = np.column_stack([xz[:, 0], level + rng.normal(scale=noise_m, size=len(xz)), xz[:, 1]])
-    n0 = len(scan.points)
-    normals = None
-    if scan.normals is not None:
-        up = np.array([0.0, 1.0, 0.0]) @ _model_rotation(scan)
-        normals = np.concatenate([scan.normals, np.tile(up, (len(cap), 1))])
-    faces = None if scan.faces is None else np.concatenate([scan.faces, Delaunay(xz).simplices.astype(np.int64) + n0])
-    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(cap), bool)])
-    return replace(scan, points=np.concatenate([scan.points, _from_model(scan, cap)]), normals=normals, faces=faces,
-                   point_is_body=is_body)
+    return _with_points(scan, cap, np.array([0.0, 1.0, 0.0]), Delaunay(xz).simplices)
 
 
 # dark hair (``without_hair_returns``): the head's vertices (by their largest skinning weight) on
@@ -946,8 +950,6 @@ def with_long_hair(scan: SyntheticScan) -> SyntheticScan:
     scan without hair; a mesh gets its grid's triangles). The curtain is a heightfield in the body's frame (the
     shoulders' line across, model +Y up, backwards): over each cell, the back-most skin at or
     above it, plus LONG_HAIR_THICK_M. Its points are not body points."""
-    from dataclasses import replace
-
     from scipy.spatial import cKDTree
 
     from service.model.body import BONES, load_body_model
@@ -992,21 +994,12 @@ def with_long_hair(scan: SyntheticScan) -> SyntheticScan:
     ok = np.isfinite(D)
     H = h + A[..., None] * u + Y[..., None] * up + np.where(ok, D, 0.0)[..., None] * back
     ids = -np.ones(A.shape, np.int64)
-    ids[ok] = np.arange(int(ok.sum())) + len(scan.points)
-    faces = None
-    if scan.faces is not None:
-        c00, c01, c10, c11 = ids[:-1, :-1], ids[:-1, 1:], ids[1:, :-1], ids[1:, 1:]
-        quads = (c00 >= 0) & (c01 >= 0) & (c10 >= 0) & (c11 >= 0)
-        tri = np.concatenate([np.stack([c00[quads], c10[quads], c01[quads]], 1),
-                              np.stack([c01[quads], c10[quads], c11[quads]], 1)])
-        faces = np.concatenate([scan.faces, tri])
-    new = H[ok]
-    normals = None
-    if scan.normals is not None:
-        normals = np.concatenate([scan.normals, np.tile(back @ _model_rotation(scan), (len(new), 1))])
-    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(new), bool)])
-    return replace(scan, points=np.concatenate([scan.points, _from_model(scan, new)]), normals=normals,
-                   faces=faces, point_is_body=is_body)
+    ids[ok] = np.arange(int(ok.sum()))
+    c00, c01, c10, c11 = ids[:-1, :-1], ids[:-1, 1:], ids[1:, :-1], ids[1:, 1:]
+    quads = (c00 >= 0) & (c01 >= 0) & (c10 >= 0) & (c11 >= 0)
+    tri = np.concatenate([np.stack([c00[quads], c10[quads], c01[quads]], 1),
+                          np.stack([c01[quads], c10[quads], c11[quads]], 1)])
+    return _with_points(scan, H[ok], back, tri)
 
 
 def _floor_grid(centre: np.ndarray, half: float, spacing: float, rng: np.random.Generator,
@@ -1034,8 +1027,6 @@ def with_floor(scan: SyntheticScan, rng: np.random.Generator, kind: str = "disc"
     4 mm of noise (wider than any person is tall: the scan's extent no longer tells its unit).
     Meshes get the floor's triangles (not joined to the feet);
     point clouds its points with normals +Y (model frame)."""
-    from dataclasses import replace
-
     feet = scan.true_posed[:, 1] < 0.1
     c = scan.true_posed[feet][:, [0, 2]].mean(0)
     if kind == "disc":
@@ -1052,15 +1043,7 @@ def with_floor(scan: SyntheticScan, rng: np.random.Generator, kind: str = "disc"
         P[:, 1] = rng.uniform(-0.01, 0.01) + rng.normal(scale=0.004, size=len(P))
     else:
         raise ValueError(f"unknown floor {kind!r}; expected 'disc', 'scanner' or 'room'")
-    n0 = len(scan.points)
-    pts = np.concatenate([scan.points, _from_model(scan, P)])
-    normals = None
-    if scan.normals is not None:
-        up = np.array([0.0, 1.0, 0.0]) @ _model_rotation(scan)  # model +Y in scan axes
-        normals = np.concatenate([scan.normals, np.tile(up, (len(P), 1))])
-    faces = None if scan.faces is None else np.concatenate([scan.faces, tri + n0])
-    is_body = None if scan.point_is_body is None else np.concatenate([scan.point_is_body, np.zeros(len(P), bool)])
-    return replace(scan, points=pts, normals=normals, faces=faces, point_is_body=is_body)
+    return _with_points(scan, P, np.array([0.0, 1.0, 0.0]), tri)
 
 
 def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.random.Generator) -> SyntheticScan:
