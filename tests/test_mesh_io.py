@@ -15,7 +15,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from service.model.geometry import cluster_vertices, closest_points_on_mesh, simplify
+from service.model.geometry import cluster_vertices, closest_points_on_mesh, neighbour_mean, simplify
 from service.model.mesh_io import (
     KEPT_SCAN_POINTS,
     MAX_SCAN_POINTS,
@@ -557,6 +557,28 @@ def test_vertex_clustering_against_a_slow_reference():
         assert none is None and len(cloud) == len({tuple(np.floor((v - off) / h).astype(int)) for v in V})
     keyed = V + np.random.default_rng(0).normal(scale=0.01, size=V.shape)  # cells from other positions
     _assert_clusters_as_reference(V, m.faces, 0.08, np.zeros(3), keyed=keyed)
+
+
+def test_neighbour_mean_against_a_dense_reference():
+    """Each vertex's mean over its edge neighbours, as a dense loop builds it: a shared edge
+    counted once, a non-manifold edge (three triangles) too, a vertex on no face 0; each row's
+    neighbours summed in descending order (bit for bit the order the smoothing always used)."""
+    faces = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 4], [5, 6, 7], [7, 6, 5]])
+    n = 9  # vertex 8 on no face
+    ref = np.zeros((n, n))
+    for f in faces:
+        for a in f:
+            for b in f:
+                ref[a, b] = float(a != b) or ref[a, b]
+    ref /= np.maximum(ref.sum(1, keepdims=True), 1)
+    A = neighbour_mean(faces, n)
+    assert A.shape == (n, n) and A.indices.dtype == np.int32
+    np.testing.assert_array_equal(A.toarray(), ref)
+    for i in range(n):
+        row = A.indices[A.indptr[i]:A.indptr[i + 1]]
+        assert row.tolist() == sorted(np.flatnonzero(ref[i]).tolist(), reverse=True)
+    x = np.random.default_rng(0).normal(size=(n, 3))
+    np.testing.assert_allclose(A @ x, ref @ x, rtol=1e-15, atol=1e-15)
 
 
 def _overshared_edges(faces) -> float:
