@@ -312,3 +312,33 @@ def test_relaxed_hands_curl_the_fingers_towards_the_palms(model, person):
     assert (moved & (bone == BONES.index("hand_l"))).sum() == (moved & (bone == BONES.index("hand_r"))).sum()
     assert relaxed.measurements == plain.measurements
     np.testing.assert_allclose(relaxed.rotvecs, plain.rotvecs)
+
+
+def test_raw_scanner_artifacts_offset_views_fly_pixels_and_cut_the_soles(model, person):
+    """The fitting bench's raw scanner errors (``with_raw_artifacts``, ``cut_soles``): every
+    point moves, most by its view's calibration offset (a few millimetres), a few percent fly
+    off away from a camera by up to RAW_FLYING_MAX_M; a mesh keeps its faces and gets its
+    normals from them again; the truth is untouched; the soles' cut drops exactly the points
+    within its height of the floor (the true body's lowest point; 3 cm here: the virtual
+    scanner hardly sees the soles, so the bench's 1 cm drops few)."""
+    w, g = person
+    scan = SS.make_scan(model, np.random.default_rng(5), w, g, clothed=False, point_cloud=False, n_points=5000,
+                        max_pose_deg=10.0)
+    raw = SS.with_raw_artifacts(scan, np.random.default_rng(6))
+    P, Q = scan.points_in_model_frame(), raw.points_in_model_frame()
+    d = np.linalg.norm(Q - P, axis=1)
+    assert len(Q) == len(P) and np.array_equal(raw.faces, scan.faces) and (d > 0).all()
+    assert np.median(d) < 4 * SS.RAW_MISREGISTRATION_M and d.max() < SS.RAW_FLYING_MAX_M + 6 * SS.RAW_MISREGISTRATION_M
+    flown = d > 0.01
+    assert 0.01 < flown.mean() < 0.1, flown.mean()
+    np.testing.assert_allclose(raw.normals, vertex_normals(raw.points, raw.faces), atol=1e-6)
+    assert np.array_equal(raw.true_posed, scan.true_posed) and raw.measurements == scan.measurements
+    floor = scan.true_posed[:, 1].min()
+    cut = SS.cut_soles(raw, 0.03)
+    C = cut.points_in_model_frame()
+    assert len(C) == int((Q[:, 1] > floor + 0.03).sum()) < len(Q) and C[:, 1].min() > floor + 0.03
+    assert cut.faces.max() < len(C)
+    cloud = SS.make_scan(model, np.random.default_rng(5), w, g, clothed=False, point_cloud=True, n_points=5000,
+                         max_pose_deg=10.0)
+    raw_cloud = SS.with_raw_artifacts(cloud, np.random.default_rng(6))
+    assert raw_cloud.faces is None and np.array_equal(raw_cloud.normals, cloud.normals)

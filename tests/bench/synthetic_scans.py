@@ -778,7 +778,7 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
 
 # -- what real scanners add and lose (issue 12) ------------------------------------------------
 DEGRADATIONS = ("holes", "cut_head", "capped_head", "floor_disc", "scanner_floor", "room_floor", "dark_hair",
-                "no_head", "long_hair")
+                "no_head", "long_hair", "raw_artifacts", "cut_soles")
 ROOM_FLOOR_HALF_M = 1.6  # the room floor's half width (metres)
 
 
@@ -1046,6 +1046,56 @@ def with_floor(scan: SyntheticScan, rng: np.random.Generator, kind: str = "disc"
     return _with_points(scan, P, np.array([0.0, 1.0, 0.0]), tri)
 
 
+# a raw multi-view scanner's own errors (``with_raw_artifacts``): each view's patch of surface off
+# by its calibration error, and flying pixels where a view grazes the surface
+RAW_MISREGISTRATION_M = 0.001  # per-axis RMS of each view's offset
+RAW_GRAZING_COS = 0.15  # a view grazes the surface where |normal . view| is below this ...
+RAW_FLYING_SHARE = 0.1  # ... and this share of those points fly off, away from the camera,
+RAW_FLYING_MEAN_M = 0.015  # by an exponential distance of this mean,
+RAW_FLYING_MAX_M = 0.06  # cut at this
+
+
+def _model_normals(scan: SyntheticScan) -> np.ndarray:
+    """The scan's normals (P, 3) in the model frame."""
+    return scan.normals @ _model_rotation(scan)
+
+
+def with_raw_artifacts(scan: SyntheticScan, rng: np.random.Generator) -> SyntheticScan:
+    """What a raw multi-view scanner's merged output has beyond noise: each point belongs to
+    the horizontal view (``VIEW_AZIMUTHS`` at the 10-degree elevation) that faces it most, and
+    each view's points are off by that view's random offset (``RAW_MISREGISTRATION_M`` per
+    axis: steps where the patches meet); then flying pixels: where a view grazes the surface
+    (``RAW_GRAZING_COS``), ``RAW_FLYING_SHARE`` of the points are pushed away from that camera
+    along its ray (mixed depths at the silhouette's edge; exponential, ``RAW_FLYING_MEAN_M``
+    mean, at most ``RAW_FLYING_MAX_M``), spikes joined to the mesh. A mesh's normals are taken
+    again from its faces; a cloud keeps the ones it had. The truth is the scan's."""
+    from dataclasses import replace
+
+    el = np.radians(10.0)
+    az = np.arange(VIEW_AZIMUTHS) * 2 * np.pi / VIEW_AZIMUTHS
+    views = np.stack([np.cos(el) * np.sin(az), np.full(len(az), np.sin(el)), np.cos(el) * np.cos(az)], 1)
+    P = _model_points(scan)
+    N = _model_normals(scan)
+    facing = N @ views.T  # (P, views)
+    owner = np.argmax(facing, axis=1)
+    P = P + rng.normal(scale=RAW_MISREGISTRATION_M, size=(len(views), 3))[owner]
+    flown = np.zeros(len(P), bool)
+    for v, d in enumerate(views):
+        graze = np.flatnonzero((np.abs(facing[:, v]) < RAW_GRAZING_COS) & ~flown)
+        pick = graze[rng.random(len(graze)) < RAW_FLYING_SHARE]
+        P[pick] -= d * np.minimum(rng.exponential(RAW_FLYING_MEAN_M, len(pick)), RAW_FLYING_MAX_M)[:, None]
+        flown[pick] = True
+    points = _from_model(scan, P)
+    normals = scan.normals if scan.faces is None else vertex_normals(points, scan.faces).astype(np.float64)
+    return replace(scan, points=points, normals=normals)
+
+
+def cut_soles(scan: SyntheticScan, height_m: float = 0.01) -> SyntheticScan:
+    """The floor taken off as processing software often does, by a horizontal plane
+    ``height_m`` above it (the true body's lowest point, model frame): the soles go with it."""
+    return keep_points(scan, _model_points(scan)[:, 1] > float(scan.true_posed[:, 1].min()) + height_m)
+
+
 def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.random.Generator) -> SyntheticScan:
     """Apply the named degradations (``DEGRADATIONS``) in order."""
     for k in kinds:
@@ -1067,6 +1117,10 @@ def degrade(scan: SyntheticScan, kinds: tuple[str, ...] | list[str], rng: np.ran
             scan = without_head(scan)
         elif k == "long_hair":
             scan = with_long_hair(scan)
+        elif k == "raw_artifacts":
+            scan = with_raw_artifacts(scan, rng)
+        elif k == "cut_soles":
+            scan = cut_soles(scan)
         else:
             raise ValueError(f"unknown degradation {k!r}; expected one of {DEGRADATIONS}")
     return scan
