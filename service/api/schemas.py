@@ -123,6 +123,10 @@ class FitStats(BaseModel):
         default=None, description="Points of a flat cap closing the top of the head (a scanner's software filling "
         "the opening where its view ended below the crown), left out of the fit so that the head's top is the body "
         "model's; 0 when the scan has none")
+    face_shape_from_body: bool | None = Field(
+        default=None, description="True when the scan showed too little of the head (the face in a hole, the top cut "
+        "off, hair) to trust the face for the body's shape: the face's points then set the head's pose only, and the "
+        "face takes its shape from the rest of the body")
 
 
 class ScanInfo(BaseModel):

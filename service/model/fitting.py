@@ -371,6 +371,19 @@ class FitParams:
     # 20 degrees: 0.84 -> 0.56 mm median, every scan better or the same; 45: 0.96 -> 0.74 mm);
     # bare scans without long hair +0.00-0.02 mm
     hair_back: bool = True
+    # issue 12, a bare scan whose head is poorly seen (its seen share after the initialisation,
+    # ``seen_shares``, below this: the face in a hole, the top cut or under hair): the face's
+    # pairs (the head's and neck's vertices outside ``scalp_region``) move the pose but not the
+    # shape (the refinement's shape columns, Eq. 4 of Alg. 1). With the face in a hole its few
+    # pairs are the hole's edges, and the scalp around it lets the body lie inside the scan (hair),
+    # so a head grown up into the cut top fitted as well as the true one: the face's pairs grew the
+    # neck. Held-out avatar 40, bare, the face in a hole, the head cut, a raw scanner's misregistered
+    # views and flying pixels (bench ``scanner_raw``), 20 degrees: +2.74 cm, 3.18 mm -> +0.16 cm,
+    # 1.09 mm; avatar 41 with long hair down the back (``long_hair``), 20 degrees: +4.77 cm, 5.19
+    # mm -> +0.05 cm, 0.57 mm (README, **A poorly seen face**).
+    # The whole head and neck left out of the shape instead took a capped head's shape from the
+    # body (avatar 41, ``scanner_capped``: -0.07 -> +2.41 cm). None: off
+    face_shape_min_seen: float | None = 0.65
     # issue 12, the unseen side left to the prior: on a bare scan, a bone fewer than
     # UNSEEN_SHARE of whose template vertices have a scan point near them after the
     # initialisation (``seen_shares``: a hand or the neck in a hole) is pulled towards its rest
@@ -633,11 +646,10 @@ HEADLESS_ABOVE_M = 0.03
 HEADLESS_HEAD_SHARE = 0.002
 
 
-def seen_shares(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None) -> np.ndarray:
-    """(17,) per bone (BONES order): the share of the template vertices it moves most, posed by
-    the state ``s``, with a scan point of P (P, 3; model frame) near them (SEEN_M, SEEN_SPACINGS)
-    that is not on a hole's rim (``rims``: (rim distance (P,), point spacing) or None)."""
-    bone = np.argmax(rig.W, axis=1)
+def seen_vertices(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None) -> np.ndarray:
+    """(n,) bool: the template vertices, posed by the state ``s``, with a scan point of P (P, 3;
+    model frame) near them (SEEN_M, SEEN_SPACINGS) that is not on a hole's rim (``rims``: (rim
+    distance (P,), point spacing) or None)."""
     V = _pose_model(rig, s, _subset(rig, np.arange(len(rig.mean)))).v
     tree = cKDTree(P)
     radius = max(SEEN_M, SEEN_SPACINGS * SC.point_spacing(tree, P))
@@ -645,6 +657,15 @@ def seen_shares(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None) -> 
     seen = np.isfinite(d)
     if rims is not None:
         seen &= ~(rims[0][np.minimum(j, len(P) - 1)] <= RIM_SPACINGS * rims[1])
+    return seen
+
+
+def seen_shares(rig: "_Rig", s: "_State", P: np.ndarray, rims: tuple | None,
+                seen: np.ndarray | None = None) -> np.ndarray:
+    """(17,) per bone (BONES order): the share of the template vertices it moves most that are
+    seen (``seen_vertices``, or ``seen`` (n,) bool when given)."""
+    bone = np.argmax(rig.W, axis=1)
+    seen = seen_vertices(rig, s, P, rims) if seen is None else seen
     count = np.bincount(bone, minlength=len(rig.parents))
     return np.bincount(bone, weights=seen, minlength=len(rig.parents)) / np.maximum(count, 1) + (count == 0)
 
@@ -1031,7 +1052,8 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
             schedule: list[tuple[np.ndarray, int]], clothed: bool, params: FitParams,
             omega: float | None = None, contact: float | None = None,
             landmarks: tuple | None = None, anchor: tuple | None = None,
-            hole_spacing: float | None = None, fingers_from: int | None = None) -> tuple[_State, float]:
+            hole_spacing: float | None = None, fingers_from: int | None = None,
+            shape_free: np.ndarray | None = None) -> tuple[_State, float]:
     """Parametric ICP on subsamples: per iteration, correspondences both ways (template
     subsample -> nearest scan point, scan subsample -> nearest template vertex) rejected by
     normals and distance, point-to-plane residuals weighted for clothing, then one damped
@@ -1045,7 +1067,8 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
     ``hole_spacing``: the
     scan subsample's point spacing (metres); given, a template vertex whose nearest scan point
     is off to its side (a hole's or a cut head top's rim, ``scan_cleanup.over_hole``) is not
-    pulled to it, as in Alg. 1."""
+    pulled to it, as in Alg. 1. ``shape_free`` (n,) bool over the template's vertices: their
+    pairs move the pose, not the shape (``FitParams.face_shape_min_seen``)."""
     cos_rej = np.cos(np.radians(params.coarse_normal_reject_deg))
     offsets = None  # (17,) metres: the clothes' stand-off per region (FitParams.cloth_offset_mean)
     if clothed and contact is not None and params.cloth_offset_mean is not None:
@@ -1104,6 +1127,8 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
             w = w * finger_weights(r, rig.fingers[sub.idx[vi]], params.finger_scale)
         comps = np.arange(n_shape)
         Jall = _pose_jacobian(rig, p, bones, comps if n_shape else None)
+        if n_shape and shape_free is not None:  # those vertices' pairs leave the shape be
+            Jall[shape_free[sub.idx], :, 3 + 3 * len(bones):] = 0.0
         if offsets is not None:
             H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r, sub.region[vi], len(offsets))
             H[-len(offsets):, -len(offsets):] += offset_prior_hessian
@@ -1593,7 +1618,10 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     n = len(rig.mean)
     from service.model.body import BONES
 
-    seen = seen_shares(rig, s, P, rims)
+    seen_v = seen_vertices(rig, s, P, rims)
+    seen = seen_shares(rig, s, P, rims, seen_v)
+    face = np.isin(np.argmax(rig.W, axis=1), _bone_ids(HAIR_BONES)) & ~rig.scalp  # the head's but the scalp
+    face_seen = float(seen_v[face].mean())
     headless: dict = {}
     if params.headless_check and "head" not in params.absent_bones:  # a scan without its head?
         alt, headless = _without_head(rig, pts_m, nrm, clothed, params, seed, rims, s, R0, t0)
@@ -1607,6 +1635,10 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         w_unseen[_bone_ids(UNSEEN_FREE_BONES)] = 0.0
         w_unseen[_bone_ids(params.absent_bones)] = params.unseen_prior
         unseen = (np.broadcast_to(np.eye(3), s.rot.shape).copy(), w_unseen)
+    shape_free = None  # a poorly seen head's face: pose, not shape (FitParams.face_shape_min_seen)
+    if (not clothed and params.hair_region and params.face_shape_min_seen is not None
+            and "head" not in params.absent_bones and seen[BONES.index("head")] < params.face_shape_min_seen):
+        shape_free = face
     if params.refine_iterations:
         report(0.12, "refining pose and shape")
         scan = _make_scan(pts_m, nrm, R0, t0, params.refine_points, rng, rims)
@@ -1636,7 +1668,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
                        rparams, omega=params.bone_smoothness,
                        contact=params.clothing_contact, anchor=anchor, hole_spacing=holes,
                        fingers_from=None if params.finger_scale is None or params.finger_refine_from is None
-                       else int(params.finger_refine_from * params.refine_iterations))
+                       else int(params.finger_refine_from * params.refine_iterations), shape_free=shape_free)
         tree = scan.tree
     else:
         tree = cKDTree(P)
@@ -1669,6 +1701,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
                             else np.ones(len(upd), bool), 3).astype(np.float64)
         fingers = rig.fingers[upd] if params.finger_scale is not None else None
         support_outer = support
+        shape_support = None if shape_free is None else np.repeat(~shape_free[upd], 3).astype(np.float64)
         backend = system.backend
         for _ in range(params.max_inner):
             inner_total += 1
@@ -1699,8 +1732,9 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             # Eq. 4: update beta with T and theta fixed (linear least squares with the prior)
             p = _pose_model(rig, s, upd_sub)
             Jb = _shape_jacobian(rig, p, all_comps).reshape(-1, len(all_comps))
-            r = (p.v - target).reshape(-1) * support
-            Hb = sw * Jb.T @ (Jb * support[:, None]) + lam * np.diag(rig.precision) + params.posture_weight * AtA
+            bsupport = support if shape_support is None else support * shape_support
+            r = (p.v - target).reshape(-1) * bsupport
+            Hb = sw * Jb.T @ (Jb * bsupport[:, None]) + lam * np.diag(rig.precision) + params.posture_weight * AtA
             gb = sw * Jb.T @ r + lam * rig.precision * s.beta + params.posture_weight * AtA @ s.beta
             if given is not None:  # the customer's own measurements (FitParams.known_weight)
                 Hk, gk, _ = given(s.beta)
@@ -1756,6 +1790,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         stats={"init_seconds": t_init, "refine_seconds": t_refine, "solver": backend, "accepted_fraction": float(accepted[present].mean()),
                "hair_region": bool(params.hair_region and not clothed),
                "seen": {b: round(float(x), 3) for b, x in zip(BONES, seen)}, "headless": headless,
+               "face_shape_from_body": shape_free is not None, "face_seen": round(face_seen, 3),
                "person_check": checks, "cleaning": cleaning.stats if cleaning is not None else None,
                "points": {"scan": n_scan, "fitted": len(pts_m), "flat_cap": capped},
                "screen_costs_mm": [round(1000 * x, 1) for x in sorted(screen_costs)[:4]]},

@@ -50,6 +50,11 @@
    and a person in a random MakeHuman suit; their "before" has no second coarse fit with
    the head absent (``FitParams.headless_check``); the truth is the displaced body, and each scan also reports the model's own best (``model_floor_mm``: the
    true rest body's distance to its least-squares projection on the model's space).
+   ``scanner_raw``: a raw multi-view scanner's own errors on the bare scan with holes and a cut
+   head top (each view's patch off by its calibration, flying pixels where a view grazes the
+   surface, the floor cut off 1 cm above it: ``synthetic_scans.with_raw_artifacts``,
+   ``cut_soles``); no "before" unless ``--before`` names one (``face_shape``: the face's pairs
+   shaping the body however little of the head is seen).
 
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
    two people apart and touching) with the check off (before) and on; CesiumMan; single-view
@@ -168,6 +173,11 @@ CONDITIONS = (
     Condition("relaxed_hands", False, False, degrade=("holes", "cut_head", "scanner_floor"), before="finger_weight",
               finger_curl_deg=70.0),
     Condition("relaxed_hands_clothed", True, False, before="finger_weight", finger_curl_deg=70.0),
+    # a raw multi-view scanner's own errors on bare scanner output (holes, a cut head top): each
+    # view's patch off by its calibration (1 mm RMS per axis), flying pixels where a view grazes
+    # the surface (synthetic_scans.with_raw_artifacts), and the floor taken off 1 cm above it, the
+    # soles with it (synthetic_scans.cut_soles); compare scanner_minimal, the same people
+    Condition("scanner_raw", False, False, degrade=("holes", "cut_head", "raw_artifacts", "cut_soles"), before=None),
 )
 DEFAULT_AVATARS = 12
 N_POINTS = 12_500
@@ -246,6 +256,7 @@ def _before_kinds() -> dict[str, dict]:
         "flat_cap": {"flat_cap": False},
         "hair_region": {"hair_region": False},
         "hair_back": {"hair_back": False},
+        "face_shape": {"face_shape_min_seen": None},
         "unseen_prior": {"unseen_prior": 0.0},
         "headless": {"headless_check": False},
         "known": {},
