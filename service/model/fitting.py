@@ -380,7 +380,8 @@ class FitParams:
     # neck. Held-out avatar 40, bare, the face in a hole, the head cut, a raw scanner's misregistered
     # views and flying pixels (bench ``scanner_raw``), 20 degrees: +2.74 cm, 3.18 mm -> +0.16 cm,
     # 1.09 mm; avatar 41 with long hair down the back (``long_hair``), 20 degrees: +4.77 cm, 5.19
-    # mm -> +0.05 cm, 0.57 mm (README, **A poorly seen face**).
+    # mm -> +0.05 cm, 0.57 mm (in process; read from a PLY file +9.8 -> +7.5 cm: this head's fit
+    # turns on small differences, see README, **A poorly seen face**).
     # The whole head and neck left out of the shape instead took a capped head's shape from the
     # body (avatar 41, ``scanner_capped``: -0.07 -> +2.41 cm). None: off
     face_shape_min_seen: float | None = 0.65
