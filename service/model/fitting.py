@@ -498,6 +498,7 @@ class _Rig:
     area: np.ndarray  # (n,) the mean rest body's surface area per vertex (a third of each incident face's), m^2
     hops: np.ndarray  # (17, 17) int: bones between two bones in the skeleton (bone_hops)
     scalp: np.ndarray  # (n,) bool: where hair may stand off the skin (scalp_region)
+    face: np.ndarray  # (n,) bool: the head's vertices but the scalp (FitParams.face_shape_min_seen)
     hair_back: np.ndarray  # (n,) bool: where long hair may cover the back (hair_back_region)
     fingers: np.ndarray  # (n,) bool: the fingers, beyond the knuckles (finger_region)
     subsets: dict = field(default_factory=dict)
@@ -528,6 +529,7 @@ def _rig(model) -> _Rig:
                 precision=1.0 / np.maximum(model.variances.astype(np.float64), 1e-12),
                 posture=_posture_matrix(jmean, jdirs, parents), area=vertex_areas(full_mean[:n], faces),
                 hops=bone_hops(parents), scalp=scalp_region(full_mean[:n], faces, W),
+                face=face_region(full_mean[:n], faces, W),
                 hair_back=hair_back_region(full_mean[:n], faces, W, jmean),
                 fingers=finger_region(full_mean[:n], W, jmean))
 
@@ -561,6 +563,15 @@ def scalp_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.n
     nz = vertex_normals(vertices, faces)[:, 2]
     face = head & (nz > SCALP_FACE_NORMAL_Z) & (y < top - SCALP_HAIRLINE_M)
     return np.isin(bone, [BONES.index(b) for b in HAIR_BONES]) & ~face
+
+
+def face_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """(n,) bool: the face on a rest body (vertices (n, 3), faces (F, 3), dense skinning weights
+    W (n, 17)): the vertices of HAIR_BONES outside ``scalp_region``."""
+    from service.model.body import BONES
+
+    bone = np.argmax(W, axis=1)
+    return np.isin(bone, [BONES.index(b) for b in HAIR_BONES]) & ~scalp_region(vertices, faces, W)
 
 
 # where long hair may hang on the rest template: the back (normal z < HAIR_BACK_NORMAL_Z) of the
@@ -1621,8 +1632,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
 
     seen_v = seen_vertices(rig, s, P, rims)
     seen = seen_shares(rig, s, P, rims, seen_v)
-    face = np.isin(np.argmax(rig.W, axis=1), _bone_ids(HAIR_BONES)) & ~rig.scalp  # the head's but the scalp
-    face_seen = float(seen_v[face].mean())
+    face_seen = float(seen_v[rig.face].mean())
     headless: dict = {}
     if params.headless_check and "head" not in params.absent_bones:  # a scan without its head?
         alt, headless = _without_head(rig, pts_m, nrm, clothed, params, seed, rims, s, R0, t0)
@@ -1639,7 +1649,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
     shape_free = None  # a poorly seen head's face: pose, not shape (FitParams.face_shape_min_seen)
     if (not clothed and params.hair_region and params.face_shape_min_seen is not None
             and "head" not in params.absent_bones and seen[BONES.index("head")] < params.face_shape_min_seen):
-        shape_free = face
+        shape_free = rig.face
     if params.refine_iterations:
         report(0.12, "refining pose and shape")
         scan = _make_scan(pts_m, nrm, R0, t0, params.refine_points, rng, rims)
