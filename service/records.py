@@ -68,6 +68,7 @@ class FitStats(BaseModel):
     points_fitted: int | None = None  # the scan's points the fit used (None: fitted before 2026-11-27)
     flat_cap_points: int | None = None  # a flat cap over the head, left out of the fit (None: before 2026-11-28)
     face_shape_from_body: bool | None = None  # a poorly seen head's face shaped by the body (None: before 2026-11-28)
+    head_shape_from_body: bool | None = None  # ... its whole head and neck, a second hypothesis kept (None: before 2026-11-28)
 
 
 class Customer(Record):

@@ -490,9 +490,10 @@ def test_the_body_does_not_fill_a_loose_suit(model):
     assert ev["prior"]["p2s_mm"] < ev["none"]["p2s_mm"] - 0.2, ev
 
 
-def _bench_scan(model, k: int, condition: str = "clothed_mesh", deg: float = 45.0):
+def _bench_scan(model, k: int, condition: str = "clothed_mesh", deg: float = 45.0, draw: int = 0):
     """The fitting bench's scan of held-out person ``k`` (its order) in ``condition``, anatomical
-    poses, degraded as the condition says: (person, scan)."""
+    poses, degraded as the condition says: (person, scan). ``draw`` > 0: another random draw of
+    the raw scanner's errors (the degradations from ``raw_artifacts`` on; the holes kept)."""
     from tests.bench import fitting as BF
     from tests.bench.common import heldout_people
 
@@ -508,7 +509,11 @@ def _bench_scan(model, k: int, condition: str = "clothed_mesh", deg: float = 45.
                         detail_rng=np.random.default_rng([BF.SEED, 13, person["index"]]),
                         finger_curl_deg=cond.finger_curl_deg)
     if cond.degrade:
-        scan = SS.degrade(scan, cond.degrade, np.random.default_rng([BF.SEED, 11, person["index"]]))
+        rng = np.random.default_rng([BF.SEED, 11, person["index"]])
+        kinds = list(cond.degrade)
+        cut = kinds.index("raw_artifacts") if draw and "raw_artifacts" in kinds else len(kinds)
+        scan = SS.degrade(scan, kinds[:cut], rng)
+        scan = SS.degrade(scan, kinds[cut:], np.random.default_rng([BF.SEED, 11, person["index"], draw]))
     return person, scan
 
 
@@ -1157,3 +1162,112 @@ def test_a_poorly_seen_face_does_not_shape_the_body(model):
     assert after.stats["face_shape_from_body"] and after.stats["seen"]["head"] < F.FitParams().face_shape_min_seen
     assert abs(fit["stature_err_cm"]) < 0.5 and fit["p2s_mm"] < 1.5, fit
     assert before["stature_err_cm"] > 2.0 and before["p2s_mm"] > 2.5, before
+
+
+def test_scan_to_surface_mm_against_brute_force():
+    """``fitting.scan_to_surface_mm`` (the head hypotheses' score): the mean over points of the
+    distance to the nearest of every triangle, each clipped, as a loop over all triangles."""
+    from service.model.geometry import closest_point_on_triangles
+
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.linspace(0, 0.3, 7), np.linspace(0, 0.3, 7)), -1).reshape(-1, 2)
+    V = np.c_[g, 0.03 * np.sin(13 * g[:, 0]) * np.cos(10 * g[:, 1])]  # a bumpy sheet, 30 cm square
+    idx = np.arange(49).reshape(7, 7)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    Fc = np.r_[np.c_[a, b, c], np.c_[a, c, d]]
+    P = rng.uniform([-0.03, -0.03, -0.08], [0.33, 0.33, 0.08], (200, 3))
+    best = np.full(len(P), np.inf)
+    for f in Fc:
+        q = closest_point_on_triangles(P, V[f[0]][None], V[f[1]][None], V[f[2]][None])
+        best = np.minimum(best, np.linalg.norm(P - q, axis=1))
+    for clip in (0.05, 0.01, 1.0):
+        ref = 1000 * np.minimum(best, clip).mean()
+        assert F.scan_to_surface_mm(P, V, Fc, clip=clip) == pytest.approx(ref, rel=1e-9, abs=1e-9)
+    assert F.scan_to_surface_mm(V[Fc[:, 0]], V, Fc) == pytest.approx(0.0, abs=1e-9)  # points on it
+
+
+def test_bench_fits_the_scan_as_uploaded(model):
+    """``tryon bench fitting --via-file``: the scan as the fitting job gets it from an upload
+    (``as_uploaded``: the file read by ``uploads.read_body_upload``, stored as the queue
+    does) is the generated scan to float32 precision, in the file's units and axes; a point
+    cloud keeps its normals; a non-person upload is refused with the upload's reason."""
+    from service.application.errors import Invalid
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 0, "unclothed_mesh", deg=20.0)
+    got = BF.as_uploaded(model, scan, "ply")
+    assert got.faces is not None and len(got.faces) == len(scan.faces)
+    used = np.unique(scan.faces)  # vertices on no face are dropped by the upload
+    assert got.points.shape == (len(used), 3)
+    scale = np.abs(scan.points).max()
+    assert np.abs(got.points - scan.points[used]).max() <= 1e-6 * scale
+    _, cloud = _bench_scan(model, 0, "clothed_cloud", deg=20.0)
+    got = BF.as_uploaded(model, cloud, "ply")
+    assert got.faces is None and got.normals is not None and len(got.points) == len(cloud.points)
+    assert np.abs(got.points - cloud.points).max() <= 1e-6 * np.abs(cloud.points).max()
+    assert np.einsum("ij,ij->i", got.normals, cloud.normals).min() > 0.999
+    from dataclasses import replace
+
+    tiny = replace(cloud, points=cloud.points * 1e-4, faces=None)  # 0.2 mm tall in any unit
+    with pytest.raises(Invalid):
+        BF.as_uploaded(model, tiny, "ply")
+
+
+@pytest.mark.slow
+def test_a_poorly_seen_head_is_fitted_twice_and_the_better_kept(model):
+    """Issue 12, bare scanner output at 20 degrees with the head poorly seen. Held-out avatar 40
+    from a raw scanner (``scanner_raw``, another draw of its errors; the face in a hole, the top
+    cut): her head fitted once grows up into the cut top (+2.1 cm, 2.8 mm); fitted again with
+    the head and neck shaped by the body (``FitParams.head_hypothesis_seen``), the second fit
+    leaves less of the scan unexplained and is kept. Held-out avatar 41's capped head
+    (``scanner_capped``), whose face is seen, keeps the first: shaped by her body alone her head
+    would be 2.4 cm too tall."""
+    from tests.bench import fitting as BF
+
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    _, scan = _bench_scan(model, 7, "scanner_raw", deg=20.0, draw=11)
+    after = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
+    fit = BF.evaluate(model, scan, after, surface)
+    before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
+                                                 params=BF.BEFORE_PARAMS("head_hypothesis")), surface)
+    tried = after.stats["head_hypotheses"]
+    assert [h["head_from_body"] for h in tried] == [False, True] and tried[1]["chosen"], tried
+    assert tried[1]["scan_to_surface_mm"] < tried[0]["scan_to_surface_mm"]
+    assert after.stats["head_shape_from_body"] and after.stats["face_shape_from_body"]
+    assert abs(fit["stature_err_cm"]) < 0.5 and fit["p2s_mm"] < 1.5, fit
+    assert before["stature_err_cm"] > 1.5 and before["p2s_mm"] > 2.0, before
+
+    _, capped = _bench_scan(model, 9, "scanner_capped", deg=20.0)
+    kept = F.fit_body(model, capped.points, capped.normals, capped.faces, clothed=False)
+    tried = kept.stats["head_hypotheses"]
+    assert len(tried) == 2 and tried[0]["chosen"] and not kept.stats["head_shape_from_body"], tried
+    assert abs(BF.evaluate(model, capped, kept, surface)["stature_err_cm"]) < 0.5
+
+
+@pytest.mark.slow
+def test_a_clothed_scans_hand_in_a_hole_is_left_to_the_prior(model):
+    """Issue 12, a clothed scanner scan (bench ``scanner``: a work suit, holes, a cut head top,
+    the scanner's floor; 20 degrees) of held-out avatar 2 as the service reads it from a PLY
+    file: his left hand is in a hole (8 % seen). Held by the clothed anchors to the posture the
+    scan's few points there gave it, it turned over (51 mm mean error on the hand, 8.2 mm on the
+    body); pulled to its rest posture (``FitParams.clothed_unseen_bones``) it is near the truth
+    and said in ``unseen``. (A hand cut away entirely, 10-12 cm around it, is a guess either
+    way: 21 -> 39 mm on this scan, 34 -> 27 mm on avatar 0's clothed mesh; not asserted.)"""
+    from tests.bench import fitting as BF
+
+    _, scan = _bench_scan(model, 4, "scanner", deg=20.0)
+    up = BF.as_uploaded(model, scan, "ply")
+    surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
+    hand = (np.argmax(F._rig(model).W, axis=1) == BONES.index("hand_l"))[:model.n_body_vertices]
+
+    def hand_mm(fit) -> float:
+        C = scan.to_model @ np.linalg.inv(np.asarray(fit.to_model, np.float64))
+        Pf = BF._apply(C, np.asarray(fit.posed_vertices, np.float64))
+        return 1000 * float(surface.distances(scan.true_posed[:model.n_body_vertices][hand], Pf).mean())
+
+    after = F.fit_body(model, up.points, up.normals, up.faces, clothed=True)
+    before = F.fit_body(model, up.points, up.normals, up.faces, clothed=True,
+                        params=BF.BEFORE_PARAMS("clothed_hands"))
+    assert after.unseen == ["hand_l"] and before.unseen == [], (after.unseen, before.unseen)
+    assert hand_mm(after) < 20.0 and BF.evaluate(model, scan, after, surface)["p2s_mm"] < 4.5
+    assert hand_mm(before) > 30.0, hand_mm(before)

@@ -286,18 +286,21 @@ def test_a_flat_cap_over_the_head_is_left_out_and_said(server: Server, model: Bo
 def test_a_poorly_seen_face_is_shaped_by_the_body_and_said(server: Server, model: BodyModel) -> None:
     """Issue 12, a raw scanner's output: bench avatar 40's bare mesh (``scanner_raw``: holes,
     her face in one, the head's top cut, misregistered views, flying pixels, the soles cut; 20
-    degrees) as a binary PLY. Her head is too little seen to trust the face for the body's
-    shape: the customer's ``fit.face_shape_from_body`` says so and she is ready at her height
-    (+2.7 cm with the face's pairs shaping the body, in process)."""
-    from tests.test_scan_cleanup import _bench_scan
+    degrees; another draw of the scanner's errors) as a binary PLY. Her head is too little seen
+    to trust it for the body's shape: fitted a second time with the head and neck shaped by the
+    body (``FitParams.head_hypothesis_seen``), that fit explains more of the scan and is kept;
+    the customer's ``fit.face_shape_from_body`` and ``fit.head_shape_from_body`` say so and she
+    is ready at her height (+2.1 cm with the head fitted once, in process)."""
+    from tests.test_fitting import _bench_scan
 
-    scan, _ = _bench_scan(model, 7, 20, ("holes", "cut_head", "raw_artifacts", "cut_soles"))
+    _, scan = _bench_scan(model, 7, "scanner_raw", deg=20.0, draw=11)
     r = _post_scan(server, "raw.ply", S.scan_file_bytes(scan, "ply"), clothed="false")
     assert r.status_code == 202, r.text
     states = _wait_job(server, r.json()["job"]["url"])
     assert states[-1]["status"] == "done", states[-1]
     c = server.client.get(f"/v1/customers/{r.json()['id']}").json()
     assert c["status"] == "ready" and c["fit"]["face_shape_from_body"] is True, c
+    assert c["fit"]["head_shape_from_body"] is True, c
     assert abs(c["measurements"]["height_cm"] - scan.measurements["height_cm"]) < 0.5, \
         (c["measurements"]["height_cm"], scan.measurements["height_cm"])
 
@@ -387,6 +390,7 @@ def test_scan_customer_end_to_end(server: Server, scans: dict, model: BodyModel,
     assert c["partial"] is False and len(c["frame"]) == 16 and set(c["coverage"]) == {"front", "back", "left", "right"}
     assert c["unseen"] == [] and c["fit"]["flat_cap_points"] == 0  # the whole body scanned, no cap
     assert c["fit"]["face_shape_from_body"] is False  # the head seen
+    assert c["fit"]["head_shape_from_body"] is False
     _check_scan_pose(server, cid, scan, model, validate_glb)
     if embedded:
         assert c["estimated"] == ["gender"]

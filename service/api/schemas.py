@@ -127,6 +127,10 @@ class FitStats(BaseModel):
         default=None, description="True when the scan showed too little of the head (the face in a hole, the top cut "
         "off, hair) to trust the face for the body's shape: the face's points then set the head's pose only, and the "
         "face takes its shape from the rest of the body")
+    head_shape_from_body: bool | None = Field(
+        default=None, description="True when, for such a poorly seen head, a second fit in which the whole head and "
+        "neck set their pose only (their height and size following the rest of the body) left less of the scan "
+        "unexplained than the first and was kept (face_shape_from_body is then true as well)")
 
 
 class ScanInfo(BaseModel):

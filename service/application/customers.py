@@ -334,7 +334,8 @@ class CustomerService:
             "fit": FitStats(outer_iterations=int(fit.outer_iterations), inner_iterations=int(fit.inner_iterations),
                             seconds=round(float(fit.seconds), 3), points_fitted=int(fit.stats["points"]["fitted"]),
                             flat_cap_points=int(fit.stats["points"].get("flat_cap", 0)),
-                            face_shape_from_body=bool(fit.stats.get("face_shape_from_body", False))),
+                            face_shape_from_body=bool(fit.stats.get("face_shape_from_body", False)),
+                            head_shape_from_body=bool(fit.stats.get("head_shape_from_body", False))),
         })
 
     def _fail(self, record: Customer, message: str, progress: Progress) -> dict[str, Any]:

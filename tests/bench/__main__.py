@@ -66,12 +66,16 @@ def main(argv: list[str] | None = None) -> int:
                          "scan, e.g. 'height_cm,weight_kg' (with --before known: the same fits without them)")
     ap.add_argument("--conditions", default=None,
                     help="fitting: comma-separated scan conditions to run (default all; see tests/bench/fitting.py)")
+    ap.add_argument("--via-file", default=None, choices=("ply", "obj", "glb", "stl", "xyz"),
+                    help="fitting: fit each scan as the service reads it back from an upload in this format "
+                         "(uploads.read_body_upload, then the queue's storage), not from the generated arrays")
     args = ap.parse_args(argv)
     module, run_name, fmt_name, _ = SUITES[args.suite]
     mod = importlib.import_module(module)
     extra = {"kill": not args.no_kill, "max_pose_deg": args.max_pose_deg,
              "conditions": args.conditions, "person_check": not args.no_person_check,
-             "before": args.before, "poses": args.poses, "fit_params": args.fit_params, "known": args.known} if args.suite == "fitting" else {}
+             "before": args.before, "poses": args.poses, "fit_params": args.fit_params, "known": args.known,
+             "via_file": args.via_file} if args.suite == "fitting" else {}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")

@@ -56,6 +56,9 @@
    ``cut_soles``); no "before" unless ``--before`` names one (``face_shape``: the face's pairs
    shaping the body however little of the head is seen).
 
+   ``--via-file FMT`` (ply, obj, glb, stl, xyz): every scan is fitted as the service reads it back
+   from an upload in that format (:func:`as_uploaded`), not from the generated arrays.
+
 1b. The person check (:func:`bench_person_check`): non-person shapes (box, ellipsoid, chair,
    two people apart and touching) with the check off (before) and on; CesiumMan; single-view
    front scans flagged ``partial``.
@@ -223,7 +226,11 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     their rest posture, ``FitParams(unseen_prior=0)``) or ``headless`` (no second
     coarse fit with the head absent, ``FitParams(headless_check=False)``) or ``known`` (the same fit without the
     measurements given with ``--known``) or ``finger_weight`` (the fingers' pairs weighed as any
-    other vertex's, ``FitParams(finger_scale=None)``)."""
+    other vertex's, ``FitParams(finger_scale=None)``) or ``head_hypothesis`` (a poorly seen head
+    fitted once, without the second hypothesis whose head and neck follow the body,
+    ``FitParams(head_hypothesis_seen=None)``) or ``clothed_hands`` (a clothed scan's hand in a
+    hole held by the clothed anchors like any bone, not pulled to its rest posture,
+    ``FitParams(clothed_unseen_bones=())``)."""
     from service.model.fitting import FitParams
 
     kinds = _before_kinds()
@@ -256,7 +263,9 @@ def _before_kinds() -> dict[str, dict]:
         "flat_cap": {"flat_cap": False},
         "hair_region": {"hair_region": False},
         "hair_back": {"hair_back": False},
-        "face_shape": {"face_shape_min_seen": None},
+        "face_shape": {"face_shape_min_seen": None, "head_hypothesis_seen": None},
+        "head_hypothesis": {"head_hypothesis_seen": None},
+        "clothed_hands": {"clothed_unseen_bones": ()},
         "unseen_prior": {"unseen_prior": 0.0},
         "headless": {"headless_check": False},
         "known": {},
@@ -430,11 +439,30 @@ def with_overrides(params, overrides: dict):
     return replace(params, **{k: v for k, v in overrides.items() if getattr(params, k) == getattr(default, k)})
 
 
+def as_uploaded(model, scan, fmt: str):
+    """What the fitting job fits when ``scan`` is uploaded as a ``fmt`` file
+    (``synthetic_scans.scan_file_bytes``): read by ``uploads.read_body_upload`` (vertices on no
+    face dropped, a mesh's normals from its faces, a dense mesh simplified), stored and loaded
+    as the queue does (``mesh_io.scan_to_npz_bytes``: float32 offsets). Returns the
+    ``mesh_io.Scan``; raises ``ValueError`` when the upload is refused or read as an avatar."""
+    from service.application.uploads import read_body_upload
+    from service.model.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
+
+    up = read_body_upload(model, SS.scan_file_bytes(scan, fmt), f"scan.{fmt}")
+    if not isinstance(up, Scan):
+        raise ValueError(f"the {fmt} upload was read as a template avatar, not a scan")
+    return scan_from_npz_bytes(scan_to_npz_bytes(up))
+
+
 def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = MAX_POSE_DEG,
                            conditions: tuple[Condition, ...] = CONDITIONS, anatomical: bool = True,
-                           fit_params: dict | None = None, known: tuple[str, ...] = ()) -> dict:
+                           fit_params: dict | None = None, known: tuple[str, ...] = (),
+                           via_file: str | None = None) -> dict:
     """``known``: attributes of the truth given to every fit (``fit_body(known=...)``, the
-    person's own measurements given with the scan; the ``known`` "before" leaves them out)."""
+    person's own measurements given with the scan; the ``known`` "before" leaves them out).
+    ``via_file``: each scan is fitted as the service reads it back from an upload in that format
+    (:func:`as_uploaded`; 'ply', 'obj', 'glb', 'stl' or 'xyz'), not from the generated arrays;
+    a refused upload counts as a failure."""
     from service.model.fitting import FitParams, fit_body
 
     overrides = dict(fit_params or {})
@@ -467,7 +495,9 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
             t0 = time.perf_counter()
             try:
                 given = {a: scan.measurements[a] for a in known} or None
-                fit = fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed, params=params,
+                data = scan if via_file is None else as_uploaded(model, scan, via_file)
+                t0 = time.perf_counter()
+                fit = fit_body(model, data.points, data.normals, data.faces, clothed=cond.fitted_clothed, params=params,
                                known=given, gender=scan.gender if given else None)
                 seconds = time.perf_counter() - t0
                 row = evaluate(model, scan, fit, surface)
@@ -478,7 +508,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 if cond.before is None:
                     raise RuntimeError("not measured in this condition")
                 t1 = time.perf_counter()
-                prev = evaluate(model, scan, fit_body(model, scan.points, scan.normals, scan.faces, clothed=cond.fitted_clothed,
+                prev = evaluate(model, scan, fit_body(model, data.points, data.normals, data.faces, clothed=cond.fitted_clothed,
                                                       params=with_overrides(BEFORE_PARAMS(cond.before), overrides)),
                                 surface)
                 row["before"] = {"p2s_mm": prev["p2s_mm"], "p2s_no_head_mm": prev["p2s_no_head_mm"],
@@ -489,7 +519,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                 row["before"] = {"error": f"{type(exc).__name__}: {exc}"[:200]}
             row.update({"avatar": person["index"], "gender": person["gender"], "seconds": seconds,
                         "unit": scan.unit, "up": scan.up, "garments": scan.garments,
-                        "points": int(len(scan.points))})
+                        "points": int(len(data.points))})
             if cond.detail_mm:  # the model's own best: the true rest body's projection on its space
                 row["floor_mm"] = model_floor_mm(model, scan, surface)
             rows[name].append(row)
@@ -498,6 +528,7 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
                          f"{seconds:.1f} s, worst joint {row['worst_joint']}; before "
                          + (f"{row['before']['p2s_mm']:.2f} mm" if "p2s_mm" in row["before"] else "-"))
     out = {"avatars": len(people), "points": N_POINTS, "noise_mm": NOISE_MM, "max_pose_deg": max_pose_deg,
+           "via_file": via_file,
            "poses": "anatomical" if anatomical else "free", "fit_params": {k: repr(v) for k, v in overrides.items()}, "known": list(known),
            "cpu_count": os.cpu_count(), "scan_generation_s_median": float(np.median(scan_seconds)),
            "goal": GOALS, "conditions": {}}
@@ -706,13 +737,15 @@ def _run_kills(client, files, workers, start, n_jobs, kill_every_s, deadline_s, 
 # -- the suite --------------------------------------------------------------------------------
 def run(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float = MAX_POSE_DEG,
         conditions: str | None = None, person_check: bool = True, before: str | None = None,
-        poses: str = "anatomical", fit_params: str | None = None, known: str | None = None) -> dict:
+        poses: str = "anatomical", fit_params: str | None = None, known: str | None = None,
+        via_file: str | None = None) -> dict:
     """The ``fitting`` suite (``repeats`` is unused: each fit is timed once); ``conditions``: a
     comma-separated subset of ``CONDITIONS`` (default all); ``person_check``: run part 1b;
     ``poses``: "anatomical" (every bone within the joint limits, :func:`SS.random_pose`) or
     "free" (any axis, as before 2026-11-24: a knee may bend 45 degrees sideways); ``fit_params``:
     'name=value,...' FitParams overrides in every fit (:func:`parse_fit_params`); ``known``:
-    comma-separated measurements of the truth given to every fit (e.g. 'height_cm,weight_kg')."""
+    comma-separated measurements of the truth given to every fit (e.g. 'height_cm,weight_kg');
+    ``via_file``: fit each scan as read back from an upload in that format (:func:`as_uploaded`)."""
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) \
         if sys.stderr.isatty() or os.environ.get("TRYON_BENCH_PROGRESS") else None
     res: dict = {"suite": "fitting",
@@ -720,7 +753,8 @@ def run(limit: int = 0, repeats: int = 0, kill: bool = True, max_pose_deg: float
                                                     conditions=select_conditions(conditions, before),
                                                     anatomical=poses == "anatomical",
                                                     fit_params=parse_fit_params(fit_params),
-                                                    known=tuple(a for a in (known or "").split(",") if a))}
+                                                    known=tuple(a for a in (known or "").split(",") if a),
+                                                    via_file=via_file)}
     if person_check:
         res["person_check"] = bench_person_check(progress=say)
     res["job_kills"] = bench_job_kills(progress=say) if kill else {"skipped": "--no-kill"}
