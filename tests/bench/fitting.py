@@ -359,6 +359,8 @@ def evaluate(model, scan, fit, surface: BodySurface) -> dict:
         "residual_mm": float(fit.residual_mm), "partial": bool(fit.partial),
         "stature_err_cm": float(fitted_m["height_cm"] - scan.measurements["height_cm"]),
         "iterations": [int(fit.outer_iterations), int(fit.inner_iterations)],
+        "unseen": list(fit.unseen), "head_shape_from_body": bool(fit.stats.get("head_shape_from_body", False)),
+        "head_hypotheses": len(fit.stats.get("head_hypotheses", [])) or 1,
     }
 
 
