@@ -230,7 +230,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     fitted once, without the second hypothesis whose head and neck follow the body,
     ``FitParams(head_hypothesis_seen=None)``) or ``clothed_hands`` (a clothed scan's hand in a
     hole held by the clothed anchors like any bone, not pulled to its rest posture,
-    ``FitParams(clothed_unseen_bones=())``)."""
+    ``FitParams(clothed_unseen_bones=())``) or ``init_stature`` (the initialisation's rest
+    stature left where the coarse stage put it, not scaled by the scan's height,
+    ``FitParams(init_stature_max=None)``)."""
     from service.model.fitting import FitParams
 
     kinds = _before_kinds()
@@ -266,6 +268,7 @@ def _before_kinds() -> dict[str, dict]:
         "face_shape": {"face_shape_min_seen": None, "head_hypothesis_seen": None},
         "head_hypothesis": {"head_hypothesis_seen": None},
         "clothed_hands": {"clothed_unseen_bones": ()},
+        "init_stature": {"init_stature_max": None},
         "unseen_prior": {"unseen_prior": 0.0},
         "headless": {"headless_check": False},
         "known": {},
