@@ -57,6 +57,47 @@ def test_jacobians_match_finite_differences(model, rig):
     assert np.array_equal(F._pose_jacobian(rig, p, F.ALL_BONES, comps), np.concatenate([J, Jb], axis=2))
 
 
+@pytest.mark.skipif(not F.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+@pytest.mark.parametrize("bones", [F.ALL_BONES, F.ROOT_ONLY, np.array([BONES.index("thigh_l"), BONES.index("shin_l"),
+                                                                       BONES.index("upper_arm_r")])])
+def test_compiled_pose_jacobian_equals_the_numpy_reference(model, rig, bones):
+    """The compiled pose Jacobian (kernels.pose_jacobian_into) is the numpy path's, with and
+    without the shape's columns, on every vertex of a posed random body."""
+    s = _random_state(model, rig, 5)
+    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 41))
+    p = F._pose_model(rig, s, sub)
+    for comps in (None, np.arange(10)):
+        fast = F._pose_jacobian(rig, p, bones, comps, compiled=True)
+        ref = F._pose_jacobian(rig, p, bones, comps, compiled=False)
+        assert fast.shape == ref.shape
+        assert np.abs(fast - ref).max() <= 1e-13 * np.abs(ref).max()
+        assert np.abs(ref).max() > 0.1  # not an all-zero comparison
+
+
+@pytest.mark.skipif(not F.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+def test_compiled_pair_rows_equal_the_numpy_reference():
+    """The point-to-plane normal equations with the compiled rows (kernels.pair_rows) are the
+    numpy path's, with and without the per-region stand-off unknowns, and a slow sum pair by pair."""
+    from service.model.nonrigid import point_to_plane_normal_equations
+
+    rng = np.random.default_rng(3)
+    m, k, P = 40, 90, 11
+    J = rng.normal(size=(m, 3, P))
+    vi = rng.integers(0, m, k)
+    nn = rng.normal(size=(k, 3))
+    nn /= np.linalg.norm(nn, axis=1, keepdims=True)
+    w, r = rng.uniform(0.1, 1.0, k), rng.normal(size=k)
+    region = rng.integers(0, 4, k)
+    for extra in ((), (region, 4)):
+        H1, g1 = point_to_plane_normal_equations(J, vi, nn, w, r, *extra, compiled=True)
+        H0, g0 = point_to_plane_normal_equations(J, vi, nn, w, r, *extra, compiled=False)
+        assert np.allclose(H1, H0, rtol=1e-13, atol=1e-12) and np.allclose(g1, g0, rtol=1e-13, atol=1e-12)
+    H = sum(w[t] * np.outer(nn[t] @ J[vi[t]], nn[t] @ J[vi[t]]) for t in range(k))
+    g = sum(w[t] * r[t] * (nn[t] @ J[vi[t]]) for t in range(k))
+    H1, g1 = point_to_plane_normal_equations(J, vi, nn, w, r, compiled=True)
+    assert np.allclose(H1, H, rtol=1e-12, atol=1e-12) and np.allclose(g1, g, rtol=1e-12, atol=1e-12)
+
+
 def test_unit_detection_errors_are_fit_errors():
     pts = np.random.default_rng(0).normal(size=(500, 3)) * [0.2, 0.5, 0.1]
     pts[:, 1] = np.linspace(0, 1.75, 500)

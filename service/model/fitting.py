@@ -68,6 +68,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from service.model import kernels
 from service.model import landmarks as LM
 from service.model import person_check as PC
 from service.model import scan_cleanup as SC
@@ -489,6 +490,10 @@ class FitParams:
     # threads on 2 cores shared with other processes spin and wait: one clothed scan took 72-76 s
     # with the default and 15.7-15.8 s with 1 thread on the loaded machine (same result)
     blas_threads: int | None = 1
+    # the pose Jacobian and the point-to-plane rows by the compiled kernels (``kernels``
+    # ``pose_jacobian_into``, ``pair_rows``) where numba is there; False: the numpy reference
+    # (the same numbers to ~1e-15 relative; the bench's ``--before numpy_kernels``)
+    compiled: bool = True
 
 
 DEFAULT_PARAMS = FitParams()
@@ -826,16 +831,26 @@ def _pose_model(rig: _Rig, s: _State, sub: _Sub) -> _Posed:
     return _Posed(v=v, rest=rest, joints=joints, G=G, M=M, sub=sub)
 
 
-def _pose_jacobian(rig: _Rig, p: _Posed, bones: np.ndarray, comps: np.ndarray | None = None) -> np.ndarray:
+def _pose_jacobian(rig: _Rig, p: _Posed, bones: np.ndarray, comps: np.ndarray | None = None,
+                   compiled: bool = True) -> np.ndarray:
     """(m, 3, 3 + 3 len(bones)): d v_i / d(translation, dw_b for b in bones), where dw_b rotates
     bone b's subtree in the world frame about its posed joint q_b, moving v_i by
     dw_b x (S_b(i) - W_b(i) q_b) with S_b(i) = sum_{j in subtree(b)} w_ij G_j(x_i).
     With ``comps``: (m, 3, 3 + 3 len(bones) + len(comps)), the shape Jacobian
-    (``_shape_jacobian``) in the last columns, written in place (no concatenated copy)."""
+    (``_shape_jacobian``) in the last columns, written in place (no concatenated copy).
+    ``compiled`` (and numba there): the pose columns by ``kernels.pose_jacobian_into`` (each
+    vertex visits only its non-zero weights), else the numpy reference below."""
     m = len(p.v)
     nb = len(bones)
     npz = 3 + 3 * nb
     q = np.einsum("jab,jb->ja", p.G[:, :3, :3], p.joints) + p.G[:, :3, 3]  # posed joints (17, 3)
+    if compiled and kernels.AVAILABLE:
+        J = np.empty((m, 3, npz + (0 if comps is None else len(comps))))
+        kernels.pose_jacobian_into(np.ascontiguousarray(p.rest), np.ascontiguousarray(p.G),
+                                   np.ascontiguousarray(p.sub.W), rig.subtree[bones], q[bones], J)
+        if comps is not None:
+            _shape_jacobian(rig, p, comps, out=J[:, :, npz:])
+        return J
     per_bone = p.rest @ p.G[:, :3, :3].transpose(0, 2, 1) + p.G[:, None, :3, 3]  # (17, m, 3)
     contrib = p.sub.W.T[:, :, None] * per_bone  # w_ij G_j(x_i)
     sub = rig.subtree[bones]  # (nb, 17)
@@ -1180,20 +1195,21 @@ def _coarse(rig: _Rig, scan: _Scan, s: _State, sub: "_Sub", rest_normals: np.nda
         if fingers_from is not None and it >= fingers_from:  # bent fingers (FitParams.finger_scale)
             w = w * finger_weights(r, rig.fingers[sub.idx[vi]], params.finger_scale)
         comps = np.arange(n_shape)
-        Jall = _pose_jacobian(rig, p, bones, comps if n_shape else None)
+        Jall = _pose_jacobian(rig, p, bones, comps if n_shape else None, params.compiled)
         if n_shape and shape_free is not None:  # those vertices' pairs leave the shape be
             Jall[shape_free[sub.idx], :, 3 + 3 * len(bones):] = 0.0
         if offsets is not None:
-            H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r, sub.region[vi], len(offsets))
+            H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r, sub.region[vi], len(offsets),
+                                                   compiled=params.compiled)
             H[-len(offsets):, -len(offsets):] += offset_prior_hessian
             g[-len(offsets):] += offset_prior_gradient
         else:
-            H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r)
+            H, g = point_to_plane_normal_equations(Jall, vi, nn, w, r, compiled=params.compiled)
         npz = 3 + 3 * len(bones)
         if landmarks is not None and it < landmarks[3]:
             eff, targets, w_lm, _ = landmarks
             pe = _pose_model(rig, s, eff)
-            Je = _pose_jacobian(rig, pe, bones, comps if n_shape else None)
+            Je = _pose_jacobian(rig, pe, bones, comps if n_shape else None, params.compiled)
             Je = Je.reshape(-1, Je.shape[2])
             ne = Je.shape[1]
             H[:ne, :ne] += w_lm * Je.T @ Je
@@ -1692,7 +1708,7 @@ def _alg1(rig: _Rig, s: _State, tree: cKDTree, P: np.ndarray, N: np.ndarray, clo
             if fingers is not None:  # Eqs. 3 and 4 hardly follow bent fingers (FitParams.finger_scale)
                 support = support_outer * np.repeat(finger_weights(np.linalg.norm(p.v - target, axis=1), fingers,
                                                                    params.finger_scale), 3)
-            Jp = _pose_jacobian(rig, p, ALL_BONES).reshape(-1, 3 + 3 * 17)
+            Jp = _pose_jacobian(rig, p, ALL_BONES, compiled=params.compiled).reshape(-1, 3 + 3 * 17)
             r = (p.v - target).reshape(-1) * support
             H = sw * Jp.T @ (Jp * support[:, None])
             g = sw * Jp.T @ r

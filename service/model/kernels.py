@@ -1,8 +1,10 @@
 """Compiled inner loops (numba) of the geometry helpers that every try-on, outfit, pose
-adaptation and fit spends most of its time in. Each kernel computes exactly what its numpy
-reference in ``service.model.geometry`` computes (the same float operations in the same order,
-so the same results bit for bit; the tests compare them), one query point at a time with no
-temporaries. ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is
+adaptation and fit spends most of its time in. Each geometry kernel computes exactly what its
+numpy reference in ``service.model.geometry`` computes (the same float operations in the same
+order, so the same results bit for bit; the tests compare them), one query point at a time with
+no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_rows`) compute
+what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with
+numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them). ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is
 set): callers then use the numpy path.
 
 numba is imported and the kernels compiled on a process's first use (:func:`_compiled`), not
@@ -44,7 +46,9 @@ def _compiled() -> SimpleNamespace:
                 # globals when they are compiled
                 globals()["_closest_on_triangle"] = jit(_closest_on_triangle)
                 _compiled_kernels = SimpleNamespace(closest_faces=jit(_closest_faces), face_bounds=jit(_face_bounds),
-                                                    winding_numbers=jit(_winding_numbers))
+                                                    winding_numbers=jit(_winding_numbers),
+                                                    pose_jacobian_into=jit(_pose_jacobian_into),
+                                                    pair_rows=jit(_pair_rows))
     return _compiled_kernels
 
 
@@ -61,6 +65,16 @@ def face_bounds(V, F):
 def winding_numbers(p, V, F):
     """Compiled :func:`_winding_numbers`."""
     return _compiled().winding_numbers(p, V, F)
+
+
+def pose_jacobian_into(rest, G, W, sel, q, J):
+    """Compiled :func:`_pose_jacobian_into`."""
+    return _compiled().pose_jacobian_into(rest, G, W, sel, q, J)
+
+
+def pair_rows(J, vi, nn):
+    """Compiled :func:`_pair_rows`."""
+    return _compiled().pair_rows(J, vi, nn)
 
 
 def _closest_on_triangle(px, py, pz, V, F, f):
@@ -202,6 +216,64 @@ def _winding_numbers(p, V, F):
     return out
 
 
+def _pose_jacobian_into(rest, G, W, sel, q, J):
+    """The pose columns of ``fitting._pose_jacobian``, written into J (m, 3, >= 3 + 3 nb)
+    float64: columns 0-2 the translation (the identity), then per selected bone b the
+    cross-product matrix -[arm_b]x of arm_b(i) = S_b(i) - W_b(i) q_b, with S_b(i) = sum over
+    the joints j of b's subtree of w_ij G_j(x_i) and W_b(i) the sum of those w_ij. rest (m, 3)
+    the rest vertices x_i, G (J, 4, 4) the global transforms, W (m, J) the skin weights,
+    sel (nb, J) 1 where joint j is in selected bone b's subtree, q (nb, 3) the selected bones'
+    posed joints. Each vertex visits only its non-zero weights; the other columns of J are
+    left as they are."""
+    m = rest.shape[0]
+    nj = W.shape[1]
+    nb = sel.shape[0]
+    S = np.empty((nb, 3))
+    sw = np.empty(nb)
+    for i in range(m):
+        x0, x1, x2 = rest[i, 0], rest[i, 1], rest[i, 2]
+        S[:] = 0.0
+        sw[:] = 0.0
+        for j in range(nj):
+            w = W[i, j]
+            if w == 0.0:
+                continue
+            g0 = x0 * G[j, 0, 0] + x1 * G[j, 0, 1] + x2 * G[j, 0, 2] + G[j, 0, 3]
+            g1 = x0 * G[j, 1, 0] + x1 * G[j, 1, 1] + x2 * G[j, 1, 2] + G[j, 1, 3]
+            g2 = x0 * G[j, 2, 0] + x1 * G[j, 2, 1] + x2 * G[j, 2, 2] + G[j, 2, 3]
+            for b in range(nb):
+                if sel[b, j] != 0.0:
+                    S[b, 0] += w * g0
+                    S[b, 1] += w * g1
+                    S[b, 2] += w * g2
+                    sw[b] += w
+        for a in range(3):
+            for c in range(3):
+                J[i, a, c] = 1.0 if a == c else 0.0
+        for b in range(nb):
+            a0 = S[b, 0] - sw[b] * q[b, 0]
+            a1 = S[b, 1] - sw[b] * q[b, 1]
+            a2 = S[b, 2] - sw[b] * q[b, 2]
+            c = 3 + 3 * b
+            J[i, 0, c], J[i, 0, c + 1], J[i, 0, c + 2] = 0.0, a2, -a1
+            J[i, 1, c], J[i, 1, c + 1], J[i, 1, c + 2] = -a2, 0.0, a0
+            J[i, 2, c], J[i, 2, c + 1], J[i, 2, c + 2] = a1, -a0, 0.0
+
+
+def _pair_rows(J, vi, nn):
+    """The point-to-plane rows n_k^T J_{vi_k} (k, P) of ``nonrigid.point_to_plane_normal_equations``:
+    J (m, 3, P) float64, vi (k,) int64, nn (k, 3) float64; no gathered copy of J."""
+    k = vi.shape[0]
+    P = J.shape[2]
+    rows = np.empty((k, P))
+    for t in range(k):
+        v = vi[t]
+        n0, n1, n2 = nn[t, 0], nn[t, 1], nn[t, 2]
+        for c in range(P):
+            rows[t, c] = n0 * J[v, 0, c] + n1 * J[v, 1, c] + n2 * J[v, 2, c]
+    return rows
+
+
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel for the argument types the
     service passes: the Docker build runs it, so that no process of the image compiles them
@@ -215,3 +287,7 @@ def warm() -> None:
                   np.array([[0.0, 0.0, 1.0]]), np.ones(1))
     winding_numbers(np.zeros((1, 3)), V, F)
     face_bounds(V, F)
+    J = np.zeros((1, 3, 6))
+    pose_jacobian_into(np.zeros((1, 3)), np.tile(np.eye(4), (2, 1, 1)), np.ones((1, 2)), np.ones((1, 2)),
+                       np.zeros((1, 3)), J)
+    pair_rows(J, np.zeros(1, np.int64), np.ones((1, 3)))

@@ -1,6 +1,7 @@
 """The non-rigid toolkit shared by body fitting (editing paper, Sec. 4.2) and the body-aware
 warping graph (Sec. 5.1): factored sparse systems, correspondences and Gauss-Newton steps.
-Pure numpy/scipy (CHOLMOD through scikit-sparse when installed).
+Pure numpy/scipy (CHOLMOD through scikit-sparse when installed; the point-to-plane rows by a compiled
+kernel where numba is there, ``service.model.kernels``).
 
 Factor once, solve many: a sparse SPD matrix that is solved for many right-hand sides gets a
 :class:`Factor` (:func:`factor_spd`); Eq. 2's edge system is :class:`EdgeSystem`.
@@ -18,6 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
+from service.model import kernels
 from service.model.geometry import mesh_edges
 
 
@@ -135,15 +137,20 @@ def trimmed_mean(d: np.ndarray, keep: float = 0.9, weights: np.ndarray | None = 
 # -- Gauss-Newton ---------------------------------------------------------------------------------
 def point_to_plane_normal_equations(jacobian: np.ndarray, vi: np.ndarray, nn: np.ndarray, w: np.ndarray,
                                     r: np.ndarray, region: np.ndarray | None = None,
-                                    n_regions: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                                    n_regions: int = 0, compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton normal equations of point-to-plane residuals r_k = n_k . (v_{vi_k} - c_k)
     with weights w_k: rows_k = n_k^T J_{vi_k}, H = rows^T W rows, g = rows^T W r.
     jacobian: (m, 3, P) of the m vertices; vi (k,), nn (k, 3), w (k,), r (k,) -> (H (P, P), g (P,)).
     With ``region`` (k,) int in [0, n_regions): one more unknown per region, the residuals
     r_k + o_{region_k} (the target moved in by o along its normal: the clothes' stand-off of
     ``fitting``), a one-hot column per region in the rows; H (P + R, P + R), g (P + R,), the
-    region unknowns last."""
-    rows = np.matmul(nn[:, None, :], jacobian[vi])[:, 0]  # (k, P), one batched product
+    region unknowns last. ``compiled`` (and numba there): the rows by ``kernels.pair_rows``,
+    without the gathered copy of the Jacobian (k, 3, P)."""
+    if compiled and kernels.AVAILABLE:
+        rows = kernels.pair_rows(np.ascontiguousarray(jacobian, np.float64), np.asarray(vi, np.int64),
+                                 np.ascontiguousarray(nn, np.float64))
+    else:
+        rows = np.matmul(nn[:, None, :], jacobian[vi])[:, 0]  # (k, P), one batched product
     wr = rows * w[:, None]
     H, g = rows.T @ wr, wr.T @ r
     if region is None:

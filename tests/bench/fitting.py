@@ -232,7 +232,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     hole held by the clothed anchors like any bone, not pulled to its rest posture,
     ``FitParams(clothed_unseen_bones=())``) or ``init_stature`` (the initialisation's rest
     stature left where the coarse stage put it, not scaled by the scan's height,
-    ``FitParams(init_stature_max=None)``)."""
+    ``FitParams(init_stature_max=None)``) or ``numpy_kernels`` (the pose Jacobian and the
+    point-to-plane rows by the numpy reference, not the compiled kernels,
+    ``FitParams(compiled=False)``)."""
     from service.model.fitting import FitParams
 
     kinds = _before_kinds()
@@ -269,6 +271,7 @@ def _before_kinds() -> dict[str, dict]:
         "head_hypothesis": {"head_hypothesis_seen": None},
         "clothed_hands": {"clothed_unseen_bones": ()},
         "init_stature": {"init_stature_max": None},
+        "numpy_kernels": {"compiled": False},
         "unseen_prior": {"unseen_prior": 0.0},
         "headless": {"headless_check": False},
         "known": {},
