@@ -4,8 +4,9 @@ numpy reference in ``service.model.geometry`` computes (the same float operation
 order, so the same results bit for bit; the tests compare them), one query point at a time with
 no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_rows`) compute
 what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with
-numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them). ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is
-set): callers then use the numpy path.
+numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them).
+``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is set): callers
+then use the numpy path.
 
 numba is imported and the kernels compiled on a process's first use (:func:`_compiled`), not
 at import: they cost ~105 MB of memory per process (numba ~54 MB, LLVM and the loaded code
