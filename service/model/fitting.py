@@ -844,25 +844,22 @@ def _pose_jacobian(rig: _Rig, p: _Posed, bones: np.ndarray, comps: np.ndarray | 
     nb = len(bones)
     npz = 3 + 3 * nb
     q = np.einsum("jab,jb->ja", p.G[:, :3, :3], p.joints) + p.G[:, :3, 3]  # posed joints (17, 3)
+    J = np.empty((m, 3, npz + (0 if comps is None else len(comps))))
     if compiled and kernels.AVAILABLE:
-        J = np.empty((m, 3, npz + (0 if comps is None else len(comps))))
         kernels.pose_jacobian_into(np.ascontiguousarray(p.rest), np.ascontiguousarray(p.G),
                                    np.ascontiguousarray(p.sub.W), rig.subtree[bones], q[bones], J)
-        if comps is not None:
-            _shape_jacobian(rig, p, comps, out=J[:, :, npz:])
-        return J
-    per_bone = p.rest @ p.G[:, :3, :3].transpose(0, 2, 1) + p.G[:, None, :3, 3]  # (17, m, 3)
-    contrib = p.sub.W.T[:, :, None] * per_bone  # w_ij G_j(x_i)
-    sub = rig.subtree[bones]  # (nb, 17)
-    S = np.tensordot(sub, contrib, axes=1)  # (nb, m, 3)
-    arm = (S - (sub @ p.sub.W.T)[:, :, None] * q[bones][:, None, :]).transpose(1, 2, 0)  # (m, 3, nb)
-    J = np.empty((m, 3, npz + (0 if comps is None else len(comps))))
-    J[:, :, :3] = np.eye(3)
-    J4 = J[:, :, 3:npz].reshape(m, 3, nb, 3)  # a view: (vertex, coordinate, bone, rotation axis)
-    # -[arm]x, the cross-product matrix of dw x arm
-    J4[:, 0, :, 0], J4[:, 0, :, 1], J4[:, 0, :, 2] = 0.0, arm[:, 2], -arm[:, 1]
-    J4[:, 1, :, 0], J4[:, 1, :, 1], J4[:, 1, :, 2] = -arm[:, 2], 0.0, arm[:, 0]
-    J4[:, 2, :, 0], J4[:, 2, :, 1], J4[:, 2, :, 2] = arm[:, 1], -arm[:, 0], 0.0
+    else:
+        per_bone = p.rest @ p.G[:, :3, :3].transpose(0, 2, 1) + p.G[:, None, :3, 3]  # (17, m, 3)
+        contrib = p.sub.W.T[:, :, None] * per_bone  # w_ij G_j(x_i)
+        sub = rig.subtree[bones]  # (nb, 17)
+        S = np.tensordot(sub, contrib, axes=1)  # (nb, m, 3)
+        arm = (S - (sub @ p.sub.W.T)[:, :, None] * q[bones][:, None, :]).transpose(1, 2, 0)  # (m, 3, nb)
+        J[:, :, :3] = np.eye(3)
+        J4 = J[:, :, 3:npz].reshape(m, 3, nb, 3)  # a view: (vertex, coordinate, bone, rotation axis)
+        # -[arm]x, the cross-product matrix of dw x arm
+        J4[:, 0, :, 0], J4[:, 0, :, 1], J4[:, 0, :, 2] = 0.0, arm[:, 2], -arm[:, 1]
+        J4[:, 1, :, 0], J4[:, 1, :, 1], J4[:, 1, :, 2] = -arm[:, 2], 0.0, arm[:, 0]
+        J4[:, 2, :, 0], J4[:, 2, :, 1], J4[:, 2, :, 2] = arm[:, 1], -arm[:, 0], 0.0
     if comps is not None:
         _shape_jacobian(rig, p, comps, out=J[:, :, npz:])
     return J
