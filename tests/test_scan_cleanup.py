@@ -66,6 +66,32 @@ def test_no_floor_on_a_bare_body_nor_on_a_box(model):
     assert SC.find_floor(box) is None  # its bottom face is too small to be a floor
 
 
+def test_a_floor_as_wide_as_the_person_is_tall_is_found(model):
+    """A person without the head (1.55 m of scan) on a 2 m square of a room's floor: the floor
+    holds more points than the body and turns the principal axis more than 30 degrees off the
+    height, where planes along it were looked for (held-out avatar 39's headless scanner
+    scan at 45 degrees kept its floor and came out upside down). Planes through any three points
+    find it; the same body without the floor has none, nor has a box."""
+    P, _ = _body_points(model)
+    body = P[P[:, 1] < 0.85 * P[:, 1].max()]  # no head
+    rng = np.random.default_rng(7)
+    g = np.arange(-1.0, 1.0, 0.015)
+    x, z = np.meshgrid(g, g)
+    c = body[body[:, 1] < 0.1][:, [0, 2]].mean(0)
+    floor = np.column_stack([x.ravel() + c[0], rng.normal(scale=0.004, size=x.size), z.ravel() + c[1]])
+    allp = np.concatenate([body, floor])
+    assert len(floor) > 0.9 * len(body)
+    axis = SC._principal_axis(allp)
+    assert abs(axis[1]) < np.cos(np.radians(SC.FLOOR_MAX_TILT_DEG))  # along the axis: no floor
+    assert SC._best_floor(allp, allp, SC._planes_along(allp, np.random.default_rng(0), axis)) is None
+    _, _, _, cl = SC.clean_scan(allp)
+    assert cl.floor is not None and cl.floor[0][1] > 0.99
+    assert cl.kept[len(body):].mean() < 0.002 and cl.kept[: len(body)][body[:, 1] > 0.03].all()
+    assert SC.find_floor(body) is None
+    box, _, _, _ = SS.non_person_scan(model, "box", np.random.default_rng(2), unit="m", up="+y")
+    assert SC.find_floor(box[np.random.default_rng(3).permutation(len(box))]) is None
+
+
 def test_isolated_cluster_dropped_split_off_part_kept(model):
     P, _ = _body_points(model)
     rng = np.random.default_rng(3)

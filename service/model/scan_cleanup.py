@@ -14,7 +14,10 @@ the field of view ends below it. :func:`clean_scan` removes what is not the pers
    (the soles of two feet do not) is refitted by least squares to its inliers (Fischler and
    Bolles 1981, RANSAC; the refit is the total-least-squares plane). Points below it or less
    than ``max(FLOOR_BAND_M, FLOOR_BAND_SIGMAS * noise)`` above it are dropped; the feet above
-   the band stay.
+   the band stay. A floor as wide as the person is tall (a short or headless person on a
+   scanner's floor) turns the principal axis away from the height; when none is found along
+   it, planes through any three points are tried, and one holding ``FLOOR_ANYWHERE_MIN_SHARE``
+   of the points with the rest rising ``FLOOR_PERSON_MIN_M`` above it is the floor.
 2. **Isolated clusters** (:func:`isolated_clusters`): connected components of the points on a
    voxel grid (``person_check.components``: 26-connected voxels of a few point spacings).
    Components holding less than ``CLUSTER_MIN_SHARE`` of the points and farther than
@@ -56,6 +59,11 @@ FLOOR_MIN_EXTENT_M = 0.45  # ... and spreads this far in both directions (5th-95
 FLOOR_BAND_M = 0.015  # points less than this above the floor are floor (the soles' rims go too)
 FLOOR_BAND_SIGMAS = 3.5  # ... or this many standard deviations of the floor's noise
 FLOOR_SAMPLE = 4000  # points scored per hypothesis (a random subset of larger scans)
+# No floor found along the principal axis: a floor as wide as the person is tall (a headless or
+# short person on a scanner's 1.4 m floor) turns that axis by 30-40 degrees. Then planes through
+# any three points of the scan, kept when the floor holds this share of the points ...
+FLOOR_ANYWHERE_MIN_SHARE = 0.1
+FLOOR_PERSON_MIN_M = 0.9  # ... and the rest rises this far above it (a person's back is no floor)
 
 # -- isolated clusters --------------------------------------------------------------------------
 CLUSTER_MIN_SHARE = 0.005  # smaller components are dropped when isolated ...
@@ -120,18 +128,29 @@ def find_floor(points: np.ndarray, rng: np.random.Generator | None = None,
     """The floor under a scanned person (module docstring, step 1): (unit normal (3,) towards
     the person, offset d with n . p + d = 0, noise rms in metres), or None when the scan has no
     floor. points (P, 3) metres; ``axis`` (3,): the scan's height axis if known (default: its
-    principal axis, which a person standing on a floor narrower than their height has)."""
+    principal axis, which a person standing on a floor narrower than their height has; when no
+    floor is found along it, a floor across the scan: :func:`_planes_anywhere`)."""
     P = np.asarray(points, np.float64)
     if len(P) < 50:
         return None
     rng = rng or np.random.default_rng(0)
-    axis = _principal_axis(P) if axis is None else np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    S = P[rng.choice(len(P), FLOOR_SAMPLE, replace=False)] if len(P) > FLOOR_SAMPLE else P
+    if axis is None:
+        floor = _best_floor(P, S, _planes_along(P, rng, _principal_axis(P)))
+        if floor is None:  # a floor as wide as the person is tall turns the principal axis
+            floor = _best_floor(P, S, _planes_anywhere(P, rng), FLOOR_ANYWHERE_MIN_SHARE, FLOOR_PERSON_MIN_M)
+        return floor
+    return _best_floor(P, S, _planes_along(P, rng, np.asarray(axis, np.float64) / np.linalg.norm(axis)))
+
+
+def _planes_along(P: np.ndarray, rng: np.random.Generator, axis: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Plane hypotheses (normals (H, 3), offsets (H,)) through point triples near either end of
+    the height ``axis`` (3,) unit, normals within ``FLOOR_MAX_TILT_DEG`` of it; one batch per end."""
     h = P @ axis
     lo, hi = h.min(), h.max()
     span = hi - lo
-    S = P[rng.choice(len(P), FLOOR_SAMPLE, replace=False)] if len(P) > FLOOR_SAMPLE else P
     cos_tilt = np.cos(np.radians(FLOOR_MAX_TILT_DEG))
-    best = None
+    out = []
     for end in (h <= lo + FLOOR_END_SHARE * span, h >= hi - FLOOR_END_SHARE * span):
         cand = np.flatnonzero(end)
         if len(cand) < 3:
@@ -139,9 +158,31 @@ def find_floor(points: np.ndarray, rng: np.random.Generator | None = None,
         tri = P[cand[rng.integers(0, len(cand), size=(FLOOR_RANSAC_ITERATIONS, 3))]]
         n, d = _plane_through(tri[:, 0], tri[:, 1], tri[:, 2])
         ok = np.abs(n @ axis) >= cos_tilt
-        if not ok.any():
-            continue
-        n, d = n[ok], d[ok]
+        if ok.any():
+            out.append((n[ok], d[ok]))
+    return out
+
+
+def _planes_anywhere(P: np.ndarray, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Plane hypotheses through point triples drawn from the whole scan, any orientation: a
+    floor holding a large share of the points (``FLOOR_ANYWHERE_MIN_SHARE``) is hit often."""
+    tri = P[rng.integers(0, len(P), size=(FLOOR_RANSAC_ITERATIONS, 3))]
+    n, d = _plane_through(tri[:, 0], tri[:, 1], tri[:, 2])
+    ok = np.linalg.norm(n, axis=1) > 0
+    return [(n[ok], d[ok])] if ok.any() else []
+
+
+def _best_floor(P: np.ndarray, S: np.ndarray, batches: list[tuple[np.ndarray, np.ndarray]],
+                min_share: float = FLOOR_MIN_SHARE,
+                min_height: float = 0.0) -> tuple[np.ndarray, float, float] | None:
+    """The floor among plane hypotheses (batches of (normals (H, 3), offsets (H,))): the plane
+    with the most inliers in the sample S (N, 3) that has (nearly) the whole scan on one side,
+    refitted to its inliers in P (P, 3), holding ``min_share`` of the sample, spreading
+    ``FLOOR_MIN_EXTENT_M`` both ways, and with the rest of the scan rising ``min_height`` metres
+    above it (see :func:`find_floor`)."""
+    best = None
+    for n, d in batches:
+        n, d = n.copy(), d.copy()
         # orient every normal towards the bulk of the scan (the person above the floor)
         flip = P.mean(0) @ n.T + d < 0
         n[flip], d[flip] = -n[flip], -d[flip]
@@ -152,7 +193,7 @@ def find_floor(points: np.ndarray, rng: np.random.Generator | None = None,
         k = int(np.argmax(score))
         if score[k] > 0 and (best is None or score[k] > best[0]):
             best = (int(score[k]), n[k], d[k])
-    if best is None or best[0] < FLOOR_MIN_SHARE * len(S):
+    if best is None or best[0] < min_share * len(S):
         return None
     _, n, d = best
     for _ in range(2):  # refit to the inliers (total least squares), keep the orientation
@@ -172,6 +213,8 @@ def find_floor(points: np.ndarray, rng: np.random.Generator | None = None,
     ev = np.linalg.eigh(cov)[1]  # the inliers' own in-plane axes
     ext = np.ptp(np.percentile(q @ ev, [5, 95], axis=0), axis=0)
     if ext.min() < FLOOR_MIN_EXTENT_M:
+        return None
+    if min_height > 0 and np.percentile(P @ n + d, 99.5) < min_height:  # nobody stands on it
         return None
     return n, float(d), rms
 

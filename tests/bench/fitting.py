@@ -234,7 +234,9 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     stature left where the coarse stage put it, not scaled by the scan's height,
     ``FitParams(init_stature_max=None)``) or ``numpy_kernels`` (the pose Jacobian and the
     point-to-plane rows by the numpy reference, not the compiled kernels,
-    ``FitParams(compiled=False)``)."""
+    ``FitParams(compiled=False)``) or ``coarse_each_up`` (only the screen's best facings through
+    the initialisation's coarse stage, whatever their up-axis sign,
+    ``FitParams(coarse_each_up=False)``)."""
     from service.model.fitting import FitParams
 
     kinds = _before_kinds()
@@ -272,6 +274,7 @@ def _before_kinds() -> dict[str, dict]:
         "clothed_hands": {"clothed_unseen_bones": ()},
         "init_stature": {"init_stature_max": None},
         "numpy_kernels": {"compiled": False},
+        "coarse_each_up": {"coarse_each_up": False},
         "unseen_prior": {"unseen_prior": 0.0},
         "headless": {"headless_check": False},
         "known": {},
