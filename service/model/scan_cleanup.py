@@ -182,7 +182,6 @@ def _best_floor(P: np.ndarray, S: np.ndarray, batches: list[tuple[np.ndarray, np
     above it (see :func:`find_floor`)."""
     best = None
     for n, d in batches:
-        n, d = n.copy(), d.copy()
         # orient every normal towards the bulk of the scan (the person above the floor)
         flip = P.mean(0) @ n.T + d < 0
         n[flip], d[flip] = -n[flip], -d[flip]
