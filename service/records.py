@@ -102,6 +102,14 @@ class Customer(Record):
                                                              "itself is never stored)")
 
 
+class GarmentSize(BaseModel):
+    """One size of a garment's size chart: its label and the body measurements it is made for
+    (API attribute names and units; empty for a garment without a chart)."""
+
+    label: str
+    measurements: dict[str, float] = Field(default_factory=dict)
+
+
 class Garment(Record):
     """A garment of the catalogue; its clothing basis is stored beside it (basis files)."""
 
@@ -125,6 +133,20 @@ class Garment(Record):
     gender: str | None = None
     catalogue_id: str | None = None
     swatch: str | None = None
+    sizes: list[GarmentSize] | None = Field(default=None, description="the size chart in chart order (None: one size)")
+    base_size: str | None = None
+    fabric: str = "woven"
+    fit: dict | None = Field(default=None, description="sizing.SizeFit.to_meta(): the girths of every size")
+
+    def size_labels(self) -> list[str]:
+        """The garment's size labels in chart order (one size without a chart)."""
+        from service.model.sizing import ONE_SIZE
+
+        return [s.label for s in self.sizes] if self.sizes else [self.base_size or ONE_SIZE]
+
+    def base_index(self) -> int:
+        labels = self.size_labels()
+        return labels.index(self.base_size) if self.base_size in labels else 0
 
 
 class Job(BaseModel):

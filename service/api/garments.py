@@ -36,9 +36,23 @@ async def create_garment(
     name: Annotated[str, Form(min_length=1, max_length=200,
                               description="Garment name (printable characters; surrounding whitespace is "
                                           "dropped; control characters or only whitespace: 422)")],
-    garment: Annotated[UploadFile | None, File(
+    garment: Annotated[list[UploadFile] | None, File(
         description="One garment mesh draped on one body (OBJ, GLB/glTF with embedded buffers, PLY, STL), as "
-                    "exported from a design tool: on an example avatar (`on`) or on your own `avatar`")] = None,
+                    "exported from a design tool: on an example avatar (`on`) or on your own `avatar`; with a "
+                    "`size_chart` it is the `base_size`, graded to every size. Graded meshes: one file per size "
+                    "(same vertices and faces), all draped on the same body, with `garment_sizes`")] = None,
+    garment_sizes: Annotated[list[str] | None, Form(
+        description="Graded meshes: the size label of each file 'garment', in the same order (repeated, or "
+                    "comma-separated); every size of the `size_chart` once")] = None,
+    size_chart: Annotated[str | None, Form(
+        description='The size chart: a JSON object size label -> body measurements that size is made for, in '
+                    'chart order, e.g. {"S": {"chest_cm": 88, "waist_cm": 76, "hip_cm": 94}, "M": {...}} (names '
+                    'as in /v1/customers: chest_cm, waist_cm, hip_cm, height_cm, inseam_cm, ...; every size the '
+                    'same names, increasing in each). Without it the garment is one size')] = None,
+    base_size: Annotated[str | None, Form(
+        description="With `size_chart`: the size of the uploaded mesh (default: the middle size)")] = None,
+    fabric: Annotated[str | None, Form(description="woven (default), knit or stretch: how the cloth stretches, "
+                                                   "which sets the fit verdicts' thresholds")] = None,
     on: Annotated[str | None, Form(description="With `garment`: the example avatar it was draped on (an id of "
                                                "/v1/example-avatars; default mean)")] = None,
     avatar: Annotated[UploadFile | None, File(
@@ -60,21 +74,27 @@ async def create_garment(
     an example avatar (``on``) or on your own ``avatar`` (202: a job fits it to every example
     avatar; poll ``job.url`` or the garment's ``status`` and ``progress``)."""
     has_meshes = bool(meshes)
-    ways = [has_meshes, mhclo is not None or obj is not None, garment is not None]
+    garment_files = list(garment or [])
+    ways = [has_meshes, mhclo is not None or obj is not None, bool(garment_files)]
     if sum(ways) != 1:
         raise invalid(("body",), "send one of: files 'meshes' (one per example avatar), files 'mhclo' and 'obj' "
                                  "(a MakeHuman garment), or a file 'garment' (draped on one body, with 'on' or a "
                                  "file 'avatar')")
-    if garment is None and (on is not None or avatar is not None):
+    if not garment_files and (on is not None or avatar is not None):
         raise invalid(("body", "on" if on is not None else "avatar"), "'on' and 'avatar' go with a file 'garment'")
-    common = {"name": name, "owner": retailer, "color": color, "layer": layer,
+    if not garment_files and garment_sizes:
+        raise invalid(("body", "garment_sizes"), "'garment_sizes' goes with files 'garment' (graded meshes)")
+    chart = garments.chart(size_chart, base_size, fabric)
+    common = {"name": name, "owner": retailer, "color": color, "layer": layer, "chart": chart,
               "texture": (await texture.read(), texture.filename) if texture is not None else None}
-    if garment is not None:
-        g_data, g_name = await garment.read(), garment.filename
+    if garment_files:
+        files = [(await f.read(), f.filename) for f in garment_files]
+        labels = None if garment_sizes is None else [x.strip() for v in garment_sizes for x in v.split(",")]
         a_data = await avatar.read() if avatar is not None else None
         a_name = avatar.filename if avatar is not None else None
-        record = await run_in_threadpool(lambda: garments.create_draped(g_data, g_name, on=on, avatar=a_data,
-                                                                        avatar_name=a_name, **common))
+        record = await run_in_threadpool(lambda: garments.create_draped(
+            files[0][0], files[0][1], on=on, avatar=a_data, avatar_name=a_name, graded=files[1:],
+            garment_sizes=labels, **common))
         response.status_code = 202
         if record.job is not None:
             response.headers["Location"] = record.job.url

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from service.model.body import model_path
 from service.model.measurements import ATTRIBUTES
@@ -233,6 +233,11 @@ class ExampleAvatarOut(BaseModel):
     coefficient: float = Field(description="Weight of the component (metres-scale PCA units)")
 
 
+class GarmentSizeResponse(BaseModel):
+    label: str
+    measurements: dict[str, float] = Field(description="Body measurements the size is made for (API names, cm)")
+
+
 class GarmentResponse(BaseModel):
     """A stored garment (its clothing basis is at /v1/garments/{id}/basis.glb)."""
 
@@ -263,6 +268,23 @@ class GarmentResponse(BaseModel):
     gender: str | None = Field(default=None, description="Demo catalogue: female, male or unisex")
     catalogue_id: str | None = Field(default=None, description="Demo catalogue: the compiled item's id")
     swatch: str | None = Field(default=None, description="Demo catalogue: thumbnail colour #rrggbb (sRGB)")
+    sizes: list[GarmentSizeResponse] = Field(default_factory=list, description=(
+        "The size chart in chart order: each size's label and the body measurements it is made for (one "
+        "entry, empty measurements, for a garment without a chart)"))
+    base_size: str | None = Field(default=None, description="The size of the uploaded mesh")
+    fabric: Literal["woven", "knit", "stretch"] = Field(default="woven", description="How the cloth stretches")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_size(cls, data):
+        """A garment without a chart shows as one size."""
+        if isinstance(data, BaseModel):
+            data = data.model_dump()
+        if isinstance(data, dict) and not data.get("sizes"):
+            data = dict(data)
+            data["sizes"] = [{"label": data.get("base_size") or "one size", "measurements": {}}]
+            data["base_size"] = data["sizes"][0]["label"]
+        return data
 
 
 def attribute_ranges(body_model_path: Path | None) -> dict[str, list[float]] | None:
@@ -327,3 +349,28 @@ class LookDefaults(BaseModel):
 class LooksResponse(BaseModel):
     hair: list[HairOut] = Field(description="The hair styles; `none` (no hair) is always accepted too")
     defaults: dict[str, LookDefaults] = Field(description="Per gender (female, male): the default look")
+
+
+class RegionFit(BaseModel):
+    region: Literal["chest", "waist", "hip", "thigh", "upper_arm", "shoulders"]
+    ease_cm: float = Field(description="Garment girth minus body girth there (cm; negative: the cloth is stretched)")
+    strain_pct: float = Field(description="How far the body stretches the cloth there (%; 0 when looser)")
+    verdict: Literal["too_tight", "tight", "fit", "loose", "too_loose"]
+
+
+class SizeFitResponse(BaseModel):
+    label: str
+    verdict: Literal["too_tight", "tight", "fit", "loose", "too_loose"] = Field(
+        description="The tightest region's verdict when any is tight, else the loosest region's")
+    regions: list[RegionFit]
+
+
+class FitResponse(BaseModel):
+    """How each size of a garment fits one customer."""
+
+    garment_id: str
+    fabric: Literal["woven", "knit", "stretch"]
+    base_size: str
+    recommended: str = Field(description="The size with no region tight or too tight whose ease is closest to the "
+                                         "garment's design ease; if every size is tight somewhere, the loosest")
+    sizes: list[SizeFitResponse] = Field(description="In chart order")

@@ -6,6 +6,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 
 from service.api import responses as R
+from service.api.schemas import FitResponse
 from service.api.deps import Compression, CredentialsDep, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep, Underwear
 
 router = APIRouter(tags=["try-on"])
@@ -13,19 +14,25 @@ router = APIRouter(tags=["try-on"])
 
 @router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
 def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
-               compression: Compression = None, pose_correctives: PoseCorrectives = False) -> Response:
+               compression: Compression = None, pose_correctives: PoseCorrectives = False,
+               size: Annotated[str | None, Query(max_length=64, description=(
+                   "A size label of the garment's chart (default: the size recommended for this customer, "
+                   "see /fit); unknown: 422 listing the garment's sizes"))] = None) -> Response:
     """The garment fitted to the customer, skinned with the customer's skeleton. ``ETag`` from
     (customer weights, garment etag, options); ``If-None-Match`` -> 304 without computing.
     ``pose_correctives=true``: one morph target per page pose (``pose:<name>``) that keeps the
     garment outside the body in that pose (influence 1 in that pose, 0 otherwise)."""
-    return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives))
+    return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives, size))
 
 
 @router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
 def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
                garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
                compression: Compression = None, hair: Hair = None, underwear: Underwear = True,
-               pose_correctives: PoseCorrectives = False) -> Response:
+               pose_correctives: PoseCorrectives = False,
+               sizes: Annotated[str | None, Query(max_length=2000, description=(
+                   "Comma-separated size labels, one per garment in the order of `garments` (empty: the "
+                   "recommended size); default: each garment's recommended size"))] = None) -> Response:
     """The customer's avatar wearing the garments (one scene, one skeleton), layered: inner
     garments (lower layer) first, each outer one pushed over the ones below. The avatar as in
     ``avatar.glb`` (nodes ``avatar``, ``eyes``, ``eyebrows``, ``hair``, ``underwear``; the same
@@ -36,4 +43,18 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
     them). The body under opaque garments is left out of the ``avatar`` mesh (its vertices
     stay)."""
     return R.private_glb(*tryon.outfit_glb(cid, garments.split(","), creds, compression, if_none_match,
-                                           hair, underwear, pose_correctives))
+                                           hair, underwear, pose_correctives,
+                                           None if sizes is None else sizes.split(",")))
+
+
+@router.get("/v1/customers/{cid}/garments/{gid}/fit", response_model=FitResponse,
+            responses={404: {"description": "Unknown customer or garment"},
+                       409: {"description": "The customer or garment is not ready"}})
+def garment_fit(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep) -> dict:
+    """How each size of the garment fits the customer: per size a verdict and, per region
+    (chest, waist, hip, thigh, upper arm, shoulders: those the garment covers), the ease (garment
+    girth minus body girth, cm), the strain of cloth tighter than the body (%) and a verdict
+    (too_tight, tight, fit, loose, too_loose; thresholds per fabric); ``recommended``: the size
+    with no tight region whose ease is closest to the garment's design ease (its ease on the
+    base size's body), else the loosest. Sizes in chart order."""
+    return tryon.fit_report(cid, gid, creds)

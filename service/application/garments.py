@@ -14,16 +14,19 @@ from service.model.autofit import fit_to_examples
 from service.model.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
 from service.model.fitting import FitError, fit_body
 from service.model.mesh_io import scan_type
-from service.model.frames import unit_against
+from service.model.frames import UNITS, unit_against
+from service.model import sizing as SZ
 from service.model.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
 from service.storage.records import new_id
 
 from . import scenes
+from . import sizes as sizing
+from .sizes import Chart
 from .errors import Conflict, Forbidden, Invalid, NotFound
 from .examples import Examples
 from .progress import MonotoneProgress, Progress
-from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
+from .uploads import (GARMENT_UPS, DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
                       read_garment_mesh, read_mhclo_layout, read_texture)
 
 if TYPE_CHECKING:
@@ -84,9 +87,10 @@ class GarmentService:
             update.update(status="failed", error=job.error or "the build job failed")
         return record.model_copy(update=update)
 
-    def require_ready(self, record: Garment | None, gid: str) -> tuple[Garment, GarmentBasis]:
-        """A garment that can be tried on, with its basis: 404 unknown; 409 while it is being
-        built, when its build failed, or when it was built for another body model."""
+    def require_ready(self, record: Garment | None, gid: str, size: int | None = None) -> tuple[Garment, GarmentBasis]:
+        """A garment that can be tried on, with its basis (``size``: that size's, by index in
+        the chart; None: the base size's): 404 unknown; 409 while it is being built, when its
+        build failed, or when it was built for another body model."""
         if record is None:
             raise NotFound(f"garment '{gid}' not found")
         if record.status == "building":
@@ -97,10 +101,17 @@ class GarmentService:
         if not record.is_current(self.model.version):
             raise Conflict(f"garment '{gid}' was built for another body model ({record.body_model or 'unversioned'}; "
                            f"this service runs {self.model.version}): upload it again")
-        basis = self.bases.load(gid, record.etag)
+        sized = bool(record.sizes) and len(record.sizes) > 1
+        basis = self.bases.load(gid, record.etag, (record.base_index() if size is None else size) if sized else None)
         if basis is None:
             raise NotFound(f"garment '{gid}' not found (its basis files are missing)")
+        if sized:  # built with sizes: the skinning is current
+            return record, basis
         return self._current_skinning(record, basis)
+
+    def size_fit(self, record: Garment, basis: GarmentBasis) -> SZ.SizeFit:
+        """The garment's girths per size (``sizing.SizeFit``)."""
+        return sizing.garment_fit(self.model, record, basis)
 
     def _current_skinning(self, record: Garment, basis: GarmentBasis) -> tuple[Garment, GarmentBasis]:
         """A basis whose skin weights an older version of the service made gets them recomputed
@@ -139,8 +150,13 @@ class GarmentService:
         return self.examples.vertices[i]
 
     # -- creating ----------------------------------------------------------------------------
+    def chart(self, size_chart: str | None, base_size: str | None, fabric: str | None) -> Chart | None:
+        """The upload's ``size_chart``, ``base_size`` and ``fabric`` checked (422)."""
+        return sizing.parse_chart(self.model, size_chart, base_size, fabric)
+
     def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
-                           layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+                           layer: int, texture: tuple[bytes, str | None] | None = None,
+                           chart: Chart | None = None) -> Garment:
         """A garment fitted by the retailer to every example avatar: one mesh per example, in
         the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
         OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
@@ -148,21 +164,78 @@ class GarmentService:
         name = clean_name(name)
         rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
         tex = read_texture(*texture) if texture is not None else None
+        if chart is not None and chart.sizes:
+            raise Invalid(("body", "size_chart"), "'meshes' are one size fitted to every example avatar: a size "
+                                                  "chart goes with a 'garment' (graded by the service, or graded "
+                                                  "meshes with 'garment_sizes') or an 'mhclo'")
         fits, faces, unit = self._fits_from_meshes(files)
         faces, layout = _file_layout(*files[0], faces)
         return self._build_and_store(fits, faces, name=name, owner=owner, source="meshes", color=rgba, layer=layer,
+                                     fabric=chart.fabric if chart is not None else SZ.DEFAULT_FABRIC,
                                      unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout))
 
     def create_from_mhclo(self, mhclo: bytes, obj: bytes, *, name: str, owner: str, color: str | None,
-                          layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+                          layer: int, texture: tuple[bytes, str | None] | None = None,
+                          chart: Chart | None = None) -> Garment:
         """A MakeHuman garment, fitted to every example avatar through its binding; the OBJ's
-        texture coordinates and the optional ``texture`` (bytes, filename) give its look."""
+        texture coordinates and the optional ``texture`` (bytes, filename) give its look. With a
+        size ``chart``: the garment as bound to the mean avatar is the base size, graded to
+        every size of the chart (:meth:`_create_graded`)."""
         name = clean_name(name)
         rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
         tex = read_texture(*texture) if texture is not None else None
         binding, faces, layout = read_mhclo_layout(self.model, mhclo, obj)
-        return self._create_from_binding(binding, faces, layout, _upload_material(tex, rgba, color, layout),
-                                         name=name, owner=owner, source="mhclo", color=rgba, layer=layer)
+        material = _upload_material(tex, rgba, color, layout)
+        if chart is not None and chart.sizes:
+            return self._create_graded(binding, faces, layout, material, chart, name=name, owner=owner,
+                                       source="mhclo", color=rgba, layer=layer)
+        return self._create_from_binding(binding, faces, layout, material, name=name, owner=owner, source="mhclo",
+                                         color=rgba, layer=layer, fabric=chart.fabric if chart else SZ.DEFAULT_FABRIC)
+
+    def _create_graded(self, binding: Any, faces: np.ndarray, layout: RenderLayout | None, material: Material | None,
+                       chart: Chart, **record: Any) -> Garment:
+        """A bound garment (``.mhclo``, the demo catalogue) in the sizes of ``chart``: its fit
+        to the mean avatar is the base size, graded to the chart's bodies, each size fitted to
+        every example avatar and its basis built; all stored, then the record published."""
+        source = np.asarray(self.examples.vertices[0], np.float64)
+        g0 = np.asarray(binding.fit(source), np.float64)
+        if not np.all(np.isfinite(g0)):
+            raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
+        rests, on, bodies = sizing.graded(self.model, g0, faces, source, chart)
+        gid = new_id()
+        rec = Garment(id=gid, body_model=self.model.version, textured=_textured(material, layout),
+                      **chart.record_fields(), **record)
+        rec = self._store_sizes(rec, rests, faces, on, bodies[chart.base], chart, layout, material)
+        try:
+            self.repo.publish(rec)
+        except BaseException:
+            self.bases.delete(gid)
+            raise
+        return rec
+
+    def _store_sizes(self, record: Garment, rests: np.ndarray, faces: np.ndarray, bodies_on: np.ndarray,
+                     base_body: np.ndarray, chart: Chart, layout: RenderLayout | None, material: Material | None,
+                     progress: Progress | None = None) -> Garment:
+        """Every size's example fits (``sizes.size_example_fits``) and basis, stored together;
+        the record with its counts, combined ETag and girths per size (``fit``)."""
+        import hashlib
+
+        fits = sizing.per_size_fits(self.model, rests, faces, bodies_on, progress)
+        bases = []
+        for s, f in enumerate(fits):
+            meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
+                    "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version,
+                    "size": chart.labels[s]}
+            bases.append(build_garment_basis(self.model, f, faces, self.examples.set, meta=meta, layout=layout,
+                                             material=material))
+        fit = SZ.sized_garment_fit(self.model, rests, faces, bodies_on, chart.labels, chart.base, base_body,
+                                   chart.fabric)
+        self.bases.save_sizes(record.id, bases)
+        etag = hashlib.sha256("-".join(b.etag() for b in bases).encode()).hexdigest()[:32]
+        b0 = bases[chart.base]
+        return record.model_copy(update={"n_vertices": int(b0.meta["n_vertices"]), "n_faces": int(b0.meta["n_faces"]),
+                                         "n_components": int(b0.meta["n_components"]), "etag": etag,
+                                         "fit": fit.to_meta()})
 
     def _create_from_binding(self, binding: Any, faces: np.ndarray, layout: RenderLayout | None,
                              material: Material | None, **record: Any) -> Garment:
@@ -260,9 +333,12 @@ class GarmentService:
                 "created": record.created, "id": gid, "body_model": self.model.version}
         basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta, layout=layout,
                                     material=material)
+        fit = SZ.sized_garment_fit(self.model, np.asarray(fits[0])[None], faces, self.examples.vertices[0],
+                                   record.size_labels(), 0, self.examples.vertices[0], record.fabric)
         record = record.model_copy(update={"n_vertices": int(basis.meta["n_vertices"]),
                                            "n_faces": int(basis.meta["n_faces"]),
-                                           "n_components": int(basis.meta["n_components"]), "etag": basis.etag()})
+                                           "n_components": int(basis.meta["n_components"]), "etag": basis.etag(),
+                                           "fit": fit.to_meta()})
         self.bases.save(gid, basis)
         try:
             self.repo.publish(record)
@@ -273,12 +349,23 @@ class GarmentService:
 
     def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
-                      texture: tuple[bytes, str | None] | None = None) -> Garment:
+                      texture: tuple[bytes, str | None] | None = None, chart: Chart | None = None,
+                      graded: list[tuple[bytes, str | None]] | None = None,
+                      garment_sizes: list[str] | None = None) -> Garment:
         """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
         retailer's own ``avatar`` of any topology): checked now (422 before any job), then
         carried to every example avatar by a queued build job (:meth:`run_build`). The garment
-        is listed at once with ``status: building``; its basis appears when complete."""
+        is listed at once with ``status: building``; its basis appears when complete.
+
+        Sizes: with a size ``chart`` the garment is the base size, graded by the job to every
+        size; or ``graded`` further files (the retailer's graded meshes, same vertices and faces)
+        with ``garment_sizes`` the labels of all files (``garment`` first) in the chart."""
         name = clean_name(name)
+        files = [(garment, garment_name), *(graded or [])]
+        order = _graded_order(files, garment_sizes, chart)
+        if order is not None:  # the base size's file places the garment; the others follow it
+            assert chart is not None
+            garment, garment_name = files[order[chart.base]]
         rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
         if on is not None and avatar is not None:
             raise Invalid(("body", "on"), "send either 'on' (an example avatar id) or a file 'avatar', not both")
@@ -301,9 +388,13 @@ class GarmentService:
             scan, unit = read_draped_avatar(avatar, avatar_name, v)
             upload = DrapedGarment(v, faces, on=None, unit=unit, up=None, avatar=scan)
         upload.layout, upload.texture = layout, tex
+        if order is not None:
+            upload.graded = self._read_graded(files, order, upload, v, faces)
         gid = new_id()
         job_id = build_job_id(gid)
         record = Garment(id=gid, body_model=self.model.version, owner=owner, name=name, source="draped",
+                         **(chart.record_fields() if chart is not None and chart.sizes
+                            else {"fabric": chart.fabric} if chart is not None else {}),
                          color=[float(c) for c in rgba], layer=int(layer), status="building", unit=unit,
                          textured=_textured(_upload_material(tex, rgba, color, layout), layout),
                          up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)),
@@ -319,6 +410,24 @@ class GarmentService:
             raise
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
                                          "progress": 0.0})
+
+    def _read_graded(self, files: list[tuple[bytes, str | None]], order: list[int], upload: DrapedGarment,
+                     v_base: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """(S, M, 3) every size's mesh in chart order, in the base file's frame as placed (its
+        unit and up axis): 422 when a file is not the same garment (vertices and faces)."""
+        out = []
+        scale = UNITS[upload.unit] if upload.on is not None else 1.0
+        R = GARMENT_UPS[upload.up] if upload.up is not None else np.eye(3)
+        for k in order:
+            data, fname = files[k]
+            loc, label = ("body", "garment", k), f"garment file {k + 1} '{fname or 'garment'}'"
+            v, f = read_garment_mesh(data, fname, loc, label)
+            if len(v) != len(v_base) or f.shape != faces.shape or not np.array_equal(f, faces):
+                raise Invalid(loc, f"{label}: not the same mesh as the base size's file ({len(v)} vertices, "
+                                   f"{len(f)} faces; the base size has {len(v_base)} and {len(faces)}): graded "
+                                   "meshes must share vertices and faces, in the same order")
+            out.append((v * scale) @ R.T)
+        return np.stack(out)
 
     def run_build(self, gid: str, progress: Progress) -> dict[str, Any]:
         """The build job of a draped garment: (fit the retailer's avatar, unclothed, when one was
@@ -361,6 +470,9 @@ class GarmentService:
             source = self.examples.vertices[i]
             start = 0.0
         span = share["autofit"] + (share["avatar_fit"] - start)
+        if record.sizes and len(record.sizes) > 1:
+            return self._run_sized_build(record, upload, garment, faces, source,
+                                         T if upload.avatar is not None else None, progress, start)
         progress(start, "carrying the garment to the example avatars")
         try:
             result = fit_to_examples(self.model, garment, faces, source_body=source,
@@ -385,6 +497,38 @@ class GarmentService:
             return {"status": "deleted", "garment_id": gid}
         progress(1.0, "done")
         log.info("garment %s built from one draped mesh", gid)
+        return _build_outcome(ready)
+
+    def _run_sized_build(self, record: Garment, upload: DrapedGarment, garment: np.ndarray, faces: np.ndarray,
+                         source: np.ndarray, T: np.ndarray | None, progress: MonotoneProgress,
+                         start: float) -> dict[str, Any]:
+        """The build of a garment in sizes: graded by the service (one mesh) or by the retailer
+        (``upload.graded``, all on the same body), each size fitted to every example avatar,
+        the bases stored, the garment marked ready (as :meth:`run_build`)."""
+        chart = Chart([s.model_dump() for s in record.sizes or []], record.base_size or "", record.fabric)
+        progress(start, f"grading {len(chart.sizes)} sizes")
+        try:
+            bodies = sizing.chart_bodies(self.model, chart)
+            if upload.graded is not None:
+                rests = np.asarray(upload.graded, np.float64)
+                if T is not None:
+                    rests = rests @ T[:3, :3].T + T[:3, 3]
+                on = np.broadcast_to(np.asarray(source, np.float64), (len(rests), *np.shape(source)))
+            else:
+                rests = SZ.grade(self.model, garment, faces, source, bodies, chart.base)
+                on = SZ.size_bodies_on(source, bodies, chart.base)
+            rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
+            material = _upload_material(upload.texture, rgba, None, upload.layout)
+            ready = self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, upload.layout, material,
+                                      progress.scaled(start + 0.05, 0.95 - start))
+        except (ValueError, Invalid) as exc:
+            return self._fail_build(record, f"the garment could not be graded or fitted: {exc}", progress)
+        ready = ready.model_copy(update={"status": "ready", "error": None, "progress": None})
+        if not self.repo.complete(ready):
+            self.bases.delete(record.id)
+            return {"status": "deleted", "garment_id": record.id}
+        progress(1.0, "done")
+        log.info("garment %s built in %d sizes", record.id, len(chart.sizes))
         return _build_outcome(ready)
 
     def _fail_build(self, record: Garment, message: str, progress: Progress) -> dict[str, Any]:
@@ -460,6 +604,26 @@ class GarmentService:
                 log.info("demo garment %s built (%s) in %.2fs", item.id, rec.id, time.perf_counter() - t0)
             log.info("demo catalogue: %d garments ready in %.2fs", len(ids), time.perf_counter() - t_all)
         return ids
+
+
+def _graded_order(files: list[tuple[bytes, str | None]], garment_sizes: list[str] | None,
+                  chart: Chart | None) -> list[int] | None:
+    """For graded meshes: the index of each size's file, in chart order; None for one file.
+    422 when the labels do not match the files or the chart."""
+    if garment_sizes is None:
+        if len(files) > 1:
+            raise Invalid(("body", "garment_sizes"), f"{len(files)} files 'garment': graded meshes need "
+                                                     "'garment_sizes', their size labels in the same order")
+        return None
+    if chart is None or not chart.sizes:
+        raise Invalid(("body", "size_chart"), "'garment_sizes' needs a 'size_chart' giving those sizes")
+    if len(garment_sizes) != len(files):
+        raise Invalid(("body", "garment_sizes"), f"{len(garment_sizes)} labels in 'garment_sizes' for {len(files)} "
+                                                 "files 'garment': one label per file, in the same order")
+    if len(set(garment_sizes)) != len(garment_sizes) or set(garment_sizes) != set(chart.labels):
+        raise Invalid(("body", "garment_sizes"), f"'garment_sizes' {garment_sizes} must name each size of the "
+                                                 f"chart once ({', '.join(chart.labels)})")
+    return [garment_sizes.index(lb) for lb in chart.labels]
 
 
 def _file_layout(filename: str, data: bytes, faces: np.ndarray) -> tuple[np.ndarray, RenderLayout | None]:

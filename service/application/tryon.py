@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from service.model import sizing as SZ
 from service.model.tryon import GarmentBasis
 from service.records import Garment
 from service.storage.records import fetch
@@ -12,6 +13,7 @@ from service.storage.records import fetch
 from . import look as looks
 from . import poses as _poses
 from . import scenes
+from . import sizes as sizing
 from .auth import Credentials
 from .errors import Invalid
 
@@ -25,11 +27,50 @@ class TryOnService:
     def __init__(self, ctx: "Context"):
         self.ctx = ctx
 
-    def _load(self, cid: str, gids: list[str], creds: Credentials):
+    def _load(self, cid: str, gids: list[str], creds: Credentials, sizes: list[str | None] | None = None,
+              query: str = "size"):
+        """The customer and each garment with the basis of its size: ``sizes[i]`` (a label of
+        garment i's chart; 422 listing them when unknown) or, where None, the size recommended
+        for this customer (:meth:`fit_report`)."""
         customer, garments = fetch(self.ctx.customers_repo, cid, self.ctx.garments_repo, gids)
         record = self.ctx.customers.require_ready(self.ctx.customers.open(customer, cid, creds), cid)
-        loaded = [self.ctx.garments.require_ready(g, gid) for g, gid in zip(garments, gids)]
+        sizes = list(sizes or [])
+        loaded = []
+        for i, (g, gid) in enumerate(zip(garments, gids)):
+            want = sizes[i] if i < len(sizes) else None
+            g, basis = self.ctx.garments.require_ready(g, gid)
+            labels = g.size_labels()
+            if len(labels) > 1:
+                if want is None:
+                    idx = self._report(record, g, basis).recommended
+                else:
+                    try:
+                        idx = SZ.size_index(labels, want, 0)
+                    except SZ.ChartError as exc:
+                        raise Invalid(("query", query),
+                                      f"garment '{gid}': {exc.message}") from exc
+                if idx != g.base_index():
+                    g, basis = self.ctx.garments.require_ready(g, gid, idx)
+            elif want is not None and want not in labels:
+                raise Invalid(("query", query),
+                              f"garment '{gid}': unknown size '{want}'; this garment's sizes: {', '.join(labels)}")
+            loaded.append((g, basis))
         return record, loaded
+
+    def _report(self, record, garment: Garment, basis: GarmentBasis) -> SZ.FitReport:
+        """Every size of ``garment`` on the customer ``record``'s body."""
+        body = self.ctx.customers.body(record)
+        return SZ.fit_report(self.ctx.garments.size_fit(garment, basis), sizing.customer_girths(self.ctx.model, body))
+
+    def fit_report(self, cid: str, gid: str, creds: Credentials) -> dict:
+        """How each size of a garment fits the customer: ``{recommended, sizes: [{label,
+        verdict, regions: [{region, ease_cm, strain_pct, verdict}]}]}`` in chart order
+        (``sizing.fit_report``)."""
+        customer, garments = fetch(self.ctx.customers_repo, cid, self.ctx.garments_repo, [gid])
+        record = self.ctx.customers.require_ready(self.ctx.customers.open(customer, cid, creds), cid)
+        g, basis = self.ctx.garments.require_ready(garments[0], gid)
+        out = self._report(record, g, basis).to_dict()
+        return {"garment_id": gid, "fabric": g.fabric, "base_size": g.base_size or g.size_labels()[0], **out}
 
     def _etag(self, kind: str, record, loaded: list[tuple[Garment, GarmentBasis]], compression: str | None) -> str:
         return scenes.etag(kind, self.ctx.model.version, record.weights, compression,
@@ -44,11 +85,12 @@ class TryOnService:
         return (lambda: _poses.pose_arrays(_poses.record_poses(self.ctx.customers, record))) if on else None
 
     def garment_glb(self, cid: str, gid: str, creds: Credentials, compression: str | None,
-                    if_none_match: list[str] | None = None, pose_correctives: bool = False) -> tuple[bytes | None, str]:
+                    if_none_match: list[str] | None = None, pose_correctives: bool = False,
+                    size: str | None = None) -> tuple[bytes | None, str]:
         """The garment fitted to the customer, skinned with the customer's skeleton, and its
         ETag (customer weights, garment etag, options); ``None`` bytes when ``if_none_match``
         matches (not modified: nothing is computed)."""
-        record, loaded = self._load(cid, [gid], creds)
+        record, loaded = self._load(cid, [gid], creds, [size])
         tag = self._etag("garment" + ("|poses" if pose_correctives else ""), record, loaded, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
@@ -58,15 +100,24 @@ class TryOnService:
 
     def outfit_glb(self, cid: str, gids: list[str], creds: Credentials, compression: str | None,
                    if_none_match: list[str] | None = None, hair: str | None = None,
-                   underwear: bool = True, pose_correctives: bool = False) -> tuple[bytes | None, str]:
+                   underwear: bool = True, pose_correctives: bool = False,
+                   sizes: list[str] | None = None) -> tuple[bytes | None, str]:
         """The customer's avatar wearing its look (``hair``, ``underwear``: see
         ``CustomerService.avatar_glb``) and the garments (one scene, one skeleton), layered:
         inner garments (lower layer) first, each outer one pushed over the ones below; and its
         ETag. ``pose_correctives``: each garment with one morph target per page pose."""
-        ids = list(dict.fromkeys(g.strip() for g in gids if g.strip()))
+        given = [g.strip() for g in gids if g.strip()]
+        ids = list(dict.fromkeys(given))
         if len(ids) > MAX_OUTFIT_GARMENTS:
             raise Invalid(("query", "garments"), f"at most {MAX_OUTFIT_GARMENTS} garments per outfit")
-        record, loaded = self._load(cid, ids, creds)
+        chosen: list[str | None] = [None] * len(ids)
+        if sizes is not None:
+            if len(sizes) != len(given):
+                raise Invalid(("query", "sizes"), f"{len(sizes)} sizes for {len(given)} garments: one size label per "
+                                                  "garment, in the same order (empty: the recommended size)")
+            for gid, sz in zip(given, sizes):
+                chosen[ids.index(gid)] = sz.strip() or None
+        record, loaded = self._load(cid, ids, creds, chosen, "sizes")
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
         layered: list[tuple[Garment, GarmentBasis]] = [loaded[i] for i in order]

@@ -329,6 +329,7 @@ class DrapedGarment:
     avatar: Scan | None = None
     layout: RenderLayout | None = None  # the OBJ's texture coordinates, seams split
     texture: Texture | None = None  # the uploaded base-colour texture
+    graded: np.ndarray | None = None  # (S, M, 3) every size's mesh in chart order (graded uploads), same frame
 
     def to_bytes(self) -> bytes:
         arrays: dict[str, np.ndarray] = {"format": np.array(DRAPED_FORMAT), "vertices": self.vertices,
@@ -338,6 +339,8 @@ class DrapedGarment:
             arrays["avatar"] = np.frombuffer(mesh_io.scan_to_npz_bytes(self.avatar), np.uint8)
         if self.layout is not None:
             arrays.update(layout_vertex=self.layout.vertex, layout_uv=self.layout.uv, layout_faces=self.layout.faces)
+        if self.graded is not None:
+            arrays["graded"] = np.asarray(self.graded, np.float64)
         if self.texture is not None:
             arrays.update(texture=np.frombuffer(self.texture.data, np.uint8), texture_mime=np.array(self.texture.mime),
                           texture_name=np.array(self.texture.name))
@@ -359,7 +362,8 @@ class DrapedGarment:
                 texture = Texture(str(z["texture_name"]), str(z["texture_mime"]), z["texture"].tobytes())
             return cls(vertices=np.asarray(z["vertices"], np.float64), faces=np.asarray(z["faces"], np.int32),
                        on=str(z["on"]) or None, unit=str(z["unit"]), up=str(z["up"]) or None, avatar=avatar,
-                       layout=layout, texture=texture)
+                       layout=layout, texture=texture,
+                       graded=np.asarray(z["graded"], np.float64) if "graded" in z.files else None)
 
 
 def place_on_body(vertices: np.ndarray, body_tree: cKDTree, loc: tuple) -> tuple[np.ndarray, str, str]:

@@ -1,0 +1,160 @@
+"""Sizes and fit over the API in process: a MakeHuman garment uploaded with a size chart
+(graded by the service), the fit report of customers made from each size's chart measurements,
+the try-on per size (``?size=``, outfits ``?sizes=``), 422s for bad charts and unknown sizes,
+and graded meshes uploaded by the retailer (``garment_sizes``) built by the job."""
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.settings import Settings
+from tests.bench.common import shared_data_dir
+from tests.harness import GLB, RETAILERS, assert_422, redis_db, redis_url
+
+KEY = {"X-API-Key": RETAILERS["acme"]}
+SUIT = shared_data_dir() / "makehuman_clothes" / "male_casualsuit04"
+# EN 13402-3 men's chest / waist / hip (cm), sizes 48-52 (the middle of the table)
+CHART = {"48": {"chest_cm": 96.0, "waist_cm": 84.0, "hip_cm": 98.0},
+         "50": {"chest_cm": 100.0, "waist_cm": 88.0, "hip_cm": 102.0},
+         "52": {"chest_cm": 104.0, "waist_cm": 92.0, "hip_cm": 106.0}}
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    with redis_db() as db:
+        settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("sizes"), REDIS_URL=redis_url(db),
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="",
+                            TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
+        with TestClient(create_app(settings), raise_server_exceptions=True) as c:
+            yield c
+
+
+def _suit_files() -> list:
+    if not SUIT.is_dir():
+        pytest.skip(f"MakeHuman garment not found at {SUIT}")
+    return [("mhclo", ("suit.mhclo", (SUIT / "male_casualsuit04.mhclo").read_bytes(), "text/plain")),
+            ("obj", ("suit.obj", (SUIT / "male_casualsuit04.obj").read_bytes(), "model/obj"))]
+
+
+@pytest.fixture(scope="module")
+def sized(client: TestClient) -> dict:
+    r = client.post("/v1/garments", data={"name": "Suit in sizes", "size_chart": json.dumps(CHART),
+                                          "base_size": "50", "fabric": "knit"}, files=_suit_files(), headers=KEY)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _customer(client: TestClient, measurements: dict) -> tuple[str, dict]:
+    r = client.post("/v1/customers", json={"measurements": {"gender": "male", **measurements}})
+    assert r.status_code == 201, r.text
+    return r.json()["id"], {"Authorization": f"Bearer {r.json()['token']}"}
+
+
+def test_record_shows_the_chart(client: TestClient, sized: dict) -> None:
+    assert [s["label"] for s in sized["sizes"]] == ["48", "50", "52"]
+    assert sized["sizes"][0]["measurements"] == CHART["48"]
+    assert sized["base_size"] == "50" and sized["fabric"] == "knit"
+    again = client.get(f"/v1/garments/{sized['id']}").json()
+    assert again["sizes"] == sized["sizes"]
+
+
+def test_chart_made_customers_get_their_size(client: TestClient, sized: dict) -> None:
+    """A customer made from size X's chart measurements: X recommended, its ease at chest,
+    waist and hip within 1 cm of the design ease... of the base size on its own body, ease
+    growing with size, strain falling."""
+    base = None
+    for label, ms in CHART.items():
+        cid, auth = _customer(client, ms)
+        r = client.get(f"/v1/customers/{cid}/garments/{sized['id']}/fit", headers=auth)
+        assert r.status_code == 200, r.text
+        rep = r.json()
+        assert rep["recommended"] == label, rep
+        assert [s["label"] for s in rep["sizes"]] == list(CHART)
+        regions = {x["region"] for x in rep["sizes"][0]["regions"]}
+        assert {"chest", "waist"} <= regions
+        for i, reg in enumerate(rep["sizes"][0]["regions"]):
+            eases = [s["regions"][i]["ease_cm"] for s in rep["sizes"]]
+            strains = [s["regions"][i]["strain_pct"] for s in rep["sizes"]]
+            assert eases == sorted(eases) and eases[0] < eases[-1], (reg, eases)
+            assert strains == sorted(strains, reverse=True), (reg, strains)
+        mine = next(s for s in rep["sizes"] if s["label"] == label)
+        if label == "50":
+            base = mine
+    assert base is not None
+
+
+def test_try_on_per_size(client: TestClient, sized: dict) -> None:
+    cid, auth = _customer(client, CHART["48"])
+    gid = sized["id"]
+    url = f"/v1/customers/{cid}/garments/{gid}.glb"
+    small, large, default = (client.get(url, params=p, headers=auth) for p in ({"size": "48"}, {"size": "52"}, {}))
+    for r in (small, large, default):
+        assert r.status_code == 200 and r.headers["content-type"] == GLB
+    assert small.headers["etag"] != large.headers["etag"]
+    assert default.headers["etag"] == small.headers["etag"]  # the recommended size
+    r = client.get(url, params={"size": "XXL"}, headers=auth)
+    assert_422(r, ["query", "size"])
+    assert "48, 50, 52" in r.text
+    out = client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": gid, "sizes": "52"}, headers=auth)
+    assert out.status_code == 200, out.text
+    assert_422(client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": gid, "sizes": "52,48"},
+                          headers=auth), ["query", "sizes"])
+    assert_422(client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": gid, "sizes": "9"},
+                          headers=auth), ["query", "sizes"])
+
+
+@pytest.mark.parametrize("fields,loc,text", [
+    ({"size_chart": "[1, 2]"}, ["body", "size_chart"], "JSON object"),
+    ({"size_chart": "{"}, ["body", "size_chart"], "not valid JSON"),
+    ({"size_chart": json.dumps({"S": {"chest": 90}})}, ["body", "size_chart"], "unknown measurement"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": "90"}})}, ["body", "size_chart"], "number"),
+    ({"size_chart": '{"S": {"chest_cm": 90}, "S": {"chest_cm": 94}}'}, ["body", "size_chart"], "repeated"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": 90}, "s": {"chest_cm": 94}})}, ["body", "size_chart"], "repeated"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": 94}, "M": {"chest_cm": 90}})}, ["body", "size_chart"], "increase"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": 90}, "M": {"chest_cm": 94, "hip_cm": 99}})},
+     ["body", "size_chart"], "same measurements"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": 9}})}, ["body", "size_chart"], "range"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": 90}}), "base_size": "M"}, ["body", "base_size"], "not a size"),
+    ({"base_size": "M"}, ["body", "base_size"], "size_chart"),
+    ({"fabric": "silk"}, ["body", "fabric"], "woven, knit, stretch"),
+])
+def test_bad_charts_are_422_before_any_work(client: TestClient, fields: dict, loc: list, text: str) -> None:
+    before = len(client.get("/v1/garments").json())
+    r = client.post("/v1/garments", data={"name": "x", **fields}, files=_suit_files(), headers=KEY)
+    assert_422(r, loc)
+    assert text in r.text, r.text
+    assert len(client.get("/v1/garments").json()) == before
+
+
+def test_garment_sizes_count_and_labels(client: TestClient) -> None:
+    obj = (SUIT / "male_casualsuit04.obj").read_bytes()
+    chart = json.dumps({"S": {"chest_cm": 92}, "M": {"chest_cm": 100}})
+    files = [("garment", ("s.obj", obj, "model/obj")), ("garment", ("m.obj", obj, "model/obj"))]
+    cases = [({"garment_sizes": "S"}, "2 files"), ({"garment_sizes": "S,L"}, "each size"),
+             ({}, "garment_sizes")]
+    for extra, text in cases:
+        data = {"name": "x", "size_chart": chart, **extra}
+        r = client.post("/v1/garments", data=data, files=files, headers=KEY)
+        assert r.status_code == 422 and text in r.text, r.text
+    r = client.post("/v1/garments", data={"name": "x", "garment_sizes": "S,M"}, files=files, headers=KEY)
+    assert r.status_code == 422 and "size_chart" in r.text
+
+
+def test_one_size_garment_has_a_fit(client: TestClient) -> None:
+    r = client.post("/v1/garments", data={"name": "One size", "fabric": "stretch"}, files=_suit_files(), headers=KEY)
+    assert r.status_code == 201, r.text
+    g = r.json()
+    assert g["sizes"] == [{"label": "one size", "measurements": {}}] and g["fabric"] == "stretch"
+    cid, auth = _customer(client, {"height_cm": 180})
+    rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
+    assert rep["recommended"] == "one size" and len(rep["sizes"]) == 1
+    assert client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"size": "one size"},
+                      headers=auth).status_code == 200
+    assert_422(client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"size": "M"}, headers=auth),
+               ["query", "size"])
