@@ -158,3 +158,66 @@ def test_one_size_garment_has_a_fit(client: TestClient) -> None:
                       headers=auth).status_code == 200
     assert_422(client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", params={"size": "M"}, headers=auth),
                ["query", "size"])
+
+
+def _build(client: TestClient, r) -> dict:
+    """The build job of a 202 upload run here (the queue's job, called in process)."""
+    assert r.status_code == 202, r.text
+    g = r.json()
+    assert g["status"] == "building"
+    out = client.app.state.context.garments.run_build(g["id"], lambda f, m: None)
+    assert out["status"] == "done", out
+    g = client.get(f"/v1/garments/{g['id']}").json()
+    assert g["status"] == "ready"
+    return g
+
+
+def _on_mean_obj(client: TestClient, scale: float = 1.0) -> tuple[bytes, np.ndarray]:
+    from service.application.scenes import obj_text
+    from tests.draped_data import binding
+
+    model = client.app.state.body_model
+    b, faces = binding(model, "male_casualsuit04")
+    G = b.fit(model.mean) * scale
+    return obj_text(G, faces).encode(), G
+
+
+def test_one_garment_graded_by_the_job(client: TestClient) -> None:
+    """Upload to ready: one draped ``garment`` with a chart, graded by the build job; the base
+    size keeps the uploaded mesh; a chart-made customer of the small size gets it."""
+    obj, _ = _on_mean_obj(client)
+    chart = {k: CHART[k] for k in ("48", "52")}
+    r = client.post("/v1/garments", data={"name": "Draped in sizes", "size_chart": json.dumps(chart),
+                                          "base_size": "52"},
+                    files=[("garment", ("suit.obj", obj, "model/obj"))], headers=KEY)
+    g = _build(client, r)
+    assert [s["label"] for s in g["sizes"]] == ["48", "52"] and g["base_size"] == "52"
+    cid, auth = _customer(client, CHART["48"])
+    rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
+    assert rep["recommended"] == "48", rep
+    assert client.get(f"/v1/customers/{cid}/garments/{g['id']}.glb", headers=auth).status_code == 200
+
+
+def test_graded_meshes_uploaded(client: TestClient) -> None:
+    """Upload to ready: the retailer's graded meshes (``garment_sizes``, files in any order),
+    draped on one body; the larger mesh is the larger size: its ease is larger everywhere."""
+    small, _ = _on_mean_obj(client, 0.97)
+    large, _ = _on_mean_obj(client, 1.03)
+    chart = {"S": CHART["48"], "L": CHART["52"]}
+    r = client.post("/v1/garments", data={"name": "Graded", "size_chart": json.dumps(chart), "base_size": "S",
+                                          "garment_sizes": "L,S", "fabric": "stretch"},
+                    files=[("garment", ("l.obj", large, "model/obj")), ("garment", ("s.obj", small, "model/obj"))],
+                    headers=KEY)
+    g = _build(client, r)
+    assert [s["label"] for s in g["sizes"]] == ["S", "L"] and g["fabric"] == "stretch"
+    cid, auth = _customer(client, CHART["50"])
+    rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
+    s, lg = rep["sizes"]
+    for a, b in zip(s["regions"], lg["regions"]):
+        assert b["ease_cm"] > a["ease_cm"] + 1.0, (a, b)
+    # a mesh that is not the same garment: 422 before any job
+    bad = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+    r = client.post("/v1/garments", data={"name": "Graded", "size_chart": json.dumps(chart), "garment_sizes": "S,L"},
+                    files=[("garment", ("s.obj", small, "model/obj")), ("garment", ("l.obj", bad, "model/obj"))],
+                    headers=KEY)
+    assert r.status_code == 422, r.text
