@@ -1,0 +1,121 @@
+"""Sizes and fit, the maths (``service.model.sizing``): chart validation, grading keeps the base
+size and grows the others, garment girths per region, verdict thresholds per fabric, the
+recommendation rule and monotonicity of ease and strain with size."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.application.sizes import Chart, chart_bodies
+from service.model import sizing as S
+from service.model.catalogue import load_catalogue
+
+CHART = {"S": {"chest_cm": 88.0, "waist_cm": 76.0, "hip_cm": 94.0},
+         "M": {"chest_cm": 96.0, "waist_cm": 84.0, "hip_cm": 102.0},
+         "L": {"chest_cm": 104.0, "waist_cm": 92.0, "hip_cm": 110.0}}
+
+
+def test_validate_chart() -> None:
+    sizes, base = S.validate_chart(CHART, None)
+    assert [s["label"] for s in sizes] == ["S", "M", "L"] and base == "M"
+    assert S.validate_chart(CHART, "L")[1] == "L"
+    bad = [([], "JSON object"), ({"S": {"neck_cm": 38}}, "unknown measurement"),
+           ({"S": {"chest_cm": True}}, "number"), ({"S": {"chest_cm": float("nan")}}, "finite"),
+           ({"S": {"chest_cm": 90}, "M": {"chest_cm": 90}}, "increase"),
+           ({"S": {"chest_cm": 90, "hip_cm": 96}, "M": {"chest_cm": 94, "hip_cm": 95}}, "increase"),
+           ({"S": {"chest_cm": 90}, " s ": {"chest_cm": 94}}, "repeated"),
+           ({"S,M": {"chest_cm": 90}}, "no comma"), ({"S": {}}, "object of measurement"),
+           ({"S": {"chest_cm": 90}, "M": {"waist_cm": 80}}, "same measurements")]
+    for chart, text in bad:
+        with pytest.raises(S.ChartError, match=text):
+            S.validate_chart(chart, None)
+    with pytest.raises(S.ChartError, match="not a size"):
+        S.validate_chart(CHART, "XL")
+    with pytest.raises(S.ChartError, match="range"):
+        S.validate_chart({"S": {"chest_cm": 20}}, None, {"chest_cm": (60.0, 160.0)})
+    with pytest.raises(S.ChartError, match="woven, knit, stretch"):
+        S.check_fabric("silk")
+    with pytest.raises(S.ChartError, match="S, M, L"):
+        S.size_index(["S", "M", "L"], "XL", 1)
+
+
+@pytest.fixture(scope="module")
+def graded(model):
+    """The catalogue's pencil skirt and women's T-shirt graded S/M/L from the mean avatar."""
+    chart = Chart(S.validate_chart(CHART, "M")[0], "M", "woven")
+    bodies = chart_bodies(model, chart)
+    out = {}
+    for name in ("pencil-skirt", "womens-tshirt"):
+        item = next(i for i in load_catalogue().garments() if i.id == name)
+        src = np.asarray(model.mean, np.float64)
+        g0 = item.binding.fit(src)
+        faces = np.asarray(item.faces, np.int64)
+        rests = S.grade(model, g0, faces, src, bodies, chart.base)
+        on = S.size_bodies_on(src, bodies, chart.base)
+        out[name] = (g0, faces, rests, on, bodies, chart)
+    return out
+
+
+def test_grading_keeps_the_base_size(graded) -> None:
+    for g0, faces, rests, on, bodies, chart in graded.values():
+        assert np.array_equal(rests[chart.base], np.asarray(g0, np.float32))
+        assert np.array_equal(on[chart.base], np.asarray(on[chart.base]))
+        assert not np.allclose(rests[0], rests[chart.base], atol=1e-3)
+
+
+def test_grading_follows_the_chart(model, graded) -> None:
+    """Each size's garment girths grow by about the chart's girth steps (8 cm per size here),
+    and its ease on its own body stays the design ease (within 1.5 cm)."""
+    for name, (g0, faces, rests, on, bodies, chart) in graded.items():
+        fit = S.sized_garment_fit(model, rests, faces, on, chart.labels, chart.base, bodies[chart.base], "woven")
+        present = np.isfinite(fit.design_cm)
+        assert present.any(), name
+        for s in range(3):
+            own = S.girths_of_body(model, bodies[s])
+            ease = fit.garment_cm[s] - own
+            assert np.all(np.abs(ease - fit.design_cm)[present] < 1.5), (name, s, ease, fit.design_cm)
+        steps = np.diff(fit.garment_cm, axis=0)
+        assert np.all(steps[:, present] > 0.5), (name, steps)
+        charted = present & np.isin(S.GIRTH_REGIONS, ["chest", "waist", "hip"])
+        assert np.all(steps[:, charted] > 5.0), (name, steps)
+
+
+def test_recommendation_and_monotonicity(model, graded) -> None:
+    """Bodies made from each size's chart measurements get that size; on any body ease grows
+    and strain falls with the size at every region."""
+    for name, (g0, faces, rests, on, bodies, chart) in graded.items():
+        fit = S.sized_garment_fit(model, rests, faces, on, chart.labels, chart.base, bodies[chart.base], "knit")
+        for s in range(3):
+            rep = S.fit_report(fit, S.girths_of_body(model, bodies[s]))
+            assert rep.recommended == s, (name, s, rep.to_dict())
+            E, T = rep.ease_cm[:, rep.present], rep.strain_pct[:, rep.present]
+            assert np.all(np.diff(E, axis=0) > 0) and np.all(np.diff(T, axis=0) <= 0)
+
+
+def test_verdicts_per_fabric() -> None:
+    """The same ease is tight in a woven and fit in a knit; a design's own ease is fit."""
+    body = np.array([100.0])
+    design = np.array([6.0])
+    v = lambda e, f: S.VERDICTS[int(S.verdicts(np.array([e]), body, design, f)[0])]  # noqa: E731
+    assert v(1.0, "woven") == "tight" and v(1.0, "knit") == "fit"
+    assert v(-1.0, "woven") == "too_tight" and v(-5.0, "knit") == "tight" and v(-5.0, "stretch") == "fit"
+    assert v(6.0, "woven") == "fit" and v(25.0, "woven") == "loose" and v(40.0, "woven") == "too_loose"
+    # a loose design (18 % ease) is fit at its own ease, loose well beyond it
+    assert S.VERDICTS[int(S.verdicts(np.array([18.0]), body, np.array([18.0]), "stretch")[0])] == "fit"
+
+
+def test_recommend_rule() -> None:
+    design = np.array([6.0, 6.0])
+    ease = np.array([[0.0, 4.0], [5.0, 9.0], [12.0, 15.0]])
+    verdict = np.array([[1, 2], [2, 2], [2, 3]])
+    assert S.recommend(ease, design, verdict) == 1
+    assert S.recommend(ease, design, np.ones_like(verdict)) == 2  # all tight: the loosest
+
+
+def test_girths_of_a_garment_that_has_no_region(model) -> None:
+    """A skirt has a hip but no chest, upper arm or thigh (it goes around both legs)."""
+    item = next(i for i in load_catalogue().garments() if i.id == "pencil-skirt")
+    g = item.binding.fit(model.mean)
+    G = S.garment_girths(S.GarmentSections(item.faces, len(g)), g, S.region_spec(model).regions(model.mean))
+    got = {r for r, x in zip(S.GIRTH_REGIONS, G) if np.isfinite(x)}
+    assert "hip" in got and not got & {"chest", "upper_arm", "thigh", "shoulders"}
