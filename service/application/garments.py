@@ -201,7 +201,7 @@ class GarmentService:
         g0 = np.asarray(binding.fit(source), np.float64)
         if not np.all(np.isfinite(g0)):
             raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
-        rests, on, bodies = sizing.graded(self.model, g0, faces, source, chart)
+        rests, on, bodies = sizing.graded(self.model, g0, faces, source, chart, record.get("gender"))
         gid = new_id()
         rec = Garment(id=gid, body_model=self.model.version, textured=_textured(material, layout),
                       **chart.record_fields(), **record)

@@ -86,11 +86,13 @@ def _no_repeats(pairs: list[tuple[str, Any]]) -> dict:
     return dict(pairs)
 
 
-def chart_bodies(model, chart: Chart) -> np.ndarray:
+def chart_bodies(model, chart: Chart, gender: str | None = None) -> np.ndarray:
     """(S, V, 3) float32 the body of each size: the chart's measurements -> avatar (the
-    service's own ``shape.avatar_from_measurements``, the others estimated)."""
+    service's own ``shape.avatar_from_measurements``, the others estimated; ``gender``:
+    'female' / 'male' when the garment has one, else estimated from the measurements)."""
+    g = {"gender": gender} if gender in ("female", "male") else {}
     try:
-        return np.stack([np.asarray(avatar_from_measurements(model, s["measurements"]).vertices, np.float32)
+        return np.stack([np.asarray(avatar_from_measurements(model, {**s["measurements"], **g}).vertices, np.float32)
                          for s in chart.sizes])
     except MeasurementError as exc:
         raise Invalid(("body", "size_chart"), f"{exc.field}: {exc.message}") from exc
@@ -105,11 +107,11 @@ def size_example_fits(model, rest: np.ndarray, faces: np.ndarray, body: np.ndarr
     return fit_to_examples(model, rest, faces, source_body=body).fits
 
 
-def graded(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, chart: Chart
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def graded(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, chart: Chart,
+           gender: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Grading one uploaded garment (the base size, on the body ``source``): (rest shapes
     (S, M, 3), the body each sits on (S, V, 3), the chart's bodies (S, V, 3))."""
-    bodies = chart_bodies(model, chart)
+    bodies = chart_bodies(model, chart, gender)
     rests = S.grade(model, garment, faces, source, bodies, chart.base)
     return rests, S.size_bodies_on(source, bodies, chart.base), bodies
 

@@ -7,7 +7,7 @@ Pure numpy/scipy (no web, queue or storage imports).
   (:func:`validate_chart`).
 - **Grading** (:func:`grade`): each size's rest shape is the base garment carried from the base
   size's body to that size's body by the warp the service already has (``autofit.autofit``,
-  warping graph + collisions, no edge-length restoration: the garment takes the new size).
+  warping graph alone, no edge-length restoration: the garment takes the new size).
   The garment sits on the body it was uploaded on (``source``); size s is carried to
   ``source + (body_s - body_base)`` (same topology), so the base size is left as uploaded.
 - **Fit** (:func:`fit_report`): at each region a tape goes around the body (the convex hull of
@@ -186,9 +186,10 @@ def grade(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, bod
           base: int) -> np.ndarray:
     """Each size's rest shape (S, M, 3) float32: the garment (M, 3) on the body ``source``
     (V, 3) carried to ``source + bodies[s] - bodies[base]`` for every size s (bodies (S, V, 3)
-    in the template topology, made from the chart) by the service's warp (warping graph and
-    collisions: ``autofit.autofit`` without restoring edge lengths, the cloth takes the new
-    size). The base size is the garment as given."""
+    in the template topology, made from the chart) by the service's warp (the warping graph of
+    ``autofit.autofit``, without restoring edge lengths: the cloth takes the new size; no
+    push-out either, which would add girth to every size but the base one). The base
+    size is the garment as given."""
     from dataclasses import replace
 
     from service.model import autofit as AF
@@ -201,7 +202,9 @@ def grade(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, bod
         return out
     src = np.asarray(source, np.float64)
     T = np.stack([src + (np.asarray(bodies[s], np.float64) - np.asarray(bodies[base], np.float64)) for s in others])
-    params = replace(AF.DEFAULT_PARAMS, edge_iterations=0)
+    # the warp alone: no edge-length restoration (the cloth takes the new size) and no
+    # collision push-out (it would add girth to the other sizes but not to the base size)
+    params = replace(AF.DEFAULT_PARAMS, edge_iterations=0, collision_passes=0)
     helpers = np.arange(*AF.HELPER_TIGHTS) if params.follow_helper_tights and len(model.mean) >= AF.HELPER_TIGHTS[1] \
         else None
     res = AF.autofit(garment, faces, src, T, model.body_faces, params, body_points=helpers,
@@ -523,3 +526,18 @@ def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np
     G = np.stack([garment_girths(sections, rests[s], rs.regions(bodies_on[s] if bodies_on.ndim == 3 else bodies_on))
                   for s in range(len(rests))])
     return size_fit(labels, G, base, body_girths(rs.regions(base_body)), fabric)
+
+
+# EN 13402-3:2013 "Size designation of clothes - Part 3: Size designation of clothes for
+# body measurements" (CEN/TC 248), letter codes: the chest girth (men) or bust girth (women)
+# intervals of XS to XL, 8 cm wide; a size made for an interval is made for its middle. The
+# demo catalogue and `tryon bench sizes` use these middles as the size charts of tops.
+EN13402_3_LETTER_CHEST_CM: dict[str, tuple[float, float]] = {
+    "XS": (78.0, 86.0), "S": (86.0, 94.0), "M": (94.0, 102.0), "L": (102.0, 110.0), "XL": (110.0, 118.0),
+}
+
+
+def en13402_chart(measurement: str = "chest_cm") -> dict[str, dict[str, float]]:
+    """The EN 13402-3 letter sizes XS-XL as a size chart of ``measurement`` (the intervals'
+    middles, cm)."""
+    return {k: {measurement: (lo + hi) / 2} for k, (lo, hi) in EN13402_3_LETTER_CHEST_CM.items()}
