@@ -110,6 +110,14 @@ def test_recommend_rule() -> None:
     verdict = np.array([[1, 2], [2, 2], [2, 3]])
     assert S.recommend(ease, design, verdict) == 1
     assert S.recommend(ease, design, np.ones_like(verdict)) == 2  # all tight: the loosest
+    # the chart sizes the first region only: the distance is taken there
+    ease = np.array([[4.0, 30.0], [7.0, 6.0], [12.0, 15.0]])
+    verdict = np.full((3, 2), 2)
+    assert S.recommend(ease, design, verdict) == 1 and S.recommend(ease, design, verdict, np.array([True, False])) == 1
+    ease[0, 1] = 6.0
+    ease[1, 1] = 30.0
+    assert S.recommend(ease, design, verdict, np.array([True, False])) == 1
+    assert S.recommend(ease, design, verdict) == 0
 
 
 def test_girths_of_a_garment_that_has_no_region(model) -> None:

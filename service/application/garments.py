@@ -229,7 +229,7 @@ class GarmentService:
             bases.append(build_garment_basis(self.model, f, faces, self.examples.set, meta=meta, layout=layout,
                                              material=material))
         fit = SZ.sized_garment_fit(self.model, rests, faces, bodies_on, chart.labels, chart.base, base_body,
-                                   chart.fabric)
+                                   chart.fabric, list(chart.sizes[0]["measurements"]))
         self.bases.save_sizes(record.id, bases)
         etag = hashlib.sha256("-".join(b.etag() for b in bases).encode()).hexdigest()[:32]
         b0 = bases[chart.base]

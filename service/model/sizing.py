@@ -61,6 +61,9 @@ SHOULDER_DROP_M = 0.04
 # this far down the axis, below the crotch seam of trousers (at the crotch itself their
 # section is one loop around both legs)
 THIGH_DROP_M = 0.04
+# the chart measurement that sizes each region (a chart giving some of these: the
+# recommendation's design-ease distance is taken at those regions, as a tailor reads a chart)
+REGION_MEASUREMENT = {"chest": "chest_cm", "waist": "waist_cm", "hip": "hip_cm", "thigh": "thigh_cm"}
 # the garment section around a region must cover every one of these angular sectors around the
 # body section's centre (the garment goes all around there), else it has no such region
 COVER_SECTORS = 12
@@ -387,12 +390,14 @@ class SizeFit:
     design_cm: np.ndarray
     design_body_cm: np.ndarray
     fabric: str
+    key: np.ndarray | None = None  # (R,) bool: the regions the chart sizes (None: all)
 
     def to_meta(self) -> dict:
         nan = lambda a: [None if not np.isfinite(x) else round(float(x), 3) for x in a]  # noqa: E731
         return {"labels": list(self.labels), "regions": list(GIRTH_REGIONS), "fabric": self.fabric,
                 "garment_cm": [nan(r) for r in self.garment_cm], "design_cm": nan(self.design_cm),
-                "design_body_cm": nan(self.design_body_cm)}
+                "design_body_cm": nan(self.design_body_cm),
+                "key": None if self.key is None else [bool(k) for k in self.key]}
 
     @classmethod
     def from_meta(cls, d: dict) -> "SizeFit":
@@ -402,18 +407,23 @@ class SizeFit:
             pick = lambda a: np.array([a[idx[r]] if r in idx else np.nan for r in GIRTH_REGIONS])  # noqa: E731
         else:
             pick = lambda a: a  # noqa: E731
+        key = None if d.get("key") is None else pick(np.array(d["key"], bool)).astype(bool)
         return cls(list(d["labels"]), np.stack([pick(arr(r)) for r in d["garment_cm"]]), pick(arr(d["design_cm"])),
-                   pick(arr(d["design_body_cm"])), d["fabric"])
+                   pick(arr(d["design_body_cm"])), d["fabric"], key)
 
 
 def size_fit(labels: list[str], garment_cm: np.ndarray, base: int, base_body_cm: np.ndarray,
-             fabric: str) -> SizeFit:
+             fabric: str, measurements: list[str] | None = None) -> SizeFit:
     """A garment's :class:`SizeFit`: girths (S, R) cm per size, the base size's index and the
     girths (R,) cm of the base size's own body (from the chart; the body it was uploaded on
-    without a chart). Regions not present in every size are dropped (NaN)."""
+    without a chart); ``measurements``: the names the chart gives (its key regions). Regions
+    not present in every size are dropped (NaN)."""
     G = np.asarray(garment_cm, np.float64)
     G[:, ~np.isfinite(G).all(axis=0)] = np.nan
-    return SizeFit(list(labels), G, G[base] - base_body_cm, np.asarray(base_body_cm, np.float64), fabric)
+    given = set(measurements or ())
+    key = np.array([REGION_MEASUREMENT.get(r) in given for r in GIRTH_REGIONS])
+    return SizeFit(list(labels), G, G[base] - base_body_cm, np.asarray(base_body_cm, np.float64), fabric,
+                   key if key.any() else None)
 
 
 def verdicts(ease_cm: np.ndarray, body_cm: np.ndarray, design_cm: np.ndarray, fabric: str) -> np.ndarray:
@@ -474,8 +484,11 @@ def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
     v = np.full(fit.garment_cm.shape, 2, np.int64)
     v[:, present] = verdicts(G - B, B, fit.design_cm[present], fit.fabric)
     size_v = np.array([_size_verdict(row[present]) for row in v], np.int64)
-    return FitReport(fit.labels, ease, strain, v, size_v, present, recommend(ease[:, present], fit.design_cm[present],
-                                                                             v[:, present]))
+    key = present if fit.key is None else present & fit.key
+    if not key.any():
+        key = present
+    return FitReport(fit.labels, ease, strain, v, size_v, present,
+                     recommend(ease[:, present], fit.design_cm[present], v[:, present], key[present]))
 
 
 def _size_verdict(v: np.ndarray) -> int:
@@ -485,16 +498,18 @@ def _size_verdict(v: np.ndarray) -> int:
     return int(v.min()) if v.min() < 2 else int(v.max())
 
 
-def recommend(ease_cm: np.ndarray, design_cm: np.ndarray, verdict: np.ndarray) -> int:
-    """The size a tailor would pick: of the sizes with no region ``tight`` or ``too_tight``,
-    the one whose ease (S, R) is closest to the design ease (R,) (summed absolute difference
-    over the regions); if every size is tight somewhere, the loosest (largest total ease)."""
+def recommend(ease_cm: np.ndarray, design_cm: np.ndarray, verdict: np.ndarray, key: np.ndarray | None = None) -> int:
+    """The size a tailor would pick: of the sizes with no region ``tight`` or ``too_tight``
+    (verdict (S, R)), the one whose ease (S, R) is closest to the design ease (R,) (summed
+    absolute difference over the ``key`` regions (R,) bool, those the chart sizes; None: all);
+    if every size is tight somewhere, the loosest (largest total ease)."""
     if ease_cm.shape[1] == 0:
         return 0
     ok = (verdict >= 2).all(axis=1)
     if not ok.any():
         return int(np.argmax(ease_cm.sum(axis=1)))
-    dist = np.abs(ease_cm - design_cm).sum(axis=1)
+    k = np.ones(ease_cm.shape[1], bool) if key is None else np.asarray(key, bool)
+    dist = np.abs(ease_cm - design_cm)[:, k].sum(axis=1)
     dist[~ok] = np.inf
     return int(np.argmin(dist))
 
@@ -517,7 +532,7 @@ def girths_of_body(model, X: np.ndarray) -> np.ndarray:
 
 
 def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np.ndarray, labels: list[str],
-                      base: int, base_body: np.ndarray, fabric: str) -> SizeFit:
+                      base: int, base_body: np.ndarray, fabric: str, measurements: list[str] | None = None) -> SizeFit:
     """The :class:`SizeFit` of a garment in sizes: rest shapes (S, M, 3) each on its body
     ``bodies_on`` (S, V, 3) (or one body (V, 3) for all), the base size's own body (V, 3)."""
     rs = region_spec(model)
@@ -525,7 +540,7 @@ def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np
     bodies_on = np.asarray(bodies_on)
     G = np.stack([garment_girths(sections, rests[s], rs.regions(bodies_on[s] if bodies_on.ndim == 3 else bodies_on))
                   for s in range(len(rests))])
-    return size_fit(labels, G, base, body_girths(rs.regions(base_body)), fabric)
+    return size_fit(labels, G, base, body_girths(rs.regions(base_body)), fabric, measurements)
 
 
 # EN 13402-3:2013 "Size designation of clothes - Part 3: Size designation of clothes for
