@@ -127,3 +127,23 @@ def test_girths_of_a_garment_that_has_no_region(model) -> None:
     G = S.garment_girths(S.GarmentSections(item.faces, len(g)), g, S.region_spec(model).regions(model.mean))
     got = {r for r, x in zip(S.GIRTH_REGIONS, G) if np.isfinite(x)}
     assert "hip" in got and not got & {"chest", "upper_arm", "thigh", "shoulders"}
+
+
+def test_fit_map_colour_scales() -> None:
+    """Strain: blue at rest, green half way, red at the fabric's limit (and beyond); ease: red
+    at contact, green at the fabric's designed gap, blue where it hangs."""
+    lim = S.FIT_THRESHOLDS["knit"].strain_limit_pct / 100
+    c = S.strain_colors(np.array([0.0, lim / 2, lim, 2 * lim]), "knit").astype(int)
+    assert c[0, 2] > 200 and c[0, 0] < 30  # blue
+    assert c[1, 1] > 150 and c[1, 0] < 30 and c[1, 2] < 60  # green
+    assert c[2, 0] == 255 and c[2, 1] == 0 and (c[3] == c[2]).all()  # red, saturated
+    assert (c[:, 3] == 255).all()
+    # the same strain is redder on a woven (it barely stretches) than on a stretch fabric
+    w, st = S.strain_colors(np.array([0.02]), "woven")[0], S.strain_colors(np.array([0.02]), "stretch")[0]
+    assert int(w[0]) > int(st[0])
+    mid = S.fit_gap_m("woven")
+    e = S.ease_colors(np.array([-0.01, S.EASE_MAP_CONTACT_M, mid, S.EASE_MAP_HANG_M, 0.2]), "woven").astype(int)
+    assert e[0, 0] == 255 and e[1, 0] == 255 and e[1, 1] == 0  # red: pressing
+    assert e[2, 1] > 150 and e[2, 0] < 30  # green at the designed gap
+    assert e[3, 2] > 200 and (e[4] == e[3]).all()  # blue: hanging
+    assert S.fit_gap_m("stretch") < S.fit_gap_m("knit") < S.fit_gap_m("woven")

@@ -221,3 +221,34 @@ def test_graded_meshes_uploaded(client: TestClient) -> None:
                     files=[("garment", ("s.obj", small, "model/obj")), ("garment", ("l.obj", bad, "model/obj"))],
                     headers=KEY)
     assert r.status_code == 422, r.text
+
+
+def test_fit_map(client: TestClient, sized: dict, validate_glb) -> None:
+    """``?fitmap=strain|ease`` on a try-on and an outfit: COLOR_0 on a white material,
+    validator-clean; the small size is more strained on a large customer than the large size."""
+    from tests.conftest import valid_glb
+
+    cid, auth = _customer(client, CHART["52"])
+    gid = sized["id"]
+    url = f"/v1/customers/{cid}/garments/{gid}.glb"
+    red = {}
+    for size in ("48", "52"):
+        r = client.get(url, params={"size": size, "fitmap": "strain"}, headers=auth)
+        assert r.status_code == 200, r.text
+        glb = valid_glb(validate_glb, r.content)
+        assert glb["colors"] is not None and glb["colors"].shape == (len(glb["positions"]), 4)
+        red[size] = float(glb["colors"][:, 0].mean())
+    assert red["48"] > red["52"] + 0.05, red
+    plain = client.get(url, params={"size": "52"}, headers=auth)
+    assert valid_glb(validate_glb, plain.content)["colors"] is None
+    for params in ({"fitmap": "ease"}, {"fitmap": "ease", "compression": "quantize"},
+                   {"fitmap": "strain", "compression": "meshopt"}):
+        r = client.get(f"/v1/customers/{cid}/outfit.glb", params={"garments": gid, **params}, headers=auth)
+        assert r.status_code == 200, r.text
+        glb = valid_glb(validate_glb, r.content)
+        cols = [m["colors"] for m in glb["meshes"] if m["colors"] is not None]
+        assert len(cols) == 1
+        if params["fitmap"] == "ease":
+            c = cols[0]
+            assert (c[:, 0] > 0.9).any() and (c[:, 1] > 0.5).any(), "contact and designed fit both shown"
+    assert_422(client.get(url, params={"fitmap": "heat"}, headers=auth), ["query", "fitmap"])

@@ -1,7 +1,7 @@
 """Try-on: a garment or an outfit fitted to a customer."""
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
 
@@ -10,6 +10,10 @@ from service.api.schemas import FitResponse
 from service.api.deps import Compression, CredentialsDep, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep, Underwear
 
 router = APIRouter(tags=["try-on"])
+FitMap = Annotated[Literal["strain", "ease"] | None, Query(description=(
+    "Colour the garments by their fit (COLOR_0 on a white material): strain, blue at rest to red at the "
+    "fabric's stretch limit (as CLO's strain map); ease, red where the cloth presses the body, green at the "
+    "fabric's designed ease, blue where it hangs"))]
 
 
 @router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
@@ -17,12 +21,14 @@ def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_no
                compression: Compression = None, pose_correctives: PoseCorrectives = False,
                size: Annotated[str | None, Query(max_length=64, description=(
                    "A size label of the garment's chart (default: the size recommended for this customer, "
-                   "see /fit); unknown: 422 listing the garment's sizes"))] = None) -> Response:
+                   "see /fit); unknown: 422 listing the garment's sizes"))] = None,
+               fitmap: FitMap = None) -> Response:
     """The garment fitted to the customer, skinned with the customer's skeleton. ``ETag`` from
     (customer weights, garment etag, options); ``If-None-Match`` -> 304 without computing.
     ``pose_correctives=true``: one morph target per page pose (``pose:<name>``) that keeps the
     garment outside the body in that pose (influence 1 in that pose, 0 otherwise)."""
-    return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives, size))
+    return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives, size,
+                                            fitmap))
 
 
 @router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
@@ -32,7 +38,8 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
                pose_correctives: PoseCorrectives = False,
                sizes: Annotated[str | None, Query(max_length=2000, description=(
                    "Comma-separated size labels, one per garment in the order of `garments` (empty: the "
-                   "recommended size); default: each garment's recommended size"))] = None) -> Response:
+                   "recommended size); default: each garment's recommended size"))] = None,
+               fitmap: FitMap = None) -> Response:
     """The customer's avatar wearing the garments (one scene, one skeleton), layered: inner
     garments (lower layer) first, each outer one pushed over the ones below. The avatar as in
     ``avatar.glb`` (nodes ``avatar``, ``eyes``, ``eyebrows``, ``hair``, ``underwear``; the same
@@ -44,7 +51,7 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
     stay)."""
     return R.private_glb(*tryon.outfit_glb(cid, garments.split(","), creds, compression, if_none_match,
                                            hair, underwear, pose_correctives,
-                                           None if sizes is None else sizes.split(",")))
+                                           None if sizes is None else sizes.split(","), fitmap))
 
 
 @router.get("/v1/customers/{cid}/garments/{gid}/fit", response_model=FitResponse,

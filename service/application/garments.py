@@ -227,7 +227,7 @@ class GarmentService:
                     "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version,
                     "size": chart.labels[s]}
             bases.append(build_garment_basis(self.model, f, faces, self.examples.set, meta=meta, layout=layout,
-                                             material=material))
+                                             material=material, rest=rests[s]))
         fit = SZ.sized_garment_fit(self.model, rests, faces, bodies_on, chart.labels, chart.base, base_body,
                                    chart.fabric, list(chart.sizes[0]["measurements"]))
         self.bases.save_sizes(record.id, bases)
@@ -485,7 +485,7 @@ class GarmentService:
         rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
         material = _upload_material(upload.texture, rgba, None, upload.layout)
         basis = build_garment_basis(self.model, result.fits, faces, self.examples.set, meta=meta,
-                                    layout=upload.layout, material=material)
+                                    layout=upload.layout, material=material, rest=garment)
         self.bases.save(gid, basis)
         ready = record.model_copy(update={"status": "ready", "error": None, "progress": None,
                                           "n_vertices": int(basis.meta["n_vertices"]),

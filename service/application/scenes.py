@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from service.model import correctives, gltf, lbs
+from service.model import sizing as SZ
 from service.model.body import BONES, BodyModel
-from service.model.geometry import vertex_normals
+from service.model.geometry import mesh_edges, vertex_normals
 from service.model.layering import layer_outfit
 from service.model.tryon import CustomerBody, GarmentBasis, try_on
 from service.records import Garment
@@ -129,14 +130,16 @@ def garment_mesh(basis: GarmentBasis, record: Garment, body: CustomerBody, layer
 
 
 def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray,
-              template: bool = True, skin: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+              template: bool = True, skin: tuple[np.ndarray, np.ndarray] | None = None,
+              colors: np.ndarray | None = None) -> dict[str, Any]:
     """Garment vertices (M, 3) and normals (M, 3) as a skinned scene mesh (for the body
     model's skeleton): gathered into the render layout (R render vertices: one fancy-index
     each) when the basis has one. With ``template``, the static arrays (faces, UVs, skinning)
     come as the basis' :meth:`GarmentBasis.mesh_template` (built once per basis: the same GLB
     bytes); without, as plain arrays (the reference path, for tests and benchmarks). ``skin``
     (joints (M, 4), weights (M, 4)): skinned with these instead of the basis' own (an outfit's
-    inner garment skinned like the garment over it), as plain arrays."""
+    inner garment skinned like the garment over it), as plain arrays. ``colors`` (M, 4) uint8: a
+    fit map as COLOR_0 on a white, untextured material."""
     mesh: dict[str, Any] = {"color": tuple(record.color or DEFAULT_GARMENT_COLOR), "name": record.name or "garment",
                             "double_sided": True}
     if basis.has_layout:
@@ -154,9 +157,28 @@ def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray
             mesh.update(faces=np.asarray(basis.faces), vertex_joints=np.asarray(j), vertex_weights=np.asarray(w))
     if template and skin is None:
         mesh["template"] = basis.mesh_template(len(BONES))
+    if colors is not None:
+        mesh["colors"] = np.take(colors, np.asarray(basis.render_vertex), axis=0) if basis.has_layout else colors
+        mesh["color"] = (1.0, 1.0, 1.0, 1.0)
+        return mesh
     if basis.material is not None and (basis.has_layout or _untextured(basis.material)):
         mesh["material"] = basis.material
     return mesh
+
+
+def fitmap_colors(kind: str, basis: GarmentBasis, record: Garment, v: np.ndarray, body: CustomerBody) -> np.ndarray:
+    """COLOR_0 (M, 4) uint8 of a garment worn as ``v`` (M, 3) on ``body``: ``strain`` (each
+    vertex's largest edge stretch against the size's rest shape) or ``ease`` (its gap over
+    the body); ``sizing.strain_colors`` / ``ease_colors`` for the garment's fabric."""
+    fabric = record.fabric if record.fabric in SZ.FIT_THRESHOLDS else SZ.DEFAULT_FABRIC
+    if kind == "strain":
+        edges = mesh_edges(np.asarray(basis.faces))
+        rest = np.asarray(basis.rest if basis.rest is not None else basis.g, np.float64)
+        rest_len = np.maximum(np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1), 1e-9)
+        return SZ.strain_colors(SZ.vertex_strain(np.asarray(v, np.float64), edges, rest_len), fabric)
+    nearest = body.push_binding(basis, v)[0][:, 0]
+    nb = len(body.normals)
+    return SZ.ease_colors(SZ.body_gap(v, body.vertices[:nb], body.normals, nearest), fabric)
 
 
 def _opaque(record: Garment) -> bool:
@@ -200,13 +222,15 @@ def layered_outfit(layers: list[tuple[np.ndarray, np.ndarray]], body: np.ndarray
 def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garment, GarmentBasis]],
                compression: str | None, with_avatar: bool = True, look: Look | None = None,
                template: bool = True, cache: bool = True,
-               poses: dict[str, np.ndarray] | Callable[[], dict[str, np.ndarray] | None] | None = None) -> bytes:
+               poses: dict[str, np.ndarray] | Callable[[], dict[str, np.ndarray] | None] | None = None,
+               fitmap: str | None = None) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
     reference path, the same bytes). ``cache``: the layering from the process cache when the
     same layers were layered on the same body before (:func:`layered_outfit`; False: always
-    layered, for benchmarks). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
+    layered, for benchmarks). ``fitmap``: ``strain`` or ``ease``: each garment coloured by
+    :func:`fitmap_colors` (COLOR_0). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
     body): each garment also gets one pose-corrective morph target per pose
     (:func:`add_pose_correctives`); or a function returning them, called once the outfit is
     layered (the poses' adaptation may be under way in another server process meanwhile)."""
@@ -241,7 +265,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
             if not np.array_equal(v, worn[i]):
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
-    garment_meshes = [look_mesh(basis, rec, v, n, template, sk)
+    garment_meshes = [look_mesh(basis, rec, v, n, template, sk,
+                                None if fitmap is None else fitmap_colors(fitmap, basis, rec, v, body))
                       for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
     if callable(poses):
         poses = poses()

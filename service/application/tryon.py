@@ -86,22 +86,23 @@ class TryOnService:
 
     def garment_glb(self, cid: str, gid: str, creds: Credentials, compression: str | None,
                     if_none_match: list[str] | None = None, pose_correctives: bool = False,
-                    size: str | None = None) -> tuple[bytes | None, str]:
+                    size: str | None = None, fitmap: str | None = None) -> tuple[bytes | None, str]:
         """The garment fitted to the customer, skinned with the customer's skeleton, and its
         ETag (customer weights, garment etag, options); ``None`` bytes when ``if_none_match``
         matches (not modified: nothing is computed)."""
         record, loaded = self._load(cid, [gid], creds, [size])
-        tag = self._etag("garment" + ("|poses" if pose_correctives else ""), record, loaded, compression)
+        tag = self._etag("garment" + ("|poses" if pose_correctives else "") + (f"|fitmap:{fitmap}" if fitmap else ""),
+                         record, loaded, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
         body = self.ctx.customers.body(record)
         return scenes.outfit_glb(self.ctx.model, body, loaded, compression, with_avatar=False,
-                                 poses=self._page_poses(record, pose_correctives)), tag
+                                 poses=self._page_poses(record, pose_correctives), fitmap=fitmap), tag
 
     def outfit_glb(self, cid: str, gids: list[str], creds: Credentials, compression: str | None,
                    if_none_match: list[str] | None = None, hair: str | None = None,
                    underwear: bool = True, pose_correctives: bool = False,
-                   sizes: list[str] | None = None) -> tuple[bytes | None, str]:
+                   sizes: list[str] | None = None, fitmap: str | None = None) -> tuple[bytes | None, str]:
         """The customer's avatar wearing its look (``hair``, ``underwear``: see
         ``CustomerService.avatar_glb``) and the garments (one scene, one skeleton), layered:
         inner garments (lower layer) first, each outer one pushed over the ones below; and its
@@ -121,8 +122,9 @@ class TryOnService:
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
         layered: list[tuple[Garment, GarmentBasis]] = [loaded[i] for i in order]
-        tag = self._etag(f"outfit|{look.key}" + ("|poses" if pose_correctives else ""), record, layered, compression)
+        tag = self._etag(f"outfit|{look.key}" + ("|poses" if pose_correctives else "")
+                         + (f"|fitmap:{fitmap}" if fitmap else ""), record, layered, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
         return scenes.outfit_glb(self.ctx.model, self.ctx.customers.body(record), layered, compression,
-                                 look=look, poses=self._page_poses(record, pose_correctives)), tag
+                                 look=look, poses=self._page_poses(record, pose_correctives), fitmap=fitmap), tag

@@ -540,7 +540,13 @@ def _prepare_mesh(m: dict[str, Any], index: int, n_joints: int | None) -> dict[s
         "tangents": None,
         "material": None,
         "template": tpl,
+        "colors": None,
     }
+    if m.get("colors") is not None:  # COLOR_0: (n, 4) uint8 sRGB-free linear RGBA, normalized
+        col = np.asarray(m["colors"])
+        if col.shape != (n, 4) or col.dtype != np.uint8:
+            raise ValueError(f"colors must be ({n}, 4) uint8, got {col.shape} {col.dtype}")
+        out["colors"] = np.ascontiguousarray(col)
     if tpl is not None:
         out["uv"] = tpl.uv
     elif m.get("uv") is not None:
@@ -664,6 +670,8 @@ def _build_glb(
                 attributes["TANGENT"] = b.add(tq, BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
             else:
                 attributes["TANGENT"] = b.add(m["tangents"], FLOAT, "VEC4", target=ARRAY_BUFFER)
+        if m["colors"] is not None:  # 4 bytes a vertex: aligned as vertex attributes must be
+            attributes["COLOR_0"] = b.add(m["colors"], UNSIGNED_BYTE, "VEC4", target=ARRAY_BUFFER, normalized=True)
         # the static attributes and indices: once per template and mode, or made here
         if m["template"] is not None:
             static = m["template"].views(compression)
@@ -1086,6 +1094,7 @@ def _read_mesh(doc: dict[str, Any], blob: bytes, mi: int, world: list[np.ndarray
     weights = None
     if "WEIGHTS_0" in attrs:
         weights = _read_float(doc, blob, attrs["WEIGHTS_0"]).astype(np.float32)
+    colors = _read_float(doc, blob, attrs["COLOR_0"]).astype(np.float32) if "COLOR_0" in attrs else None
     targets = []
     for tg in prim.get("targets", []):
         d = _read_float(doc, blob, tg["POSITION"])
@@ -1105,6 +1114,7 @@ def _read_mesh(doc: dict[str, Any], blob: bytes, mi: int, world: list[np.ndarray
         "tangents": tangents,
         "joints": opt("JOINTS_0"),
         "weights": weights,
+        "colors": colors,
         "targets": np.stack(targets) if targets else None,
         "target_names": gm.get("extras", {}).get("targetNames"),
         "morph_weights": gm.get("weights"),

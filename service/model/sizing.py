@@ -556,3 +556,66 @@ def en13402_chart(measurement: str = "chest_cm") -> dict[str, dict[str, float]]:
     """The EN 13402-3 letter sizes XS-XL as a size chart of ``measurement`` (the intervals'
     middles, cm)."""
     return {k: {measurement: (lo + hi) / 2} for k, (lo, hi) in EN13402_3_LETTER_CHEST_CM.items()}
+
+
+# -- the fit map -----------------------------------------------------------------------------
+# ease map: the gap (metres) between cloth and body where a fabric sits as designed (green),
+# from the fit thresholds' middle of "fit" on a 95 cm girth (gap = ease / 2 pi), and where it
+# hangs (blue). Red at contact (the try-on's clearance, 3 mm, or less).
+EASE_MAP_CONTACT_M = 0.003
+EASE_MAP_HANG_M = 0.06
+FITMAP_KINDS = ("strain", "ease")
+_RED, _GREEN, _BLUE = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.8, 0.1]), np.array([0.05, 0.2, 1.0])
+
+
+def fit_gap_m(fabric: str, girth_cm: float = 95.0) -> float:
+    """The cloth-to-body gap (metres) of a fabric's designed fit: the middle of its ``fit``
+    ease band on a girth of ``girth_cm`` spread around it (ease / 2 pi), at least the contact
+    gap."""
+    th = FIT_THRESHOLDS[fabric]
+    mid_pct = (th.tight_pct + th.loose_pct) / 2
+    return max(EASE_MAP_CONTACT_M * 2, girth_cm / 100 * mid_pct / 100 / (2 * np.pi))
+
+
+def vertex_strain(vertices: np.ndarray, edges: np.ndarray, rest_len: np.ndarray) -> np.ndarray:
+    """(M,) per-vertex stretch: the largest |edge| / rest - 1 over its edges (E, 2), at least 0
+    (a fold is not strain)."""
+    s = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) / rest_len - 1.0
+    out = np.zeros(len(vertices))
+    np.maximum.at(out, edges[:, 0], s)
+    np.maximum.at(out, edges[:, 1], s)
+    return out
+
+
+def _rgba(rgb: np.ndarray) -> np.ndarray:
+    out = np.full((len(rgb), 4), 255, np.uint8)
+    out[:, :3] = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
+    return out
+
+
+def strain_colors(strain: np.ndarray, fabric: str) -> np.ndarray:
+    """COLOR_0 (M, 4) uint8 of a strain map (as CLO's): blue at rest to red at the fabric's
+    stretch limit (``FitThresholds.strain_limit_pct``), through green."""
+    t = np.clip(np.asarray(strain, np.float64) / (FIT_THRESHOLDS[fabric].strain_limit_pct / 100), 0.0, 1.0)[:, None]
+    lo = _BLUE + (_GREEN - _BLUE) * np.clip(2 * t, 0, 1)
+    hi = _GREEN + (_RED - _GREEN) * np.clip(2 * t - 1, 0, 1)
+    return _rgba(np.where(t < 0.5, lo, hi))
+
+
+def ease_colors(gap_m: np.ndarray, fabric: str) -> np.ndarray:
+    """COLOR_0 (M, 4) uint8 of an ease map: red where the cloth presses the body (gap <=
+    ``EASE_MAP_CONTACT_M``), green at the fabric's designed gap (:func:`fit_gap_m`), blue where
+    it hangs (>= ``EASE_MAP_HANG_M``)."""
+    g = np.asarray(gap_m, np.float64)[:, None]
+    mid = fit_gap_m(fabric)
+    a = np.clip((g - EASE_MAP_CONTACT_M) / (mid - EASE_MAP_CONTACT_M), 0, 1)
+    b = np.clip((g - mid) / (EASE_MAP_HANG_M - mid), 0, 1)
+    return _rgba(np.where(g < mid, _RED + (_GREEN - _RED) * a, _GREEN + (_BLUE - _GREEN) * b))
+
+
+def body_gap(vertices: np.ndarray, body_vertices: np.ndarray, body_normals: np.ndarray,
+             nearest: np.ndarray) -> np.ndarray:
+    """(M,) signed gap (metres) of garment vertices (M, 3) over the body: along the normal of
+    each one's nearest body vertex (``nearest`` (M,) ids)."""
+    d = np.asarray(vertices, np.float64) - np.asarray(body_vertices, np.float64)[nearest]
+    return np.einsum("ij,ij->i", d, np.asarray(body_normals, np.float64)[nearest])

@@ -36,10 +36,10 @@ from service.model.skin_weights import leg_frame, transfer_skin_weights
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
 EXAMPLES = {"n": 32, "c": 0.5}
-ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "render_vertex", "render_uv",
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "rest", "render_vertex", "render_uv",
           "render_faces")
-# normal basis and render layout: bases saved before they existed load without them
-OPTIONAL = ("gn", "Bn", "render_vertex", "render_uv", "render_faces")
+# normal basis, rest shape and render layout: bases saved before they existed load without them
+OPTIONAL = ("gn", "Bn", "rest", "render_vertex", "render_uv", "render_faces")
 MATERIAL_FILE = "material.json"
 TEXTURE_EXT = {"image/png": ".png", "image/jpeg": ".jpg"}
 
@@ -86,6 +86,7 @@ class GarmentBasis:
     skin_w: np.ndarray
     gn: np.ndarray | None = None  # (M, 3) normals of the mean garment
     Bn: np.ndarray | None = None  # (N, M, 3) their basis (central differences, like B)
+    rest: np.ndarray | None = None  # (M, 3) the garment's rest shape (its size; the strain map's reference)
     render_vertex: np.ndarray | None = None  # (R,) int32 welded vertex of each render vertex
     render_uv: np.ndarray | None = None  # (R, 2) float32, glTF convention (origin top-left)
     render_faces: np.ndarray | None = None  # (F, 3) int32 into the render vertices
@@ -255,8 +256,9 @@ def material_digest(material: Material | None) -> bytes:
 
 def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.ExampleSet,
                         meta: dict | None = None, layout: RenderLayout | None = None,
-                        material: Material | None = None) -> GarmentBasis:
+                        material: Material | None = None, rest: np.ndarray | None = None) -> GarmentBasis:
     """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order);
+    rest: (M, 3) the garment's rest shape (its own size), kept for the strain map;
     layout: optional render layout over the M vertices (UVs), material: optional look."""
     g, B = G.build_basis(fits, examples)
     inc = face_incidence(np.asarray(faces), fits.shape[1])
@@ -275,7 +277,7 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
             raise ValueError("the render layout refers to a vertex out of range")
     basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
                          skin_idx=skin_idx, skin_w=skin_w,
-                         gn=gn, Bn=Bn, meta=meta)
+                         gn=gn, Bn=Bn, meta=meta, rest=None if rest is None else np.asarray(rest, np.float32))
     basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
     basis.material = material
     meta["etag"] = basis_digest(basis)
@@ -326,7 +328,8 @@ def refresh_skinning(model, basis: GarmentBasis) -> GarmentBasis | None:
     meta = {**basis.meta, "skinning": SKINNING_VERSION}
     out = GarmentBasis(g=np.asarray(basis.g), B=np.asarray(basis.B), faces=np.asarray(basis.faces),
                        binding=np.asarray(basis.binding), skin_idx=skin_idx, skin_w=skin_w,
-                       gn=np.asarray(basis.gn), Bn=np.asarray(basis.Bn), meta=meta)
+                       gn=np.asarray(basis.gn), Bn=np.asarray(basis.Bn), meta=meta,
+                       rest=None if basis.rest is None else np.asarray(basis.rest))
     out.render_vertex, out.render_uv, out.render_faces = basis.render_vertex, basis.render_uv, basis.render_faces
     out.material = basis.material
     meta["etag"] = basis_digest(out)
