@@ -98,7 +98,8 @@ def test_verdicts_per_fabric() -> None:
     design = np.array([6.0])
     v = lambda e, f: S.VERDICTS[int(S.verdicts(np.array([e]), body, design, f)[0])]  # noqa: E731
     assert v(1.0, "woven") == "tight" and v(1.0, "knit") == "fit"
-    assert v(-1.0, "woven") == "too_tight" and v(-5.0, "knit") == "tight" and v(-5.0, "stretch") == "fit"
+    assert v(-1.5, "woven") == "too_tight" and v(-5.0, "knit") == "tight" and v(-5.0, "stretch") == "fit"
+    assert v(3.0, "woven") == "fit"  # the design's 6 % less its 4 % margin: a woven is tight below 2 % here
     assert v(6.0, "woven") == "fit" and v(25.0, "woven") == "loose" and v(40.0, "woven") == "too_loose"
     # a loose design (18 % ease) is fit at its own ease, loose well beyond it
     assert S.VERDICTS[int(S.verdicts(np.array([18.0]), body, np.array([18.0]), "stretch")[0])] == "fit"

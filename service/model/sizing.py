@@ -74,10 +74,10 @@ class FitThresholds:
     """Verdict limits of one fabric, ease in % of the body's girth at the region.
 
     tight_pct: below it a size is ``tight`` (and ``too_tight`` below too_tight_pct);
-    loose_pct / too_loose_pct: above them ``loose`` / ``too_loose``. A design made tighter
-    than ``tight_pct`` (looser than ``loose_pct``) on its own base body keeps its own ease as
-    ``fit``: both tight limits move down (both loose limits up) by the difference plus
-    ``design_margin_pct``. strain_limit_pct: the fabric's usable stretch (the fit map's red)."""
+    loose_pct / too_loose_pct: above them ``loose`` / ``too_loose``. A design's own ease on its
+    base body, give or take ``design_margin_pct``, is ``fit``: where the fabric's limits would
+    not leave that margin, the tight limits move down (the loose ones up) to it, the bands
+    keeping their widths. strain_limit_pct: the fabric's usable stretch (the fit map's red)."""
 
     too_tight_pct: float
     tight_pct: float
@@ -432,12 +432,12 @@ def verdicts(ease_cm: np.ndarray, body_cm: np.ndarray, design_cm: np.ndarray, fa
     th = FIT_THRESHOLDS[fabric]
     pct = 100.0 * ease_cm / body_cm
     dpct = 100.0 * design_cm / body_cm
-    # a design tighter (looser) than the fabric's limits moves them down (up) to its own ease
-    # and a margin beyond: its own ease is a fit
-    down = np.where(dpct < th.tight_pct, dpct - th.tight_pct - th.design_margin_pct, 0.0)
-    up = np.where(dpct > th.loose_pct, dpct - th.loose_pct + th.design_margin_pct, 0.0)
-    tight, too_tight = th.tight_pct + down, th.too_tight_pct + down
-    loose, too_loose = th.loose_pct + up, th.too_loose_pct + up
+    # a design's own ease, give or take the margin, is a fit: the limits move below (above) it
+    # where the fabric's would not leave that margin, keeping the width of the tight (loose) band
+    tight = np.minimum(th.tight_pct, dpct - th.design_margin_pct)
+    too_tight = np.minimum(th.too_tight_pct, tight - (th.tight_pct - th.too_tight_pct))
+    loose = np.maximum(th.loose_pct, dpct + th.design_margin_pct)
+    too_loose = np.maximum(th.too_loose_pct, loose + (th.too_loose_pct - th.loose_pct))
     v = np.full(pct.shape, 2, np.int64)
     v[pct < tight] = 1
     v[pct < too_tight] = 0
