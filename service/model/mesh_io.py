@@ -25,6 +25,7 @@ import trimesh
 from trimesh.grouping import unique_rows
 
 from service.model.geometry import estimate_normals, simplify, vertex_normals  # noqa: F401 (re-exported)
+from service.model.declared_sizes import DeclaredSizeError, check_gltf, check_ply, compressed_views
 from service.model.gltf import FLOAT, _parse_glb
 from service.model.obj_io import ObjError, read_obj
 
@@ -141,6 +142,11 @@ def check_declared_size(data: bytes, kind: str, max_points: int) -> None:
         raise ScanError(f"the scan has {points} points; at most {max_points} are accepted (decimate it)")
     if faces > MAX_FACES_PER_POINT * max(max_points, MIN_SCAN_POINTS):
         raise ScanError(f"the scan has {faces} faces; at most {MAX_FACES_PER_POINT * max_points} are accepted")
+    if kind == "ply":  # every element's rows must fit in the data after the header
+        try:
+            check_ply(data)
+        except DeclaredSizeError as exc:
+            raise ScanError(f"the PLY file is malformed or too large: {exc}") from exc
 
 
 # -- readers -----------------------------------------------------------------------------------
@@ -218,13 +224,21 @@ def _check_gltf(data: bytes, kind: str, max_points: int) -> None:
     counts far beyond the point limit."""
     try:
         if kind == "glb":
-            doc, _ = _parse_glb(data)
+            doc, blob = _parse_glb(data)
         else:
-            doc = json.loads(data.decode("utf-8-sig"))
+            doc, blob = json.loads(data.decode("utf-8-sig")), None
     except Exception as exc:
         raise ScanError(f"cannot read the file as {kind.upper()}: {_reason(exc)}") from exc
     if not isinstance(doc, dict):
         raise ScanError(f"cannot read the file as {kind.upper()}: the JSON is not a glTF document")
+    try:  # every declared size, used or not, before trimesh allocates for any of them
+        check_gltf(doc, None if blob is None else len(blob), len(data))
+        compressed = compressed_views(doc)
+    except DeclaredSizeError as exc:
+        raise ScanError(f"the {kind.upper()} file is malformed or too large: {exc}") from exc
+    if compressed:  # trimesh would read the views' uncompressed fallback, declared or not
+        raise ScanError(f"the {kind.upper()} file has meshopt-compressed buffer views, which are not supported: "
+                        "export it without compression")
     buffers = doc.get("buffers", [])
     if not isinstance(buffers, list) or not all(isinstance(b, dict) for b in buffers):
         raise ScanError(f"cannot read the file as {kind.upper()}: malformed 'buffers'")
