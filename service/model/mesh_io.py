@@ -231,14 +231,6 @@ def _check_gltf(data: bytes, kind: str, max_points: int) -> None:
         raise ScanError(f"cannot read the file as {kind.upper()}: {_reason(exc)}") from exc
     if not isinstance(doc, dict):
         raise ScanError(f"cannot read the file as {kind.upper()}: the JSON is not a glTF document")
-    try:  # every declared size, used or not, before trimesh allocates for any of them
-        check_gltf(doc, None if blob is None else len(blob), len(data))
-        compressed = compressed_views(doc)
-    except DeclaredSizeError as exc:
-        raise ScanError(f"the {kind.upper()} file is malformed or too large: {exc}") from exc
-    if compressed:  # trimesh would read the views' uncompressed fallback, declared or not
-        raise ScanError(f"the {kind.upper()} file has meshopt-compressed buffer views, which are not supported: "
-                        "export it without compression")
     buffers = doc.get("buffers", [])
     if not isinstance(buffers, list) or not all(isinstance(b, dict) for b in buffers):
         raise ScanError(f"cannot read the file as {kind.upper()}: malformed 'buffers'")
@@ -255,6 +247,14 @@ def _check_gltf(data: bytes, kind: str, max_points: int) -> None:
     if bad:
         raise ScanError(f"the {kind.upper()} file uses mesh compression ({', '.join(bad)}), which is not "
                         "supported: export it without compression")
+    try:  # every declared size, used or not, before trimesh allocates for any of them
+        check_gltf(doc, None if blob is None else len(blob), len(data))
+        compressed = compressed_views(doc)
+    except DeclaredSizeError as exc:
+        raise ScanError(f"the {kind.upper()} file is malformed or too large: {exc}") from exc
+    if compressed:  # trimesh would read the views' uncompressed fallback, declared or not
+        raise ScanError(f"the {kind.upper()} file has meshopt-compressed buffer views (EXT_meshopt_compression), "
+                        "which are not supported: export it without compression")
     nodes = doc.get("nodes", [])
     if isinstance(nodes, list) and len(nodes) > MAX_GLTF_NODES:
         raise ScanError(f"the {kind.upper()} file has {len(nodes)} nodes; at most {MAX_GLTF_NODES} are accepted")
