@@ -5,6 +5,7 @@ the one unit/axis detector (``service.model.frames``), and refused with :class:`
 from __future__ import annotations
 
 import io
+import json
 import unicodedata
 import warnings
 from dataclasses import dataclass
@@ -45,6 +46,34 @@ class TemplateAvatar:
 
 
 BodyUpload = TemplateAvatar | Scan
+
+
+# Bytes of arrays a reader holds per point and per face of a mesh file (float64 points, their
+# normals and transformed copies, a k-d tree; int64 faces and their copies), and per byte of
+# the file (the text or chunk it is parsed from): the memory estimate of an upload.
+READ_BYTES_PER_POINT = 6 * 3 * 8
+READ_BYTES_PER_FACE = 3 * 3 * 8
+READ_BYTES_PER_FILE_BYTE = 2
+
+
+def upload_memory(data: bytes, filename: str | None) -> int:
+    """Estimated bytes needed to read one uploaded file, from its declared sizes (headers, line
+    counts, glTF accessors), before it is parsed: what the process's memory budget reserves.
+    A file whose sizes cannot be told costs its bytes times :data:`READ_BYTES_PER_FILE_BYTE`
+    (its reader then refuses it quickly)."""
+    base = READ_BYTES_PER_FILE_BYTE * len(data)
+    try:
+        kind = mesh_io.scan_type(data, filename)
+    except ScanError:
+        return base  # a texture or an unknown type
+    if kind in ("glb", "gltf"):
+        try:
+            doc, blob = gltf._parse_glb(data) if kind == "glb" else (json.loads(data.decode("utf-8-sig")), None)
+            return base + check_gltf(doc, None if blob is None else len(blob), len(data))
+        except Exception:
+            return base
+    points, faces = mesh_io.declared_size(data, kind)
+    return base + READ_BYTES_PER_POINT * points + READ_BYTES_PER_FACE * faces
 
 
 def read_body_upload(model: BodyModel, data: bytes, filename: str | None, loc: tuple = ("body", "mesh")) -> BodyUpload:
