@@ -23,7 +23,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 log = logging.getLogger("tryon")
 
 OVERLOAD_RETRY_AFTER_S = 1
-TRIM_AFTER_BYTES = 4 * 1024 * 1024  # uploads at least this large give their memory back afterwards
+TRIM_AFTER_BYTES = 256 * 1024  # uploads at least this large give their memory back afterwards (~1 ms)
 SPOOL_MEMORY_BYTES = 1024 * 1024  # an upload's body is kept in memory up to this, then in a temporary file
 REPLAY_CHUNK_BYTES = 64 * 1024
 PROXY_RESOLVE_S = 30.0  # trusted proxies named by host name are resolved again after this
