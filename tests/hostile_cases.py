@@ -6,6 +6,7 @@ by tests/test_hostile.py and ``tryon bench hostile``."""
 from __future__ import annotations
 
 import base64
+import functools
 import io
 import json
 import struct
@@ -79,7 +80,7 @@ def glb_meshopt_undeclared() -> bytes:
         [{"bufferView": 2, "componentType": 5126, "count": 3, "type": "VEC3"}],
         [{"buffer": 0, "byteOffset": 0, "byteLength": 3_000_000_000,
           "extensions": {"EXT_meshopt_compression": {"buffer": 0, "byteOffset": 0, "byteLength": 36,
-                                                     "byteStride": 252, "count": 12_000_000,
+                                                     "byteStride": 250, "count": 12_000_000,
                                                      "mode": "ATTRIBUTES"}}}], blob_extra=100_000)
     return glb(doc, blob)
 
@@ -155,11 +156,17 @@ def png_script() -> bytes:
     return b"\x89PNG\r\n\x1a\n<script>alert(document.cookie)</script>" + b" " * 200
 
 
+@functools.lru_cache(maxsize=1)
 def png_inflate_bomb() -> bytes:
-    """A 16x16 RGB PNG whose image data inflates to ~400 MB (zeros)."""
+    """A 16x16 RGB PNG whose image data inflates to ~400 MB (zeros): one 16 MiB block
+    compressed after a full flush (which resets the compressor) is the same bytes every time,
+    so it is compressed once and repeated 24 times (the stream's checksum is the first block's,
+    as an attacker's would be wrong)."""
+    block = b"\0" * (16 * 1024 * 1024)
     comp = zlib.compressobj(9)
-    parts = [comp.compress(b"\0" * (16 * 1024 * 1024)) for _ in range(24)]
-    data = b"".join(parts) + comp.flush()
+    first = comp.compress(block) + comp.flush(zlib.Z_FULL_FLUSH)
+    again = comp.compress(block) + comp.flush(zlib.Z_FULL_FLUSH)
+    data = first + again * 23 + comp.flush()
     ihdr = struct.pack(">IIBBBBB", 16, 16, 8, 2, 0, 0, 0)
     return (b"\x89PNG\r\n\x1a\n" + png_chunk(b"IHDR", ihdr) + png_chunk(b"IDAT", data) + png_chunk(b"IEND", b""))
 
