@@ -227,6 +227,8 @@ MAX_TEXTURE_PIXELS = 4096 * 4096  # decoded: 64 MiB as RGBA
 # refused on its header (Pillow raises at twice this; read_texture refuses above it).
 Image.MAX_IMAGE_PIXELS = MAX_TEXTURE_PIXELS
 TEXTURE_FORMATS = {"PNG": "image/png", "JPEG": "image/jpeg"}
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+JPEG_MAGIC = b"\xff\xd8\xff"
 JPEG_QUALITY = 90
 
 
@@ -254,7 +256,9 @@ def read_texture(data: bytes, filename: str | None, field: str = "texture") -> T
     except Invalid:
         raise
     except UnidentifiedImageError:
-        raise Invalid(loc, f"the {field} must be a PNG or JPEG image") from None
+        kind = "PNG" if data.startswith(PNG_MAGIC) else "JPEG" if data.startswith(JPEG_MAGIC) else None
+        raise Invalid(loc, f"the {field} is not a readable {kind} image" if kind
+                      else f"the {field} must be a PNG or JPEG image") from None
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
         raise Invalid(loc, f"the {field} declares more than {MAX_TEXTURE_PIXELS} pixels") from None
     except (OSError, ValueError, SyntaxError, EOFError) as exc:  # truncated, corrupt, unsupported mode
