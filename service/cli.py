@@ -174,8 +174,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s", "%H:%M:%S"))
         logging.getLogger("tryon").addHandler(handler)  # rq configures its own loggers
         logging.getLogger("tryon").setLevel(logging.INFO)
-        from service.model import shape
-        from service.model.body import load_body_model
+        from service.model.body import shape
+        from service.model.body.model import load_body_model
         from service.storage.supervise import run_worker
 
         settings = get_settings()

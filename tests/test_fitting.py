@@ -1,4 +1,4 @@
-"""Parametric body fitting (service/model/fitting.py): Jacobians against finite differences,
+"""Parametric body fitting (service/model/fitting/fit.py): Jacobians against finite differences,
 the prefactored Eq. 2 solve against a dense reference on both sparse back ends, and whole fits
 of synthetic scans with a known body (tests/bench/synthetic_scans.py)."""
 from __future__ import annotations
@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.model import fitting as F
-from service.model.body import BONES
+from service.model.fitting import fit as F
+from service.model.body.model import BONES
 from tests.bench import synthetic_scans as SS
 from tests.bench.fitting import v2v_mm
-from service.model.lbs import axis_angle_to_matrix
-from service.model.geometry import vertex_normals
+from service.model.body.lbs import axis_angle_to_matrix
+from service.model.geometry.mesh import vertex_normals
 from scipy.spatial import cKDTree
 
 
@@ -78,7 +78,7 @@ def test_compiled_pose_jacobian_equals_the_numpy_reference(model, rig, bones):
 def test_compiled_pair_rows_equal_the_numpy_reference():
     """The point-to-plane normal equations with the compiled rows (kernels.pair_rows) are the
     numpy path's, with and without the per-region stand-off unknowns, and a slow sum pair by pair."""
-    from service.model.nonrigid import point_to_plane_normal_equations
+    from service.model.geometry.solvers import point_to_plane_normal_equations
 
     rng = np.random.default_rng(3)
     m, k, P = 40, 90, 11
@@ -150,7 +150,7 @@ def test_fit_unclothed_scan(model):
 def test_fit_clothed_point_cloud_stays_inside_clothes(model):
     """A clothed point cloud without normals (estimated) in mm: the body is recovered and sits
     inside the clothes, not inflated to them."""
-    from service.model.geometry import winding_numbers
+    from service.model.geometry.mesh import winding_numbers
 
     person = _person(model)
     if not SS.default_clothes_dir().is_dir():
@@ -196,12 +196,12 @@ def test_fit_rejects_non_person(model):
         F.fit_body(model, np.random.default_rng(0).uniform(0, 5, size=(2000, 3)))
 
 
-# -- the person check (service/model/person_check.py) ----------------------------------------
+# -- the person check (service/model/fitting/person_check.py) ----------------------------------------
 @pytest.mark.parametrize("kind", ["box", "ellipsoid", "two_people"])
 def test_person_check_before_the_fit_rejects_shapes(model, kind):
     """A box and an ellipsoid are convex solids; two people apart are two person-sized
     components: refused before any fitting, 'not a person: <reason>'."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     pts, nrm, unit, up = SS.non_person_scan(model, kind, np.random.default_rng(3), n_points=4000)
     P = pts / SS.UNIT_SCALE[unit]
@@ -230,7 +230,7 @@ def test_a_stick_figure_is_not_a_bare_person(model):
 @pytest.mark.parametrize("clothed,cloud", [(False, True), (True, False)])
 def test_person_check_before_the_fit_passes_people(model, clothed, cloud):
     """Posed people, bare or clothed, mesh or cloud, pass the checks before the fit."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     if clothed and not SS.default_clothes_dir().is_dir():
         pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
@@ -245,7 +245,7 @@ def test_person_check_before_the_fit_passes_people(model, clothed, cloud):
 def test_population_check(model):
     """The accepted measurement ranges and the shape prior: the mean body passes; a shape with
     an attribute out of range, or far from the population, fails saying which."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     w = np.zeros(model.n_components)
     assert F.check_population(model, w)["mahalanobis"] == 0.0
@@ -264,7 +264,7 @@ def test_a_part_of_the_scan_far_from_the_body_is_unexplained(model):
     points reaching 50 cm out from the chest (a limb the fit left elsewhere, or an object held)
     is refused saying how much of the scan is left out; the body alone, or with the rod only
     15 cm long (loose clothes, hair), passes."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     body = model.vertices(np.zeros(model.n_components))[: model.n_body_vertices].astype(np.float64)
     chest = body[np.argmax(body[:, 2] * (np.abs(body[:, 1] - 1.3) < 0.05))]  # the front of the chest
@@ -335,8 +335,8 @@ def test_joint_limits_data_and_penalty_gradient(model, rig):
     """Every bone but the pelvis has hand-set limits with lo < 0 < hi (the rest pose inside);
     the penalty's gradient over the world-frame pose parameters matches finite differences of
     weight/2 sum ||violation||^2."""
-    from service.model.body import BONES
-    from service.model.lbs import matrix_to_axis_angle
+    from service.model.body.model import BONES
+    from service.model.body.lbs import matrix_to_axis_angle
 
     assert set(F.JOINT_LIMITS_DEG) == set(BONES) - {"pelvis"}
     lo, hi = F.joint_limits()
@@ -385,7 +385,7 @@ def test_loose_region_weight_against_a_per_pair_reference():
 def test_cloth_offset_normal_equations_against_a_per_pair_reference():
     """``point_to_plane_normal_equations`` with regions: point-to-plane rows n_k^T J_{vi_k} with a
     one-hot column per region (the residual r_k + o_{region_k}), summed pair by pair."""
-    from service.model.nonrigid import point_to_plane_normal_equations
+    from service.model.geometry.solvers import point_to_plane_normal_equations
 
     rng = np.random.default_rng(8)
     m, P, R, k = 7, 5, 4, 30
@@ -635,7 +635,7 @@ def test_vertex_areas_and_area_weighted_trimmed_mean(model, rig):
     """The template's vertex areas sum to its surface area and are far from uniform (the hands'
     and the head's vertices are dense: per vertex they would outweigh the legs); the weighted
     trimmed mean keeps the smallest values holding ``keep`` of the weight."""
-    from service.model.nonrigid import trimmed_mean
+    from service.model.geometry.solvers import trimmed_mean
 
     faces = rig.faces
     v = rig.mean[faces]
@@ -666,7 +666,7 @@ def test_posture_anchor_pulls_each_bone_back(model, rig):
         H, g = F._anchor_terms(rig, s, p, F.ALL_BONES, anchor, 2.0)
         H[:3, :3] += np.eye(3)  # the translation is free of the term
         F._apply_pose(rig, s, p, F.ALL_BONES, -np.linalg.solve(H, g))
-    from service.model.lbs import matrix_to_axis_angle
+    from service.model.body.lbs import matrix_to_axis_angle
 
     left = np.linalg.norm(matrix_to_axis_angle(np.einsum("bji,bjk->bik", anchor, s.rot)), axis=1)
     assert left.max() < 1e-4, left
@@ -849,7 +849,7 @@ def test_the_scalp_region_holds_the_scalp_not_the_face(model):
     of it."""
     from scipy.spatial import cKDTree
 
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
 
     rig = F._rig(model)
     bone = np.argmax(rig.W, axis=1)
@@ -1126,7 +1126,7 @@ def test_known_terms_against_finite_differences(model):
     """``fitting.known_terms``: the residuals (in sigmas) are the measurements' misses, the
     gradient g is J^T r and H = J^T J, with J the finite differences of the body model's own
     measurements of float64 vertices (the slow, obvious reference)."""
-    from service.model import measurements as M
+    from service.model.body import measurements as M
 
     rng = np.random.default_rng(5)
     beta = rng.normal(size=model.n_components) * np.sqrt(model.variances) * 0.5
@@ -1243,7 +1243,7 @@ def test_a_poorly_seen_face_does_not_shape_the_body(model):
 def test_scan_to_surface_mm_against_brute_force():
     """``fitting.scan_to_surface_mm`` (the head hypotheses' score): the mean over points of the
     distance to the nearest of every triangle, each clipped, as a loop over all triangles."""
-    from service.model.geometry import closest_point_on_triangles
+    from service.model.geometry.mesh import closest_point_on_triangles
 
     rng = np.random.default_rng(3)
     g = np.stack(np.meshgrid(np.linspace(0, 0.3, 7), np.linspace(0, 0.3, 7)), -1).reshape(-1, 2)

@@ -1,4 +1,4 @@
-"""Landmarks for the fit's initialisation (service/model/landmarks.py, issue 12): the scan's
+"""Landmarks for the fit's initialisation (service/model/fitting/landmarks.py, issue 12): the scan's
 extremities against the true posed effectors (fingertips, toe tips, head top) of synthetic
 posed bodies, with holes and a cut head; their assignment by geodesics from the anchors; the
 limb aiming of fitting.py; a whole fit from a wrong ICP minimum (slow); the crotch and the
@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.model import fitting as F
-from service.model import landmarks as LM
+from service.model.fitting import fit as F
+from service.model.fitting import landmarks as LM
 from tests.bench import synthetic_scans as SS
 
 N_SUB = 2000

@@ -1,6 +1,6 @@
 """Is an uploaded scan one person, and is the body fitted to it one of the population?
 (issue 12). Plain functions over numpy arrays; each returns ``None`` (passes) or a one-line
-reason meant for the customer. ``service.model.fitting`` calls them before and after Alg. 1
+reason meant for the customer. ``service.model.fitting.fit`` calls them before and after Alg. 1
 and raises ``FitError("not a person: <reason>")`` / ``FitError("the fitted body is outside
 the population: <reason>")``.
 
@@ -35,8 +35,8 @@ from scipy import ndimage
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh
-from service.model.landmarks import knn_graph
+from service.model.geometry.mesh import closest_points_on_mesh
+from service.model.fitting.landmarks import knn_graph
 
 # -- before the fit: separate bodies -----------------------------------------------------------
 VOXEL_MIN_M = 0.03  # voxel edge for the components (at least; coarser for sparse scans)

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.model import measurements as M
-from service.model.nonrigid import prior_gauss_newton_step
+from service.model.body import measurements as M
+from service.model.geometry.solvers import prior_gauss_newton_step
 
 
 @dataclass(frozen=True)

@@ -24,9 +24,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh, face_bounds, vertex_faces, vertex_normals
-from service.model.nonrigid import factor_spd
-from service.model.skin_weights import dense_weights, top_k, uniform_laplacian
+from service.model.geometry.mesh import closest_points_on_mesh, face_bounds, vertex_faces, vertex_normals
+from service.model.geometry.solvers import factor_spd
+from service.model.garments.skin_weights import dense_weights, top_k, uniform_laplacian
 
 GAP = 0.0025  # metres left between an inner garment and the outer one over it
 COVER_DISTANCE = 0.05  # metres: farther than this from the outer garment is not covered by it

@@ -1,7 +1,7 @@
 """The non-rigid toolkit shared by body fitting (editing paper, Sec. 4.2) and the body-aware
 warping graph (Sec. 5.1): factored sparse systems, correspondences and Gauss-Newton steps.
 Pure numpy/scipy (CHOLMOD through scikit-sparse when installed; the point-to-plane rows by a compiled
-kernel where numba is there, ``service.model.kernels``).
+kernel where numba is there, ``service.model.geometry.kernels``).
 
 Factor once, solve many: a sparse SPD matrix that is solved for many right-hand sides gets a
 :class:`Factor` (:func:`factor_spd`); Eq. 2's edge system is :class:`EdgeSystem`.
@@ -19,8 +19,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from service.model import kernels
-from service.model.geometry import mesh_edges
+from service.model.geometry import kernels
+from service.model.geometry.mesh import mesh_edges
 
 
 # -- factored sparse systems ---------------------------------------------------------------------

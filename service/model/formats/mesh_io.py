@@ -4,7 +4,7 @@ the template topology, body scans, clothed avatars, point clouds and garments.
 Reads OBJ, PLY (ascii/binary), STL (ascii/binary), GLB, glTF (embedded buffers only) and XYZ
 text into a :class:`Scan` (:func:`read_mesh_file`; :func:`read_scan` for the body-fitting
 job), with a :class:`ScanError` (shown to the uploader as a 422) for anything unusable. Plain functions over numpy arrays; OBJ is read by
-:mod:`service.model.obj_io` (in bounded memory), XYZ by numpy, and trimesh
+:mod:`service.model.formats.obj_io` (in bounded memory), XYZ by numpy, and trimesh
 parses the other formats (``process=False``, materials skipped, nothing outside the upload is
 ever opened or fetched).
 
@@ -24,9 +24,9 @@ import numpy as np
 import trimesh
 from trimesh.grouping import unique_rows
 
-from service.model.geometry import estimate_normals, simplify, vertex_normals  # noqa: F401 (re-exported)
-from service.model.gltf import FLOAT, _parse_glb
-from service.model.obj_io import ObjError, read_obj
+from service.model.geometry.mesh import estimate_normals, simplify, vertex_normals  # noqa: F401 (re-exported)
+from service.model.formats.gltf import FLOAT, _parse_glb
+from service.model.formats.obj_io import ObjError, read_obj
 
 log = logging.getLogger("tryon.scan_io")
 

@@ -32,13 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.model import lbs
-from service.model import measurements as M
-from service.model.body import BONES
-from service.model.geometry import closest_points_on_mesh
-from service.model.mhclo import HELPER_TIGHTS
-from service.model.shape import REFINE, MeasurementError, validate_measurements
-from service.model.warping import WarpGraph, WarpParams
+from service.model.body import lbs
+from service.model.body import measurements as M
+from service.model.body.model import BONES
+from service.model.geometry.mesh import closest_points_on_mesh
+from service.model.formats.mhclo import HELPER_TIGHTS
+from service.model.body.shape import REFINE, MeasurementError, validate_measurements
+from service.model.nonrigid.warping import WarpGraph, WarpParams
 
 SKINNING = ("lbs", "dqs")
 

@@ -31,12 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model.garment import laplacian_smoother, push_out
-from service.model.lbs import bone_hops, main_bone
-from service.model.mhclo import HELPER_TIGHTS
-from service.model.geometry import closest_points_on_mesh, vertex_faces, vertex_normals
-from service.model.nonrigid import EdgeSystem, edge_incidence
-from service.model.warping import WarpGraph, WarpParams
+from service.model.garments.garment import laplacian_smoother, push_out
+from service.model.body.lbs import bone_hops, main_bone
+from service.model.formats.mhclo import HELPER_TIGHTS
+from service.model.geometry.mesh import closest_points_on_mesh, vertex_faces, vertex_normals
+from service.model.geometry.solvers import EdgeSystem, edge_incidence
+from service.model.nonrigid.warping import WarpGraph, WarpParams
 
 
 @dataclass(frozen=True)
@@ -237,7 +237,7 @@ def fit_to_examples(model, garment: np.ndarray, garment_faces: np.ndarray, sourc
     """The garment (M, 3) draped on ``source_body`` (V, 3) in the template topology (default:
     the mean avatar, the example ``mean``) fitted to the example avatars: fits (1 + 2N, M, 3) in
     the listing order of ``tryon.example_set``, ready for ``tryon.build_garment_basis``."""
-    from service.model import tryon
+    from service.model.garments import tryon
 
     examples = examples or tryon.example_set(model)
     EX = tryon.example_vertices(model, examples)

@@ -75,9 +75,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
-from service.model.geometry import closest_points_on_mesh, mesh_edges, vertex_normals
-from service.model.lbs import skin
-from service.model.nonrigid import factor_spd
+from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges, vertex_normals
+from service.model.body.lbs import skin
+from service.model.geometry.solvers import factor_spd
 
 MAX_DISTANCE = 0.02  # metres: a closest-point match farther than this is not reliable (Eq. 1)
 MAX_ANGLE_DEG = 35.0  # normals must agree within this angle, up to sign (Eq. 2)

@@ -5,7 +5,7 @@ the clothing basis B (N, M, 3), faces (F, 3), the push-out binding (M, k) to bod
 skinning transferred from the body (M, 4) + (M, 4), a colour and a layer; optionally its look:
 a render layout (the mesh split at its UV seams: render_vertex (R,) index into the M welded
 vertices, render_uv (R, 2) glTF convention, render_faces (F, 3) into the R render vertices) and
-a material (:class:`service.model.catalogue.Material`, textures stored as files beside the
+a material (:class:`service.model.garments.catalogue.Material`, textures stored as files beside the
 arrays). It is stored as plain ``.npy`` files in one directory and memory-mapped by every API
 process; bases saved before the look existed load without it.
 """
@@ -23,15 +23,15 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import garment as G
-from service.model import skin_weights as SW
-from service.model.body import BONES
-from service.model.catalogue import Material, RenderLayout, Texture
-from service.model.geometry import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
-from service.model.gltf import MeshTemplate, vertex_tangents
-from service.model.layering import covered_body
-from service.model.poses import preset_transforms
-from service.model.skin_weights import leg_frame, transfer_skin_weights
+from service.model.garments import garment as G
+from service.model.garments import skin_weights as SW
+from service.model.body.model import BONES
+from service.model.garments.catalogue import Material, RenderLayout, Texture
+from service.model.geometry.mesh import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
+from service.model.formats.gltf import MeshTemplate, vertex_tangents
+from service.model.garments.layering import covered_body
+from service.model.body.poses import preset_transforms
+from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").

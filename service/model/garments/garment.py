@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import closest_points_on_mesh, face_bounds, neighbour_mean, row_dot
+from service.model.geometry.mesh import closest_points_on_mesh, face_bounds, neighbour_mean, row_dot
 
 CLEARANCE = 0.003  # metres between skin and cloth after push-out
 LAYER_GAP = 0.004  # extra clearance per layer (outer garments over inner ones)

@@ -13,7 +13,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
-from service.model.geometry import row_dot, vertex_normals
+from service.model.geometry.mesh import row_dot, vertex_normals
 
 GLB_MAGIC = 0x46546C67  # b"glTF"
 GLB_VERSION = 2
@@ -369,7 +369,7 @@ def _check_skeleton(skin: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, list[
 
 
 def _check_material(mat: Any) -> None:
-    """A :class:`service.model.catalogue.Material` (or any object with its fields)."""
+    """A :class:`service.model.garments.catalogue.Material` (or any object with its fields)."""
     if len(tuple(mat.base_color_factor)) != 4:
         raise ValueError(f"base_color_factor must be RGBA, got {mat.base_color_factor}")
     if mat.alpha_mode not in ("OPAQUE", "MASK", "BLEND"):
@@ -761,7 +761,7 @@ def _build_glb(
         img["bufferView"] = b.add_bytes(img.pop("_data"))
 
     parts, blob_len, buffers = b.finish(meshopt=compression == "meshopt")
-    doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": "tryon service.model.gltf"}}
+    doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": "tryon service.model.formats.gltf"}}
     ext = {"quantize": ["KHR_mesh_quantization"], "meshopt": ["KHR_mesh_quantization", "EXT_meshopt_compression"]}
     if compression is not None:
         doc["extensionsUsed"] = ext[compression]
@@ -835,7 +835,7 @@ def scene_to_glb(
     Each mesh dict: ``vertices`` (N, 3) float, ``faces`` (F, 3) int, optional ``normals``
     (N, 3), ``color`` RGBA (linear, PBR base colour; alpha < 1 gives alphaMode BLEND),
     ``name``, ``double_sided`` (bool, e.g. for garments), ``uv`` (N, 2) float TEXCOORD_0 (glTF
-    convention, origin top-left), ``material`` (a :class:`service.model.catalogue.Material`:
+    convention, origin top-left), ``material`` (a :class:`service.model.garments.catalogue.Material`:
     base colour factor, base-colour / normal textures (PNG or JPEG bytes, each embedded once per
     GLB however many meshes share it), alpha mode and cutoff, double sided, metallic, roughness;
     it overrides ``color`` and ``double_sided``; textures need ``uv``), ``tangents`` (N, 4)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.model.obj_io import ObjError, read_obj
+from service.model.formats.obj_io import ObjError, read_obj
 
 DM = 0.1  # metres per decimetre
 # The hm08 ``helper-tights`` vertices [start, stop): MakeHuman's surface of skin-tight clothing,
@@ -119,7 +119,7 @@ class ObjMesh:
 
 def parse_obj(text: str) -> ObjMesh:
     """Vertex count, triangulated faces and per-corner texture coordinates of an OBJ (the
-    project's OBJ reader, :func:`service.model.obj_io.read_obj`)."""
+    project's OBJ reader, :func:`service.model.formats.obj_io.read_obj`)."""
     try:
         mesh = read_obj(text.encode("utf-8", errors="surrogateescape"), uv=True)
     except ObjError as e:

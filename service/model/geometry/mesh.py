@@ -10,7 +10,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from service.model import kernels
+from service.model.geometry import kernels
 
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
@@ -85,7 +85,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_ma
     return (n64 / np.sqrt(np.einsum("ij,ij->i", n64, n64))[:, None]).astype(np.float32)
 
 
-COMPILED = True  # winding_numbers, closest_points_on_mesh, face_bounds: the compiled kernels (service.model.kernels) where numba is there
+COMPILED = True  # winding_numbers, closest_points_on_mesh, face_bounds: the compiled kernels (service.model.geometry.kernels) where numba is there
 
 
 def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:

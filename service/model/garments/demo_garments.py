@@ -19,10 +19,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull
 
-from service.model import measurements as M
-from service.model.body import BONES
-from service.model.garment import bind_to_body, laplacian_smoother, push_out
-from service.model.geometry import vertex_normals
+from service.model.body import measurements as M
+from service.model.body.model import BONES
+from service.model.garments.garment import bind_to_body, laplacian_smoother, push_out
+from service.model.geometry.mesh import vertex_normals
 
 B = {b: i for i, b in enumerate(BONES)}
 EASE = {"tshirt": 0.012, "trousers": 0.010}

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.model.frames import UnitError, detect_unit, kabsch, nearest_axis_rotation
+from service.model.formats.frames import UnitError, detect_unit, kabsch, nearest_axis_rotation
 
 MAX_RESIDUAL_M = 0.05  # mean distance to the reconstruction above which an upload is refused
 

@@ -4,7 +4,7 @@ Built offline by ``tryon build-catalogue`` (``worker/build/catalogue.py``; sourc
 processing in ``service/data/catalogue/PROVENANCE.md``). Read once per process by
 :func:`load_catalogue`. Every item is a MakeHuman-style ``.mhclo`` garment or asset:
 
-* ``binding`` -- a :class:`~service.model.mhclo.Binding` to the hm08 base mesh (all 19,158
+* ``binding`` -- a :class:`~service.model.formats.mhclo.Binding` to the hm08 base mesh (all 19,158
   vertices, helpers included): ``item.binding.fit(avatar_vertices)`` -> (M, 3) metres;
 * ``faces`` (F, 3) int64 over those M vertices; ``face_uv`` (F, 3) int64 per-corner indices into
   ``uv`` (T, 2) float32 (OBJ convention, origin bottom-left); :func:`render_layout` splits the
@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from service.model.mhclo import Binding
+from service.model.formats.mhclo import Binding
 
-DEFAULT_CATALOGUE_DIR = Path(__file__).resolve().parent.parent / "data" / "catalogue"
+DEFAULT_CATALOGUE_DIR = Path(__file__).resolve().parents[2] / "data" / "catalogue"
 FORMAT = 1
 GARMENT_CATEGORIES = ("top", "bottom", "suit", "shoes", "hat", "underwear")
 MIME = {".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".png": "image/png"}

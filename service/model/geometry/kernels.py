@@ -1,6 +1,6 @@
 """Compiled inner loops (numba) of the geometry helpers that every try-on, outfit, pose
 adaptation and fit spends most of its time in. Each geometry kernel computes exactly what its
-numpy reference in ``service.model.geometry`` computes (the same float operations in the same
+numpy reference in ``service.model.geometry.mesh`` computes (the same float operations in the same
 order, so the same results bit for bit; the tests compare them), one query point at a time with
 no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_rows`) compute
 what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with

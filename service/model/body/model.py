@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from service.model import lbs as _lbs
-from service.model import measurements as _meas
-from service.model.measurements import AttributeSpec  # noqa: F401  (re-exported)
+from service.model.body import lbs as _lbs
+from service.model.body import measurements as _meas
+from service.model.body.measurements import AttributeSpec  # noqa: F401  (re-exported)
 
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent.parent / "data" / "body_model.npz"
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parents[2] / "data" / "body_model.npz"
 
 # The 17 bones of the editing paper (Sec. 4.1), parents by index (-1: root).
 BONES: tuple[str, ...] = (
@@ -110,7 +110,7 @@ class BodyModel:
         """M(beta, theta) + t: the rest body of shape ``weights`` (K,) (or given rest
         ``vertices`` (V, 3) in the template topology), posed by ``pose`` (None: the rest pose;
         (17, 3) axis-angle radians or (17, 3, 3) local rotations, ``BONES`` order) and moved by
-        ``translation`` (3,) metres. Returns :class:`~service.model.lbs.Posed` (all V
+        ``translation`` (3,) metres. Returns :class:`~service.model.body.lbs.Posed` (all V
         vertices, joints and bone transforms, float64)."""
         if vertices is None:
             vertices = self.vertices(np.zeros(self.n_components) if weights is None else weights)
@@ -121,7 +121,7 @@ class BodyModel:
     # -- measurements ------------------------------------------------------------------
     def measure(self, vertices: np.ndarray, gender: str) -> dict[str, float]:
         """The 12 attributes measured on an avatar (V, 3) as a tailor would (see
-        ``service.model.measurements``), in API units (cm, kg)."""
+        ``service.model.body.measurements``), in API units (cm, kg)."""
         return _meas.measure_attributes(self.measurement_spec, vertices, gender)
 
 

@@ -8,7 +8,7 @@ translation such that ``M(beta, theta)`` (the model's rest body, linear blend sk
 the scan, or just inside its clothes.
 
 Our body model is the paper's revised SCAPE in its LBS form: rest shape ``mean + beta @ U``
-(PCA, ``service.model.body``) and ``Q(theta)`` = LBS over 17 bones (``service.model.skinning``).
+(PCA, ``service.model.body.model``) and ``Q(theta)`` = LBS over 17 bones (``service.model.skinning``).
 
 Stages:
 1. Initialisation (the paper adjusts the pose by hand; here no human is in the loop): units
@@ -68,16 +68,16 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model import kernels
-from service.model import landmarks as LM
-from service.model import person_check as PC
-from service.model import scan_cleanup as SC
-from service.model.frames import UnitError, detect_unit, orient_outward, up_candidates
-from service.model.geometry import closest_points_on_mesh, estimate_normals, face_incidence, vertex_normals
-from service.model.lbs import axis_angle_to_matrix, global_transforms, matrix_to_axis_angle
-from service.model import poses as POSES
-from service.model.poses import rotation_between
-from service.model.nonrigid import (
+from service.model.geometry import kernels
+from service.model.fitting import landmarks as LM
+from service.model.fitting import person_check as PC
+from service.model.fitting import scan_cleanup as SC
+from service.model.formats.frames import UnitError, detect_unit, orient_outward, up_candidates
+from service.model.geometry.mesh import closest_points_on_mesh, estimate_normals, face_incidence, vertex_normals
+from service.model.body.lbs import axis_angle_to_matrix, global_transforms, matrix_to_axis_angle
+from service.model.body import poses as POSES
+from service.model.body.poses import rotation_between
+from service.model.geometry.solvers import (
     EdgeSystem,
     damped_step,
     edge_incidence,
@@ -261,7 +261,7 @@ class FitParams:
     # torso there, 30-56 %) lost to a wrong facing (81 mm, refused); at 1 cm 2.16 mm, without 4.23
     arm_inside_cost: float = 0.01
     limb_search: bool = True
-    # issue 12: limbs aimed at the scan's extremities (service.model.landmarks) before the
+    # issue 12: limbs aimed at the scan's extremities (service.model.fitting.landmarks) before the
     # coarse schedule, the assignment and up to this many left/right swaps scored beside ICP alone
     landmark_init: bool = True
     landmark_hypotheses: int = 4
@@ -351,7 +351,7 @@ class FitParams:
     # away in Alg. 1, 131 mm mean error on the hand after 10 outer iterations (held-out avatar
     # 40, 45 degrees), refined to 4 mm before it
     alg1_matched_only: bool = True
-    person_check: bool = True  # service.model.person_check before and after the fit
+    person_check: bool = True  # service.model.fitting.person_check before and after the fit
     scan_cleanup: bool = True  # issue 12: floor and stray clusters dropped, no pull into holes (scan_cleanup)
     # no pull into holes in the refinement either (with ``scan_cleanup``), as in Alg. 1: a
     # template vertex whose nearest scan point is on a hole's rim (``scan_cleanup.over_hole``)
@@ -604,7 +604,7 @@ def scalp_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.n
     """(n,) bool: where a scan of a bare person may show hair, not skin, on a rest body
     (vertices (n, 3), faces (F, 3), dense skinning weights W (n, 17)): the head but the face,
     and the neck."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     bone = np.argmax(W, axis=1)
     head = bone == BONES.index("head")
@@ -620,7 +620,7 @@ def scalp_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.n
 def face_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.ndarray:
     """(n,) bool: the face on a rest body (vertices (n, 3), faces (F, 3), dense skinning weights
     W (n, 17)): the vertices of HAIR_BONES outside ``scalp_region``."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     bone = np.argmax(W, axis=1)
     return np.isin(bone, [BONES.index(b) for b in HAIR_BONES]) & ~scalp_region(vertices, faces, W)
@@ -637,7 +637,7 @@ HAIR_BACK_BONES = ("spine", "chest")
 def hair_back_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray, joints: np.ndarray) -> np.ndarray:
     """(n,) bool: where long hair may cover the back of a bare person on a rest body (vertices
     (n, 3), faces (F, 3), dense skinning weights W (n, 17), joints (17, 3))."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     bone = np.argmax(W, axis=1)
     nz = vertex_normals(vertices, faces)[:, 2]
@@ -656,7 +656,7 @@ FINGER_KNUCKLE_SHARE = 0.45
 def finger_region(vertices: np.ndarray, W: np.ndarray, joints: np.ndarray) -> np.ndarray:
     """(n,) bool: the fingers of a rest body (vertices (n, 3), dense skinning weights W (n, 17),
     joints (17, 3)), which the 17 bones cannot bend (``FitParams.finger_scale``)."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     bone = np.argmax(W, axis=1)
     out = np.zeros(len(vertices), bool)
@@ -974,7 +974,7 @@ JOINT_LIMITS_DEG: dict[str, tuple[tuple[float, float, float], tuple[float, float
 @functools.lru_cache(maxsize=1)
 def joint_limits() -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (17, 3) radians in BONES order from JOINT_LIMITS_DEG (-inf/inf: free)."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     lo, hi = np.full((len(BONES), 3), -np.inf), np.full((len(BONES), 3), np.inf)
     for b, (l, h) in JOINT_LIMITS_DEG.items():
@@ -1532,7 +1532,7 @@ def _without_head(rig: _Rig, pts_m: np.ndarray, nrm: np.ndarray, clothed: bool, 
     at rest and the mean shape: the scan pts_m (P, 3) metres with normals nrm (P, 3), ``s`` the
     first initialisation's state. Returns ((state, seen shares, params with the head absent) when
     the scan has no head, else None; the figures of the choice for the fit's stats)."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     t0_s = time.perf_counter()
     head = BONES.index("head")
@@ -1590,7 +1590,7 @@ def _correspondences(T: np.ndarray, rig: _Rig, tree: cKDTree, points: np.ndarray
 
 
 def _bone_ids(names) -> np.ndarray:
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     return np.array([BONES.index(b) for b in names], np.int64)
 
@@ -1606,8 +1606,8 @@ def known_terms(model, known: dict[str, float], gender: str) -> Callable[[np.nda
     ``M.ATTRIBUTES`` but gender: value in its unit (cm, kg)}. Returns f(beta (K,)) -> (H (K, K),
     g (K,), residuals (m,) in sigmas) of 1/2 sum_a ((m_a(beta) - known_a) / sigma_a)^2, the
     measurements m_a exact (``shape.WeightMeasures``) and linearised at beta."""
-    from service.model import measurements as M
-    from service.model.shape import weight_measures
+    from service.model.body import measurements as M
+    from service.model.body.shape import weight_measures
 
     names = [n for n in M.ATTRIBUTES[1:] if n in known]
     unknown = set(known) - set(names)
@@ -1823,7 +1823,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
             rims = _rims(pts_m, nrm) if find_rims else None
     P = pts_m @ R0.T + t0
     n = len(rig.mean)
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     seen_v = seen_vertices(rig, s, P, rims)
     seen = seen_shares(rig, s, P, rims, seen_v)
@@ -1899,7 +1899,7 @@ def _fit_body(model, points: np.ndarray, normals: np.ndarray | None, faces: np.n
         t_refine += time.perf_counter() - t_k
         given = None
         if known and params.known_weight > 0:
-            from service.model.shape import estimate_gender
+            from service.model.body.shape import estimate_gender
 
             given = known_terms(model, known, gender or estimate_gender(model, sk.beta))
         share = (k / len(head_hypotheses), 1.0 / len(head_hypotheses))

@@ -73,8 +73,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from service.model.geometry import estimate_normals, vertex_normals
-from service.model.nonrigid import Factor, factor_spd
+from service.model.geometry.mesh import estimate_normals, vertex_normals
+from service.model.geometry.solvers import Factor, factor_spd
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ each preset, world directions (Y up, facing +Z, the character's left = +X) of th
 bone -> child, applied bone by bone in a fixed order (each bone is turned by the smallest
 rotation that takes its segment onto the target direction, its children following), exactly as
 the page's ``applyPose`` does on the GLB skeleton (whose rest bone frames are the world frame,
-as ``service.model.lbs``).
+as ``service.model.body.lbs``).
 
 Adaptation (:func:`adapted_poses`): the shoulder abduction of each arm is increased, in steps of
 ``ABDUCTION_STEP_DEG``, until no arm vertex is inside the torso or thighs (checked on the posed
@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import lbs as _lbs
-from service.model.body import BONES
-from service.model.geometry import closest_points_on_mesh, mesh_edges, vertex_faces, winding_numbers
+from service.model.body import lbs as _lbs
+from service.model.body.model import BONES
+from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges, vertex_faces, winding_numbers
 
-POSES_FILE = Path(__file__).resolve().parents[2] / "web_client" / "poses.json"
+POSES_FILE = Path(__file__).resolve().parents[3] / "web_client" / "poses.json"
 ABDUCTION_STEP_DEG = 6.0  # extra shoulder abduction per adaptation step (then one bisection)
 MAX_EXTRA_ABDUCTION_DEG = 60.0
 ARM_BONES = {"l": ("upper_arm_l", "forearm_l", "hand_l"), "r": ("upper_arm_r", "forearm_r", "hand_r")}
@@ -121,7 +121,7 @@ def preset_poses(model, vertices: np.ndarray, path: str | Path | None = None) ->
 def preset_transforms(model, vertices: np.ndarray, path: str | Path | None = None) -> np.ndarray:
     """Bone transforms (P, 17, 4, 4) of the page's presets (not adapted) on the avatar
     ``vertices`` (V, 3), in ``presets()`` order: the test poses of garment skin weights
-    (``service.model.skin_weights.release_stretched``)."""
+    (``service.model.garments.skin_weights.release_stretched``)."""
     X = np.asarray(vertices, np.float64)
     return np.stack([model.forward(pose=p, vertices=X).transforms for p in preset_poses(model, X, path).values()])
 

@@ -3,7 +3,7 @@ garment outside the posed body. Pure numpy/scipy.
 
 Plain linear blend skinning pushes some garment vertices inside the body in the page's poses
 (an arm swung back drags the blouse's side into the chest). For each pose (the bone transforms
-G (J, 4, 4) the page applies: the presets adapted to the body, ``service.model.poses``), the
+G (J, 4, 4) the page applies: the presets adapted to the body, ``service.model.body.poses``), the
 garment is posed with its own skin weights and:
 
 1. the vertices nearer the posed skin than ``TRIGGER`` (signed distance to the closest point
@@ -36,10 +36,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model import garment as G
-from service.model import lbs as L
-from service.model.body import BONES
-from service.model.geometry import (
+from service.model.garments import garment as G
+from service.model.body import lbs as L
+from service.model.body.model import BONES
+from service.model.geometry.mesh import (
     closest_points_on_mesh,
     face_bounds,
     vertex_faces,
@@ -179,7 +179,7 @@ def posed_pushes(garment: np.ndarray, skin_idx: np.ndarray, skin_w: np.ndarray, 
     ``body``'s pose outside it, and how many vertices were pushed (see the module docstring).
     ``layer``: the garment's rank in its outfit (clearance + layer x LAYER_GAP). ``rest``: the
     body unposed; a vertex nearer the skin than the clearance already at rest (an inner garment
-    pushed inside the one over it by ``service.model.layering``) is pushed back no farther out
+    pushed inside the one over it by ``service.model.garments.layering``) is pushed back no farther out
     than it was at rest, and only once it is ``CLEARANCE - TRIGGER`` deeper: the rest pose gets
     no vertex push (only step 3, the triangles the body pokes through) and the layers keep their order. ``faces``: the garment's; with them, pushes that
     would stretch an edge beyond ``STRETCH_LIMIT`` are dropped."""
@@ -358,7 +358,7 @@ def poking_through(pv: np.ndarray, faces: np.ndarray, X: np.ndarray, N: np.ndarr
     normal or under it. Returns (indices into X (K,), the garment point's height over the
     point along its normal (K,) (< trigger; negative: the skin is outside the cloth), its
     garment face (K,)). ``index``: :func:`garment_index` of the garment, to reuse."""
-    from service.model.layering import topology
+    from service.model.garments.layering import topology
 
     F = np.asarray(faces, np.int64)
     empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))
@@ -479,7 +479,7 @@ def _spread(m: int, bad: np.ndarray, need: np.ndarray, n: np.ndarray, smoother: 
 
 def _edges(faces: np.ndarray, n: int) -> np.ndarray:
     """(E, 2) the mesh's edges, from ``layering.topology``'s Laplacian (cached per topology)."""
-    from service.model.layering import topology
+    from service.model.garments.layering import topology
 
     lap = topology(faces, n)[0].tocoo()
     up = lap.row < lap.col
@@ -493,7 +493,7 @@ def cover_map(inner: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray, bod
     outer surface within ``layering.COVER_DISTANCE``, or a rim over the body vertex under it),
     and those closest points as (face (M,), barycentric (M, 3)). Returns (covered (M,) bool,
     face, bary)."""
-    from service.model import layering as LY
+    from service.model.garments import layering as LY
 
     O = np.asarray(outer, np.float64)
     B = np.asarray(body, np.float64)

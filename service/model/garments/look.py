@@ -1,5 +1,5 @@
 """The avatar's look: eyes, eyebrows, hair and a base layer (underwear) from the compiled
-catalogue (``service.model.catalogue``), fitted to a customer's avatar. Pure numpy/scipy.
+catalogue (``service.model.garments.catalogue``), fitted to a customer's avatar. Pure numpy/scipy.
 
 Once per process and catalogue item (:func:`prepare_item`): the item's render layout (one
 vertex per (vertex, uv) corner, glTF's UV convention), the k nearest body vertices of each item
@@ -26,10 +26,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model import garment as G
-from service.model.body import BONES
-from service.model.catalogue import CatalogueItem, RenderLayout
-from service.model.geometry import face_incidence, vertex_normals
+from service.model.garments import garment as G
+from service.model.body.model import BONES
+from service.model.garments.catalogue import CatalogueItem, RenderLayout
+from service.model.geometry.mesh import face_incidence, vertex_normals
 
 HEAD_BONE = BONES.index("head")
 NEAR_K = 4  # push-out candidates per item vertex (nearest body vertices on the mean avatar)

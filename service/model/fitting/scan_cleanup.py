@@ -221,7 +221,7 @@ def _best_floor(P: np.ndarray, S: np.ndarray, batches: list[tuple[np.ndarray, np
 def isolated_clusters(points: np.ndarray) -> np.ndarray:
     """(P,) bool: points in small components far from every larger one (module docstring,
     step 2). points (P, 3) metres."""
-    from service.model.person_check import components
+    from service.model.fitting.person_check import components
 
     P = np.asarray(points, np.float64)
     labels, _ = components(P)
@@ -294,7 +294,7 @@ def clean_wide_scan(points: np.ndarray, normals: np.ndarray | None = None, faces
     person are tried (a person's back is flat enough to pass for a floor: the floor must be what
     made the scan too wide). points (P, 3) file units. Returns (unit, metres per
     unit, points (P', 3) metres, normals, faces, :class:`Cleaning`) or None."""
-    from service.model.frames import PERSON_MAX_M, UNITS, UnitError, detect_unit
+    from service.model.formats.frames import PERSON_MAX_M, UNITS, UnitError, detect_unit
 
     pts = np.asarray(points, np.float64)
     for name, scale in UNITS.items():
