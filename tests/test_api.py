@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from service.model.body.model import BONES
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from tests.conftest import format_issues
 from tests.harness import run_server
 

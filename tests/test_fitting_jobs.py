@@ -224,9 +224,9 @@ def test_a_hand_missing_from_the_scan_is_left_to_the_prior_and_said(server: Serv
     holds that hand at its rest posture (``FitParams.unseen_prior``) and the customer says so,
     ``unseen: ["hand_l"]``; the rest of the body is measured as usual."""
     from service.model.fitting import fit as F
-
+    from service.model.fitting import rig as F_rig
     _, _, scan = scans["cloud"]
-    rig = F._rig(model)
+    rig = F_rig._rig(model)
     hand = np.argmax(rig.W, axis=1) == BONES.index("hand_l")
     centre = scan.true_posed[: len(rig.mean)][hand].mean(axis=0)
     cut = S.keep_points(scan, np.linalg.norm(S._model_points(scan) - centre, axis=1) > 0.12)

@@ -15,7 +15,7 @@ from service.model.formats import gltf
 from service.model.body.model import BONES, BodyModel
 from service.model.garments.catalogue import load_catalogue
 from service.model.garments.demo_garments import make_demo_garments
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.model.garments.tryon import example_set, example_vertices
 from tests.conftest import valid_glb
 from tests.harness import GLB, RETAILERS, Server, assert_422, run_server

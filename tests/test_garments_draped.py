@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.application.scenes import obj_text
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.settings import Settings
 from tests import draped_data as D
 from tests.harness import RETAILERS, assert_422, redis_db, redis_url

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.formats.gltf import MeshTemplate, basis_to_glb, mesh_to_glb, read_glb, scene_to_glb, vertex_normals
+from service.model.formats.gltf import MeshTemplate, basis_to_glb, mesh_to_glb, scene_to_glb, vertex_normals
+from service.model.formats.gltf_read import read_glb
 from tests.conftest import format_issues
 
 
@@ -156,7 +157,7 @@ def _garment(around: int = 100, high: int = 100, n_basis: int = 16) -> tuple[np.
 
 
 def _skin_step(glb: bytes) -> float:
-    from service.model.formats.gltf import _parse_glb, _read_float  # noqa: PLC0415
+    from service.model.formats.gltf_read import _parse_glb, _read_float  # noqa: PLC0415
 
     doc, blob = _parse_glb(glb)
     ibm = _read_float(doc, blob, doc["skins"][0]["inverseBindMatrices"])
@@ -464,7 +465,7 @@ def test_textured_scene_round_trip(compression: str | None, validate_glb: Callab
 def test_tangents_follow_uv_directions() -> None:
     """On a flat grid (normal +Z) with u along +x and image-up (v' = 1 - v) along +y the tangent
     is +x with w = +1; mirroring u flips the tangent to -x and the handedness to -1."""
-    from service.model.formats.gltf import vertex_tangents
+    from service.model.formats.gltf_buffers import vertex_tangents
 
     x, y = np.meshgrid(np.linspace(0, 1, 5), np.linspace(0, 1, 4))
     v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)

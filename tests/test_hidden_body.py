@@ -17,7 +17,7 @@ from service.model.garments import tryon as T
 from service.model.body.model import BONES
 from service.model.garments.catalogue import load_catalogue
 from service.model.geometry.mesh import vertex_normals
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.model.garments.layering import (
     HIDE_CONE_COS,
     HIDE_GAP,

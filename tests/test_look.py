@@ -15,7 +15,7 @@ from service.application import scenes
 from service.application.errors import Invalid
 from service.model.body.model import load_body_model
 from service.model.geometry.mesh import closest_points_on_mesh
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.model.garments.look import HEAD_BONE, merge_meshes, transfer_skin_weights, visible_body_faces
 from service.model.body.shape import avatar_from_measurements
 from service.model.garments.tryon import customer_body

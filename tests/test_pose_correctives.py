@@ -18,7 +18,7 @@ from service.model.body import shape as S
 from service.model.garments import tryon as T
 from service.model.garments.catalogue import load_catalogue
 from service.model.geometry.mesh import vertex_faces
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.records import Garment
 from service.storage.cache import VersionedLRU
 from tests.bench.tryon import INSIDE_DEPTH, penetration_depths

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from service.model.fitting import scan_cleanup as SC
 from service.model.body.model import BONES
-from service.model.fitting.fit import _rig
+from service.model.fitting.rig import _rig
 from tests.bench import synthetic_scans as SS
 from tests.bench.fitting import v2v_mm
 
@@ -190,6 +190,7 @@ def test_fit_scan_with_floor_and_cut_head(model):
     scanner's noisy tilted floor under it: the floor is dropped, the body and its stature are
     recovered (the head top from the model), as well as without the cleaning or better."""
     from service.model.fitting import fit as F
+    from service.model.fitting import params as F_params
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 1)[0]
@@ -211,6 +212,7 @@ def test_fit_scan_on_a_room_floor(model):
     """A point cloud in centimetres standing on a 3.2 m square of the room's floor (wider than a
     person): the fit tells the unit after dropping the floor and recovers the body."""
     from service.model.fitting import fit as F
+    from service.model.fitting import params as F_params
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 2)[1]
@@ -366,6 +368,7 @@ def test_a_flat_cap_over_the_head_does_not_shorten_the_body(model):
     from dataclasses import replace
 
     from service.model.fitting import fit as F
+    from service.model.fitting import params as F_params
     from tests.bench import fitting as BF
 
     scan, person = _bench_scan(model, 9, 20, ("holes", "capped_head", "scanner_floor"))
@@ -377,5 +380,5 @@ def test_a_flat_cap_over_the_head_does_not_shorten_the_body(model):
     assert fit.stats["points"]["flat_cap"] >= 0.9 * cap_points, (fit.stats["points"], cap_points)
     assert abs(row["stature_err_cm"]) < 0.4 and row["p2s_mm"] < 0.8, row
     before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
-                                                 params=replace(F.FitParams(), flat_cap=False)), surface)
+                                                 params=replace(F_params.FitParams(), flat_cap=False)), surface)
     assert before["stature_err_cm"] < -0.8 and before["p2s_mm"] > 1.0, before

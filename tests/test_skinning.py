@@ -396,7 +396,7 @@ def test_stale_skin_weights_are_recomputed(model, pencil_skirt) -> None:
 def test_stale_garment_served_with_current_weights(client: TestClient, model, pencil_skirt) -> None:
     """Through the API: a stored garment whose basis has version-1 weights is refreshed when it
     is first tried on (files and record ETag rewritten once), and its try-on carries the new weights."""
-    from service.model.formats.gltf import read_glb
+    from service.model.formats.gltf_read import read_glb
 
     ctx = client.app.state.context
     old, new = pencil_skirt
@@ -610,7 +610,7 @@ def test_outfit_keeps_the_shirt_inside_the_jacket(model, shirt_and_jacket) -> No
     ``layering.rim_violations``) and skinning the shirt like the jacket where covered
     (``layering.covered_skin``)."""
     from service.application import scenes
-    from service.model.formats.gltf import read_glb
+    from service.model.formats.gltf_read import read_glb
     from tests.bench.common import heldout_avatars
 
     nb = model.n_body_vertices

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from tests.bench.common import HELDOUT_AVATARS, shared_data_dir
 from tests.bench.tryon import penetration_depths
 from tests.bench.fitting import BodySurface
-from service.model.fitting import fit as F
+from service.model.fitting import rig as F_rig
 from service.model.body.model import BONES
 from service.model.body import measurements as M
 from tests.bench import synthetic_scans as SS
@@ -213,7 +213,7 @@ def test_anatomical_random_pose_redraws_only_the_bones_outside_the_joint_limits(
     """``random_pose(anatomical=True)``: every bone inside the fitter's joint limits, within the
     angle bound; the bones that were inside, the root and the caller's next draws are the same
     as without (the redraws come from a spawned child generator)."""
-    from service.model.fitting.fit import limit_violation
+    from service.model.fitting.rig import limit_violation
 
     redrawn = 0
     for seed in range(40):
@@ -297,7 +297,7 @@ def test_relaxed_hands_curl_the_fingers_towards_the_palms(model, person):
     plain = SS.make_scan(model, np.random.default_rng(5), w, g, **kw)
     relaxed = SS.make_scan(model, np.random.default_rng(5), w, g, finger_curl_deg=70.0, **kw)
     X, Y = plain.true_rest, relaxed.true_rest
-    bone = np.argmax(F._rig(model).W, axis=1)
+    bone = np.argmax(F_rig._rig(model).W, axis=1)
     nb = model.n_body_vertices
     moved = np.linalg.norm(Y[:nb] - X[:nb], axis=1) > 1e-9
     assert moved.any() and np.isin(bone[moved], [BONES.index("hand_l"), BONES.index("hand_r")]).all()

@@ -14,7 +14,7 @@ from service.model.garments import demo_garments as D
 from service.model.garments import tryon as T
 from service.model.body.model import BONES
 from service.model.garments.catalogue import load_catalogue
-from service.model.formats.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.records import Garment
 from tests.conftest import format_issues
 

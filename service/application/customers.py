@@ -13,7 +13,8 @@ from service.model.formats import gltf
 from service.model.body.model import BONES, BodyModel
 from service.model.formats.frames import rotation_to_y
 from service.model.geometry.mesh import vertex_normals
-from service.model.fitting.fit import FitError, FitResult, fit_body
+from service.model.fitting.checks import FitError
+from service.model.fitting.fit import FitResult, fit_body
 from service.model.formats.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
 from service.model.fitting.scan_cleanup import kept_faces
 from service.model.body.shape import MeasurementError, avatar_from_measurements, estimate_gender

@@ -12,7 +12,8 @@ from typing import Any
 
 from service.model.garments.autofit import fit_to_examples
 from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
-from service.model.fitting.fit import FitError, fit_body
+from service.model.fitting.checks import FitError
+from service.model.fitting.fit import fit_body
 from service.model.formats.mesh_io import scan_type
 from service.model.formats.frames import unit_against
 from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning

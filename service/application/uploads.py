@@ -17,7 +17,7 @@ from service.model.body.model import BodyModel
 from service.model.formats.frames import UNITS, UnitError, detect_unit, rotation_to_y
 from service.model.body.measurements import ATTRIBUTES
 from service.model.formats.mesh_io import Scan, ScanError
-from service.model.formats import gltf
+from service.model.formats import gltf_read
 from service.model.garments.catalogue import RenderLayout, Texture, render_layout
 from service.model.formats.mhclo import Binding, MhcloError, parse_mhclo, parse_obj
 
@@ -151,7 +151,7 @@ def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | No
     when its indices are ``faces`` (as read by the mesh reader); else None. A broken embedded
     image is a 422 (field ``garment``)."""
     try:
-        out = gltf.read_glb(data)
+        out = gltf_read.read_glb(data)
     except Exception:
         return None
     doc = out["json"]
@@ -171,7 +171,7 @@ def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | No
     except (KeyError, IndexError, TypeError):
         img = None
     if img is not None and "bufferView" in img:
-        raw = gltf._view_bytes(doc, gltf._parse_glb(data)[1], img["bufferView"])
+        raw = gltf_read._view_bytes(doc, gltf_read._parse_glb(data)[1], img["bufferView"])
         texture = read_texture(raw, img.get("name") or "texture", field="garment")
     n = len(uv)
     return RenderLayout(np.arange(n, dtype=np.int64), uv, np.asarray(faces, np.int64)), texture

@@ -237,7 +237,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     ``FitParams(compiled=False)``) or ``coarse_each_up`` (only the screen's best facings through
     the initialisation's coarse stage, whatever their up-axis sign,
     ``FitParams(coarse_each_up=False)``)."""
-    from service.model.fitting.fit import FitParams
+    from service.model.fitting.params import FitParams
 
     kinds = _before_kinds()
     if kind not in kinds:
@@ -251,7 +251,7 @@ def before_kinds() -> tuple[str, ...]:
 
 
 def _before_kinds() -> dict[str, dict]:
-    from service.model.fitting.fit import FitParams
+    from service.model.fitting.params import FitParams
 
     return {
         "wrong_fit": {"area_weighted": False, "clothed_posture_anchor": 0.0, "alg1_posture_anchor": 0.0},
@@ -331,7 +331,7 @@ def v2v_mm(model, scan, fit) -> float:
 @functools.lru_cache(maxsize=2)
 def head_vertices(model) -> np.ndarray:
     """(n_body,) bool: the body vertices the head bone moves most."""
-    from service.model.fitting.fit import _rig
+    from service.model.fitting.rig import _rig
 
     return np.argmax(_rig(model).W, axis=1) == BONES.index("head")
 
@@ -339,7 +339,7 @@ def head_vertices(model) -> np.ndarray:
 @functools.lru_cache(maxsize=2)
 def hand_vertices(model) -> np.ndarray:
     """(n_body,) bool: the body vertices a hand bone moves most."""
-    from service.model.fitting.fit import _rig
+    from service.model.fitting.rig import _rig
 
     return np.isin(np.argmax(_rig(model).W, axis=1), [BONES.index("hand_l"), BONES.index("hand_r")])
 
@@ -424,7 +424,7 @@ def parse_fit_params(text: str | None) -> dict:
     import ast
     from dataclasses import fields
 
-    from service.model.fitting.fit import FitParams
+    from service.model.fitting.params import FitParams
 
     known = {f.name for f in fields(FitParams)}
     out = {}
@@ -444,7 +444,7 @@ def with_overrides(params, overrides: dict):
     "before" kind's own change wins)."""
     from dataclasses import replace
 
-    from service.model.fitting.fit import FitParams
+    from service.model.fitting.params import FitParams
 
     default = FitParams()
     return replace(params, **{k: v for k, v in overrides.items() if getattr(params, k) == getattr(default, k)})
@@ -474,7 +474,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
     ``via_file``: each scan is fitted as the service reads it back from an upload in that format
     (:func:`as_uploaded`; 'ply', 'obj', 'glb', 'stl' or 'xyz'), not from the generated arrays;
     a refused upload counts as a failure."""
-    from service.model.fitting.fit import FitParams, fit_body
+    from service.model.fitting.params import FitParams
+    from service.model.fitting.fit import fit_body
 
     overrides = dict(fit_params or {})
     params = FitParams(**overrides)
@@ -610,7 +611,9 @@ def bench_person_check(progress=None) -> dict:
     fitted as clothed with the person check off (before) and on (after), and as bare with it on
     (after_bare): rejected or not, with the reason; CesiumMan (fitted stature or the refusal); single-view front scans of bare
     held-out people (flagged ``partial`` or refused)."""
-    from service.model.fitting.fit import FitError, FitParams, fit_body
+    from service.model.fitting.checks import FitError
+    from service.model.fitting.params import FitParams
+    from service.model.fitting.fit import fit_body
     from service.model.formats.mesh_io import read_scan
 
     model = load_body_model()

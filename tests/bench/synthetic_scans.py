@@ -147,7 +147,7 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: boo
     root = Rotation.from_rotvec([0.0, yaw, 0.0]) * Rotation.from_rotvec(tilt * np.array([np.cos(a), 0.0, np.sin(a)]))
     rv[0] = root.as_rotvec()
     if anatomical:
-        from service.model.fitting.fit import joint_limits
+        from service.model.fitting.rig import joint_limits
 
         lo, hi = joint_limits()
         redraw = rng.spawn(1)[0]
@@ -192,7 +192,7 @@ def separate_legs(model, vertices: np.ndarray, rotvecs: np.ndarray, rng: np.rand
     rest body ``vertices`` (V, 3) posed so pass through each other (:func:`leg_gap` under
     ``LEG_CLEARANCE_M``): a random pose within each bone's limits can still cross the legs
     through one another, which nobody can stand in."""
-    from service.model.fitting.fit import joint_limits
+    from service.model.fitting.rig import joint_limits
 
     lo, hi = joint_limits()
     rv = np.array(rotvecs, np.float64)

@@ -25,7 +25,8 @@ import trimesh
 from trimesh.grouping import unique_rows
 
 from service.model.geometry.mesh import estimate_normals, simplify, vertex_normals  # noqa: F401 (re-exported)
-from service.model.formats.gltf import FLOAT, _parse_glb
+from service.model.formats.gltf_buffers import FLOAT
+from service.model.formats.gltf_read import _parse_glb
 from service.model.formats.obj_io import ObjError, read_obj
 
 log = logging.getLogger("tryon.scan_io")

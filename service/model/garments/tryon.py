@@ -28,7 +28,8 @@ from service.model.garments import skin_weights as SW
 from service.model.body.model import BONES
 from service.model.garments.catalogue import Material, RenderLayout, Texture
 from service.model.geometry.mesh import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
-from service.model.formats.gltf import MeshTemplate, vertex_tangents
+from service.model.formats.gltf import MeshTemplate
+from service.model.formats.gltf_buffers import vertex_tangents
 from service.model.garments.layering import covered_body
 from service.model.body.poses import preset_transforms
 from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
