@@ -59,6 +59,22 @@ GOALS: dict[str, tuple[Goal, ...]] = {
         Goal("avatar.glb: latency the look adds, median over bodies", "median_added_ms", "<=", 10.0, "ms",
              1.0, "issue 11: the look must not slow the avatar noticeably"),
     ),
+    "editing": (
+        Goal("forward error of an edit, L2 / bounding-box diagonal, mean", "forward_error/all/mean", "<=", 0.001, "",
+             source="the editing paper reports 0.002"),
+        Goal("forward error of an edit, max", "forward_error/all/max", "<=", 0.005, "", source="the paper: 0.01"),
+        Goal("update of a clothed scan, in process, median", "update/median_ms", "<=", 10.0, "ms",
+             source="the paper: 31 ms"),
+        Goal("update of a clothed scan, in process, p99", "update/p99_ms", "<=", 20.0, "ms"),
+        Goal("HTTP edit round trip, median", "http/http_edit_ms/median", "<=", 60.0, "ms"),
+        Goal("WebSocket frames per second while a slider sends 60/s", "http/websocket/frames_per_s", ">=", 30.0,
+             "frames/s"),
+    ),
+    "load": (
+        Goal("mixed traffic at 80 req/s, p99", "p99_ms", "<=", 100.0, "ms"),
+        Goal("mixed traffic, errors", "errors", "<=", 0.0, "requests"),
+        Goal("server memory growth after warm-up", "memory_growth_after_warmup", "<=", 10.0, "%", 100.0),
+    ),
     "kernels": (
         Goal("compiled closest points vs numpy, speed-up", "rows/closest_points/speedup", ">=", 1.0, "x"),
     ),

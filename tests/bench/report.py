@@ -130,7 +130,11 @@ def render(saved: dict[str, dict], suites: dict[str, str]) -> str:
             "The current figures of each `tryon bench` suite, with the goals (`tests/bench/goals.py`) beside",
             "them. To refresh a suite: `tryon bench <suite> --save [options]` (writes `docs/bench/<suite>.json`),",
             "then `tryon bench-report` (writes this file). Timings are medians on the machine named; the",
-            "development machines are shared, so compare timings only within one run.", ""]
+            "development machines are shared, so compare timings only within one run (each suite times a",
+            "baseline in the same run). The suites live in `tests/bench/`; a suite that needs a server starts",
+            "its own with its own embedded Redis. Held-out subjects (ANSUR II rows whose index is a multiple",
+            "of 5) never enter a build step; the benches read ANSUR II and the MakeHuman garments from",
+            "`../shared/data` (or `TRYON_SHARED_DATA`). Options: `tryon bench <suite> --help`.", ""]
     body, short_all = [], []
     for suite, desc in suites.items():
         body += [f"## {suite}", "", desc[:1].upper() + desc[1:] + ".", ""]
@@ -149,6 +153,9 @@ def render(saved: dict[str, dict], suites: dict[str, str]) -> str:
                  f"Python {m.get('python', '?')}; load average {la.get('before', '?')} -> {la.get('after', '?')}",
                  f"- command: `{doc.get('command', '?')}` ({doc.get('seconds', '?')} s)", ""]
         rows, short = goal_rows(suite, doc["result"])
+        if short and la.get("before") is not None:  # timings on a busy machine read long
+            short = [f"{line}; measured at load average {la['before']} on {m.get('cores', '?')} cores"
+                     for line in short]
         short_all += short
         if rows:
             body += ["| figure | measured | goal | met |", "| --- | --- | --- | --- |", *rows, ""]
