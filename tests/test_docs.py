@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -150,7 +151,7 @@ def _tour() -> str:
 def test_readme_tour_runs_against_a_live_server(server, tmp_path: Path):
     assert shutil.which("curl"), "curl is needed (apt-get install -y curl)"
     r = subprocess.run(["bash", "-euo", "pipefail", "-c", _tour()], cwd=tmp_path, capture_output=True, text=True,
-                       env={"PATH": "/usr/bin:/bin", "BASE": server.base_url}, timeout=300)
+                       env={"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "BASE": server.base_url}, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     lines = r.stdout.splitlines()
     measured = ast.literal_eval(lines[0])  # the avatar's 12 measurements, printed as a Python dict
