@@ -34,9 +34,9 @@ from service.app import create_app
 from service.application.errors import Invalid, TooManyRequests
 from service.application.limits import Requester
 from service.application.uploads import read_texture
-from service.model import gltf
-from service.model.declared_sizes import DeclaredSizeError, check_gltf, decode_budget
-from service.model.mesh_io import ScanError, read_mesh_file
+from service.model.formats import gltf, gltf_read
+from service.model.formats.declared_sizes import DeclaredSizeError, check_gltf, decode_budget
+from service.model.formats.mesh_io import ScanError, read_mesh_file
 from service.settings import Settings
 from tests import hostile_cases as H
 from tests.harness import RETAILERS, assert_422, bearer, own_redis, run_server
@@ -92,10 +92,10 @@ def test_legitimate_glbs_within_the_decode_budget() -> None:
     targets[:, :10] = 0.01
     for compression in (None, "quantize", "meshopt"):
         data = gltf.mesh_to_glb(m.vertices, m.faces, compression=compression)
-        doc, blob = gltf._parse_glb(data)
+        doc, blob = gltf_read._parse_glb(data)
         assert check_gltf(doc, len(blob), len(data)) <= decode_budget(len(data))
     with pytest.raises(DeclaredSizeError, match="more than"):
-        doc, blob = gltf._parse_glb(H.glb_sparse_bomb())
+        doc, blob = gltf_read._parse_glb(H.glb_sparse_bomb())
         check_gltf(doc, len(blob), 852)
 
 

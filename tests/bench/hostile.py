@@ -266,10 +266,11 @@ def figures(res: dict[str, Any]) -> dict[str, Any]:
         "max_after_mib": max(r["after_mib"] for r in ups),
         "processes_killed": 0 if res["server"]["alive"] else 1,
         "burst_limited_pct": round(100 * res["burst"]["limited"] / res["burst"]["requests"], 1),
-        "legit_uploads_in_8s": f"{res['trickle']['legit_in_time']} of {LEGIT_UPLOADS}",
+        "legit_uploads_in_8s": res["trickle"]["legit_in_time"],
         "secrets_in_log": res["log"]["secrets_in_log"],
         "tracebacks_in_log": res["log"]["tracebacks_in_log"],
-        "uploads_ok": f"{sum(r['ok'] for r in ups)} of {len(ups)}",
+        "uploads_failed": sum(not r["ok"] for r in ups),
+        "uploads": len(ups),
     }
 
 
@@ -282,9 +283,9 @@ def run(limit: int = 0, repeats: int = 0, **_: Any) -> dict[str, Any]:
     return res
 
 
-GOALS = {"max_peak_mib": "<= 100", "max_after_mib": "~0 (back to baseline)", "processes_killed": "0",
+GOALS = {"max_peak_mib": "<= 100", "max_after_mib": "<= 50 (back to baseline)", "processes_killed": "0",
          "burst_limited_pct": ">= 50", "legit_uploads_in_8s": ">= 5 of 6", "secrets_in_log": "0",
-         "tracebacks_in_log": "0", "uploads_ok": "all"}
+         "tracebacks_in_log": "0", "uploads_failed": "0"}
 
 
 def format_result(res: dict[str, Any]) -> str:
