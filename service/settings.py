@@ -160,7 +160,7 @@ class Settings(BaseSettings):
         description="The same per retailer API key (requests with a valid X-API-Key count here instead).",
     )
     max_expensive_client: int = Field(
-        default=2,
+        default=4,
         validation_alias="TRYON_MAX_EXPENSIVE_CLIENT",
         ge=1,
         description="Expensive requests (uploads, new customers and avatars, try-on and outfit GLBs, edits) "

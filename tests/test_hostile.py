@@ -257,18 +257,18 @@ def test_outfit_cpu_budget(client: TestClient, customer: dict[str, Any]) -> None
 
 
 def test_expensive_requests_per_client_at_once(client: TestClient) -> None:
-    """TRYON_MAX_EXPENSIVE_CLIENT (2) slots per client and process: the third is a 429; another
+    """TRYON_MAX_EXPENSIVE_CLIENT (4) slots per client and process: the fifth is a 429; another
     client and the same client afterwards are served."""
     limits = client.app.state.context.limits
     a, b = Requester("1.2.3.4", None), Requester("5.6.7.8", None)
-    with limits.slot(a), limits.slot(a):
+    with limits.slot(a), limits.slot(a), limits.slot(a), limits.slot(a):
         with pytest.raises(TooManyRequests) as exc:
             with limits.slot(a):
                 pass
         assert exc.value.retry_after >= 1
         with limits.slot(b):
             pass
-    with limits.slot(a), limits.slot(a):
+    with limits.slot(a), limits.slot(a), limits.slot(a), limits.slot(a):
         pass
 
 
