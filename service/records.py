@@ -140,7 +140,7 @@ class Garment(Record):
 
     def size_labels(self) -> list[str]:
         """The garment's size labels in chart order (one size without a chart)."""
-        from service.model.sizing import ONE_SIZE
+        from service.model.garments.sizing import ONE_SIZE
 
         return [s.label for s in self.sizes] if self.sizes else [self.base_size or ONE_SIZE]
 

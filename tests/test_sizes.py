@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from service.application.sizes import Chart, chart_bodies
-from service.model import sizing as S
-from service.model.catalogue import load_catalogue
+from service.model.garments import sizing as S
+from service.model.garments.catalogue import load_catalogue
 
 CHART = {"S": {"chest_cm": 88.0, "waist_cm": 76.0, "hip_cm": 94.0},
          "M": {"chest_cm": 96.0, "waist_cm": 84.0, "hip_cm": 102.0},

@@ -7,7 +7,8 @@ from fastapi import APIRouter, Query, Response
 
 from service.api import responses as R
 from service.api.schemas import FitResponse
-from service.api.deps import Compression, CredentialsDep, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep, Underwear
+from service.api.deps import (Compression, CredentialsDep, Expensive, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep,
+                              Underwear)
 
 router = APIRouter(tags=["try-on"])
 FitMap = Annotated[Literal["strain", "ease"] | None, Query(description=(
@@ -16,7 +17,8 @@ FitMap = Annotated[Literal["strain", "ease"] | None, Query(description=(
     "fabric's designed ease, blue where it hangs"))]
 
 
-@router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
+@router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, dependencies=[Expensive],
+            responses=R.CUSTOMER_SCENE_RESPONSE)
 def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
                compression: Compression = None, pose_correctives: PoseCorrectives = False,
                size: Annotated[str | None, Query(max_length=64, description=(
@@ -31,7 +33,8 @@ def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_no
                                             fitmap))
 
 
-@router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
+@router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, dependencies=[Expensive],
+            responses=R.CUSTOMER_SCENE_RESPONSE)
 def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
                garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
                compression: Compression = None, hair: Hair = None, underwear: Underwear = True,

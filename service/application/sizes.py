@@ -9,10 +9,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from service.model import sizing as S
-from service.model.autofit import fit_to_examples
-from service.model.shape import MeasurementError, avatar_from_measurements
-from service.model.tryon import CustomerBody
+from service.model.garments import sizing as S
+from service.model.garments.autofit import fit_to_examples
+from service.model.body.shape import MeasurementError, avatar_from_measurements
+from service.model.garments.tryon import CustomerBody
 from service.records import Garment, GarmentSize
 
 from .errors import Invalid

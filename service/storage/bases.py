@@ -13,7 +13,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from service.model.tryon import GarmentBasis
+from service.model.garments.tryon import GarmentBasis
 from service.storage.cache import VersionedLRU
 
 

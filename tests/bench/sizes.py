@@ -22,11 +22,11 @@ import time
 import numpy as np
 
 from service.application.sizes import Chart, chart_bodies, size_example_fits
-from service.model import sizing as S
-from service.model.body import load_body_model
-from service.model.catalogue import load_catalogue
-from service.model.shape import avatar_from_measurements
-from service.model.tryon import build_garment_basis, customer_body, example_set, try_on
+from service.model.garments import sizing as S
+from service.model.body.model import load_body_model
+from service.model.garments.catalogue import load_catalogue
+from service.model.body.shape import avatar_from_measurements
+from service.model.garments.tryon import build_garment_basis, customer_body, example_set, try_on
 from tests.bench.common import median_ms, read_ansur
 
 # (catalogue id, gender, fabric): tops of both genders, a knit and a woven

@@ -1,0 +1,621 @@
+"""Sizes and fit: size charts, grading, and how each size of a garment sits on a body.
+
+Pure numpy/scipy (no web, queue or storage imports).
+
+- A **size chart** is an ordered mapping label -> body measurements (the service's attribute
+  names, API units: ``chest_cm``, ``waist_cm``, ...): the body each size is made for
+  (:func:`validate_chart`).
+- **Grading** (:func:`grade`): each size's rest shape is the base garment carried from the base
+  size's body to that size's body by the warp the service already has (``autofit.autofit``,
+  warping graph alone, no edge-length restoration: the garment takes the new size).
+  The garment sits on the body it was uploaded on (``source``); size s is carried to
+  ``source + (body_s - body_base)`` (same topology), so the base size is left as uploaded.
+- **Fit** (:func:`fit_report`): at each region a tape goes around the body (the convex hull of
+  a plane section, as ``measurements`` takes girths) and around the garment (the cloth's own
+  length along the section of its rest shape that encloses the body there, as a tailor
+  measures a garment laid flat). ``ease = garment girth - body girth``; the strain the body
+  imposes on a garment tighter than it is ``max(0, body / garment - 1)`` (a closed loop on a
+  convex section at static equilibrium stretches to the body's girth). The garment girths per
+  size are constants of the garment (measured once at build, :func:`garment_girths`); a
+  customer's body girths are measured once per body (:func:`body_girths`): the report is a
+  few array operations (microseconds).
+- **Verdicts** from thresholds per fabric (:data:`FIT_THRESHOLDS`, ease in % of the body's
+  girth, so one table serves the hip and the upper arm) and the **recommendation**
+  (:func:`recommend`): of the sizes with no region ``tight`` or ``too_tight``, the one whose
+  ease is closest to the design ease (the base size on its own body); if every size is tight
+  somewhere, the loosest.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from service.model.body import measurements as M
+from service.model.body.model import BONES
+from service.model.geometry.mesh import mesh_edges
+from service.model.body.lbs import main_bone
+
+FABRICS = ("woven", "knit", "stretch")
+DEFAULT_FABRIC = "woven"
+VERDICTS = ("too_tight", "tight", "fit", "loose", "too_loose")
+# the chart's measurements: the service's numeric attributes (API units)
+CHART_MEASUREMENTS = tuple(a for a in M.ATTRIBUTES if a != "gender")
+# a label of a garment without a size chart
+ONE_SIZE = "one size"
+MAX_SIZES = 12
+MAX_LABEL_CHARS = 24
+
+# regions in report order: girths (a tape around body and garment), then lengths
+GIRTH_REGIONS = ("chest", "waist", "hip", "thigh", "upper_arm", "shoulders")
+# upper arm: plane perpendicular to the shoulder -> elbow axis, this far down it (biceps level;
+# ANSUR II "bicepscircumferenceflexed" is taken at the biceps' fullest point, ~40 % down)
+UPPER_ARM_FRACTION = 0.4
+# shoulders: horizontal tape this far below the acromion (ANSUR II "shouldercircumference",
+# over the deltoids)
+SHOULDER_DROP_M = 0.04
+# thigh: the ``thigh_cm`` plane (perpendicular to the hip -> knee axis at crotch height) moved
+# this far down the axis, below the crotch seam of trousers (at the crotch itself their
+# section is one loop around both legs)
+THIGH_DROP_M = 0.04
+# the chart measurement that sizes each region (a chart giving some of these: the
+# recommendation's design-ease distance is taken at those regions, as a tailor reads a chart)
+REGION_MEASUREMENT = {"chest": "chest_cm", "waist": "waist_cm", "hip": "hip_cm", "thigh": "thigh_cm"}
+# the garment section around a region must cover every one of these angular sectors around the
+# body section's centre (the garment goes all around there), else it has no such region
+COVER_SECTORS = 12
+
+
+@dataclass(frozen=True)
+class FitThresholds:
+    """Verdict limits of one fabric, ease in % of the body's girth at the region.
+
+    tight_pct: below it a size is ``tight`` (and ``too_tight`` below too_tight_pct);
+    loose_pct / too_loose_pct: above them ``loose`` / ``too_loose``. A design's own ease on its
+    base body, give or take ``design_margin_pct``, is ``fit``: where the fabric's limits would
+    not leave that margin, the tight limits move down (the loose ones up) to it, the bands
+    keeping their widths. strain_limit_pct: the fabric's usable stretch (the fit map's red)."""
+
+    too_tight_pct: float
+    tight_pct: float
+    loose_pct: float
+    too_loose_pct: float
+    strain_limit_pct: float
+    design_margin_pct: float = 4.0
+
+
+# Woven cloth (shirting, denim, suiting) barely stretches (1-3 % in the warp and weft; ASTM
+# D5035 strip tests): it needs positive ease to be worn (tailoring tables give 4-8 % at the chest
+# for a fitted shirt). Single jersey knits take ~15-20 % before they bag; elastane blends
+# (5-20 % spandex) 30-50 % (ASTM D2594 "stretch properties of knitted fabrics having low
+# power"). Ease limits after Aldrich, "Metric Pattern Cutting" (ease tables: close fitting
+# 0-4 %, fitted 4-10 %, loose 10-20 % of the girth) and Armstrong, "Patternmaking for Fashion
+# Design" (negative ease of knits and stretch wovens).
+FIT_THRESHOLDS: dict[str, FitThresholds] = {
+    "woven": FitThresholds(too_tight_pct=0.0, tight_pct=3.0, loose_pct=20.0, too_loose_pct=32.0, strain_limit_pct=3.0),
+    "knit": FitThresholds(too_tight_pct=-8.0, tight_pct=-2.0, loose_pct=16.0, too_loose_pct=28.0, strain_limit_pct=15.0),
+    "stretch": FitThresholds(too_tight_pct=-20.0, tight_pct=-10.0, loose_pct=10.0, too_loose_pct=20.0,
+                             strain_limit_pct=35.0),
+}
+
+
+class ChartError(ValueError):
+    """An invalid size chart or size choice: ``field`` (where) and ``message`` (why)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field, self.message = field, message
+
+
+def validate_chart(chart, base_size: str | None, ranges: dict[str, tuple[float, float]] | None = None
+                   ) -> tuple[list[dict], str]:
+    """A size chart as given (a mapping label -> {measurement: value}, in chart order) checked:
+    labels non-empty and unique, measurements known numeric attributes (``ranges``: name ->
+    (min, max) accepted, API units), every size giving the same measurements, sizes strictly
+    increasing in every one of them, ``base_size`` one of the labels (default: the middle
+    size). Returns ([{label, measurements}] in chart order, base label) or raises
+    :class:`ChartError`."""
+    if not isinstance(chart, dict) or not chart:
+        raise ChartError("size_chart", "must be a JSON object of size label -> {measurement: value}, "
+                                       'e.g. {"S": {"chest_cm": 88}, "M": {"chest_cm": 96}}')
+    if len(chart) > MAX_SIZES:
+        raise ChartError("size_chart", f"at most {MAX_SIZES} sizes; got {len(chart)}")
+    sizes: list[dict] = []
+    names: tuple | None = None
+    for label, ms in chart.items():
+        if not isinstance(label, str) or not label.strip() or len(label) > MAX_LABEL_CHARS \
+                or not label.isprintable() or "," in label:
+            raise ChartError("size_chart", f"size label {label!r}: 1-{MAX_LABEL_CHARS} printable characters, no comma")
+        if not isinstance(ms, dict) or not ms:
+            raise ChartError(f"size_chart.{label}", "must be an object of measurement name -> value (cm)")
+        out: dict[str, float] = {}
+        for name, value in ms.items():
+            if name not in CHART_MEASUREMENTS:
+                raise ChartError(f"size_chart.{label}.{name}", "unknown measurement; known: "
+                                 + ", ".join(CHART_MEASUREMENTS))
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ChartError(f"size_chart.{label}.{name}", "must be a finite number")
+            lo, hi = (ranges or {}).get(name, (-math.inf, math.inf))
+            if not lo <= value <= hi:
+                raise ChartError(f"size_chart.{label}.{name}", f"{value:g} is outside the accepted range "
+                                                               f"{lo:g}-{hi:g}")
+            out[name] = float(value)
+        if names is None:
+            names = tuple(sorted(out))
+        elif tuple(sorted(out)) != names:
+            raise ChartError(f"size_chart.{label}", f"gives {sorted(out)}, but the first size gives {list(names)}: "
+                                                    "every size must give the same measurements")
+        sizes.append({"label": label, "measurements": out})
+    labels = [s["label"] for s in sizes]
+    folded = [lb.strip().casefold() for lb in labels]
+    if len(set(folded)) != len(folded):
+        raise ChartError("size_chart", f"size labels repeated: {labels}")
+    for prev, cur in zip(sizes[:-1], sizes[1:]):
+        for name in names or ():
+            if not cur["measurements"][name] > prev["measurements"][name]:
+                raise ChartError(f"size_chart.{cur['label']}.{name}",
+                                 f"sizes must increase in every measurement in chart order: {cur['label']} "
+                                 f"{cur['measurements'][name]:g} after {prev['label']} {prev['measurements'][name]:g}")
+    if base_size is None:
+        base_size = labels[(len(labels) - 1) // 2]
+    if base_size not in labels:
+        raise ChartError("base_size", f"'{base_size}' is not a size of the chart ({', '.join(labels)})")
+    return sizes, base_size
+
+
+def check_fabric(fabric: str | None) -> str:
+    """The fabric name, default ``woven``; :class:`ChartError` for an unknown one."""
+    fabric = DEFAULT_FABRIC if fabric is None else fabric
+    if fabric not in FIT_THRESHOLDS:
+        raise ChartError("fabric", f"unknown fabric '{fabric}'; one of {', '.join(FABRICS)}")
+    return fabric
+
+
+def size_index(labels: list[str], size: str | None, default: int) -> int:
+    """The index of ``size`` among ``labels`` (None: ``default``); :class:`ChartError` listing
+    the labels when unknown."""
+    if size is None:
+        return default
+    if size not in labels:
+        raise ChartError("size", f"unknown size '{size}'; this garment's sizes: {', '.join(labels)}")
+    return labels.index(size)
+
+
+# -- grading ---------------------------------------------------------------------------------
+def grade(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, bodies: np.ndarray,
+          base: int) -> np.ndarray:
+    """Each size's rest shape (S, M, 3) float32: the garment (M, 3) on the body ``source``
+    (V, 3) carried to ``source + bodies[s] - bodies[base]`` for every size s (bodies (S, V, 3)
+    in the template topology, made from the chart) by the service's warp (the warping graph of
+    ``autofit.autofit``, without restoring edge lengths: the cloth takes the new size; no
+    push-out either, which would add girth to every size but the base one). The base
+    size is the garment as given."""
+    from dataclasses import replace
+
+    from service.model.garments import autofit as AF
+
+    S = len(bodies)
+    out = np.empty((S, len(garment), 3), np.float32)
+    out[base] = garment
+    others = [s for s in range(S) if s != base]
+    if not others:
+        return out
+    src = np.asarray(source, np.float64)
+    T = np.stack([src + (np.asarray(bodies[s], np.float64) - np.asarray(bodies[base], np.float64)) for s in others])
+    # the warp alone: no edge-length restoration (the cloth takes the new size) and no
+    # collision push-out (it would add girth to the other sizes but not to the base size)
+    params = replace(AF.DEFAULT_PARAMS, edge_iterations=0, collision_passes=0)
+    helpers = np.arange(*AF.HELPER_TIGHTS) if params.follow_helper_tights and len(model.mean) >= AF.HELPER_TIGHTS[1] \
+        else None
+    res = AF.autofit(garment, faces, src, T, model.body_faces, params, body_points=helpers,
+                     body_labels=main_bone(model.lbs_indices, model.lbs_weights),
+                     label_hops=AF.bone_hops(model.bone_parents))
+    out[others] = res.fits
+    return out
+
+
+def size_bodies_on(source: np.ndarray, bodies: np.ndarray, base: int) -> np.ndarray:
+    """(S, V, 3) the body each size's rest shape sits on: ``source + bodies[s] - bodies[base]``."""
+    src = np.asarray(source, np.float64)
+    return np.stack([src + (np.asarray(b, np.float64) - np.asarray(bodies[base], np.float64)) for b in bodies])
+
+
+# -- regions ---------------------------------------------------------------------------------
+@dataclass
+class Region:
+    """One tape on a body: plane ``normal . x = offset``, the body section's centre (3,), and
+    (for the thigh) a point the garment's section must NOT enclose (the other thigh: a skirt
+    has no thigh girth)."""
+
+    normal: np.ndarray
+    offset: float
+    centre: np.ndarray
+    exclude: np.ndarray | None = None
+    body_girth: float = 0.0  # metres
+
+
+class RegionSpec:
+    """The body edges each region's tape may cross (template topology), once per body model."""
+
+    def __init__(self, model):
+        self.spec = model.measurement_spec
+        nb = model.n_body_vertices
+        edges = mesh_edges(np.asarray(model.body_faces))
+        edges = edges[(edges < nb).all(axis=1)]
+        bone = main_bone(model.lbs_indices[:nb], model.lbs_weights[:nb])
+        both = lambda ids: edges[np.isin(bone[edges[:, 0]], ids) & np.isin(bone[edges[:, 1]], ids)]  # noqa: E731
+        b = {n: i for i, n in enumerate(BONES)}
+        self.arm_edges = both([b["upper_arm_l"]])
+        self.shoulder_edges = both([b[n] for n in ("spine", "chest", "upper_arm_l", "upper_arm_r", "neck")])
+        self.joint = b
+        self.model = model
+
+    def regions(self, X: np.ndarray) -> dict[str, Region]:
+        """The regions' planes and body girths on a body X (V, 3) (metres)."""
+        X = np.asarray(X, np.float64)
+        spec = self.spec
+        out: dict[str, Region] = {}
+
+        def put(name, edges, normal, offset, exclude=None):
+            sec = M._hull_section(X, edges, normal, float(offset), grad=False)
+            centre = sec.pts.mean(axis=0) if len(sec.pts) else np.zeros(3)
+            out[name] = Region(normal, float(offset), centre, exclude, sec.perimeter)
+
+        put("chest", spec.chest_edges, M.Y, X[spec.nipples, 1].mean())
+        put("waist", spec.waist_edges, M.Y, X[spec.navel, 1])
+        f = M.HIP_LEVEL_FRACTION
+        put("hip", spec.hip_edges, M.Y, (1 - f) * X[spec.crotch, 1] + f * X[spec.navel, 1])
+        J = self.model.joints(X)
+        jr = spec.joint_ids
+        hip, knee = J[jr["hip"]], J[jr["knee"]]
+        u = hip - knee
+        n = u / np.linalg.norm(u)
+        s = (X[spec.crotch, 1] - knee[1]) / (hip[1] - knee[1])
+        origin = knee + s * u - THIGH_DROP_M * n
+        b = self.joint
+        hr, kr = J[b["thigh_r"]], J[b["shin_r"]]
+        other = kr + s * (hr - kr) - THIGH_DROP_M * n
+        put("thigh", spec.thigh_edges, n, n @ origin, exclude=other)
+        sh, el = J[b["upper_arm_l"]], J[b["forearm_l"]]
+        a = (el - sh) / np.linalg.norm(el - sh)
+        put("upper_arm", self.arm_edges, a, a @ (sh + UPPER_ARM_FRACTION * (el - sh)),
+            exclude=J[b["chest"]])
+        put("shoulders", self.shoulder_edges, M.Y, X[spec.acromion, 1].mean() - SHOULDER_DROP_M)
+        return out
+
+
+def body_girths(regions: dict[str, Region]) -> np.ndarray:
+    """(R,) the body's girths (cm) at ``GIRTH_REGIONS``."""
+    return np.array([100.0 * regions[r].body_girth for r in GIRTH_REGIONS])
+
+
+class GarmentSections:
+    """A garment's mesh cut by planes: the loops of cloth around a body region (topology once
+    per garment: faces (F, 3))."""
+
+    def __init__(self, faces: np.ndarray, n_vertices: int):
+        F = np.asarray(faces, np.int64)
+        self.edges = mesh_edges(F)
+        key = self.edges[:, 0] * n_vertices + self.edges[:, 1]
+        order = np.argsort(key)
+        fe = np.stack([np.sort(F[:, [0, 1]], 1), np.sort(F[:, [1, 2]], 1), np.sort(F[:, [2, 0]], 1)], 1)
+        fkey = fe[..., 0] * n_vertices + fe[..., 1]
+        self.face_edges = order[np.searchsorted(key, fkey, sorter=order)]  # (F, 3) edge ids
+
+    def girth(self, V: np.ndarray, region: Region) -> float | None:
+        """The cloth's length (metres) along the plane section of the garment V (M, 3) that
+        encloses the region's centre (the innermost such loop), or None when no section of
+        the garment goes all around it there (or one also encloses ``region.exclude``)."""
+        V = np.asarray(V, np.float64)
+        e = self.edges
+        s = V @ region.normal - region.offset
+        sa, sb = s[e[:, 0]], s[e[:, 1]]
+        cross = ((sa * sb) <= 0) & ((sa != 0) | (sb != 0))
+        if cross.sum() < 3:
+            return None
+        t = np.where(cross, sa / np.where(sa - sb == 0, 1, sa - sb), 0.0)
+        P = V[e[:, 0]] + t[:, None] * (V[e[:, 1]] - V[e[:, 0]])
+        fc = cross[self.face_edges]
+        segf = fc.sum(1) == 2
+        if not segf.any():
+            return None
+        fe = self.face_edges[segf]
+        pick = np.argsort(~fc[segf], axis=1, kind="stable")[:, :2]
+        seg = np.take_along_axis(fe, pick, 1)  # (S, 2) crossing edge ids
+        ids, inv = np.unique(seg, return_inverse=True)
+        inv = inv.reshape(-1, 2)
+        n = len(ids)
+        adj = sp.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(n, n))
+        ncomp, lab = connected_components(adj, directed=False)
+        e1, e2 = M._plane_basis(region.normal)
+        p2 = np.stack([P[ids] @ e1, P[ids] @ e2], 1)
+        seglen = np.linalg.norm(P[seg[:, 0]] - P[seg[:, 1]], axis=1)
+        slab = lab[inv[:, 0]]
+        c2 = np.array([region.centre @ e1, region.centre @ e2])
+        x2 = None if region.exclude is None else np.array([region.exclude @ e1, region.exclude @ e2])
+        best = None
+        for c in range(ncomp):
+            m = slab == c
+            a, b = p2[inv[m, 0]], p2[inv[m, 1]]
+            if not _encloses(a, b, c2) or not _covers(p2[lab == c], c2):
+                continue
+            if x2 is not None and _encloses(a, b, x2):
+                continue
+            length = float(seglen[m].sum())
+            if best is None or length < best:
+                best = length
+        return best
+
+
+def _encloses(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> bool:
+    """Even-odd rule: segments a -> b (S, 2) around the point p (2,) (a ray along +x)."""
+    ya, yb = a[:, 1] - p[1], b[:, 1] - p[1]
+    hit = (ya > 0) != (yb > 0)
+    if not hit.any():
+        return False
+    t = ya[hit] / (ya[hit] - yb[hit])
+    x = a[hit, 0] + t * (b[hit, 0] - a[hit, 0])
+    return bool(((x > p[0]).sum()) % 2 == 1)
+
+
+def _covers(points: np.ndarray, p: np.ndarray) -> bool:
+    ang = np.arctan2(points[:, 1] - p[1], points[:, 0] - p[0])
+    sec = np.floor((ang + np.pi) / (2 * np.pi) * COVER_SECTORS).astype(int) % COVER_SECTORS
+    return len(np.unique(sec)) == COVER_SECTORS
+
+
+def garment_girths(sections: GarmentSections, rest: np.ndarray, regions: dict[str, Region]) -> np.ndarray:
+    """(R,) the garment's girths (cm) at ``GIRTH_REGIONS`` on the body it sits on (its rest
+    shape (M, 3) and that body's ``regions``); NaN where it has no such region."""
+    out = np.full(len(GIRTH_REGIONS), np.nan)
+    for i, r in enumerate(GIRTH_REGIONS):
+        g = sections.girth(rest, regions[r])
+        if g is not None:
+            out[i] = 100.0 * g
+    return out
+
+
+# -- the fit ---------------------------------------------------------------------------------
+@dataclass
+class SizeFit:
+    """What a garment's fit report needs, fixed at its build: garment girths (S, R) cm per size
+    and region (NaN: the garment has no such region), the design ease (R,) cm (the base size's
+    ease on its own body), the fabric."""
+
+    labels: list[str]
+    garment_cm: np.ndarray
+    design_cm: np.ndarray
+    design_body_cm: np.ndarray
+    fabric: str
+    key: np.ndarray | None = None  # (R,) bool: the regions the chart sizes (None: all)
+
+    def to_meta(self) -> dict:
+        nan = lambda a: [None if not np.isfinite(x) else round(float(x), 3) for x in a]  # noqa: E731
+        return {"labels": list(self.labels), "regions": list(GIRTH_REGIONS), "fabric": self.fabric,
+                "garment_cm": [nan(r) for r in self.garment_cm], "design_cm": nan(self.design_cm),
+                "design_body_cm": nan(self.design_body_cm),
+                "key": None if self.key is None else [bool(k) for k in self.key]}
+
+    @classmethod
+    def from_meta(cls, d: dict) -> "SizeFit":
+        arr = lambda a: np.array([np.nan if x is None else x for x in a], np.float64)  # noqa: E731
+        if list(d["regions"]) != list(GIRTH_REGIONS):  # older builds: their regions, mapped by name
+            idx = {r: i for i, r in enumerate(d["regions"])}
+            pick = lambda a: np.array([a[idx[r]] if r in idx else np.nan for r in GIRTH_REGIONS])  # noqa: E731
+        else:
+            pick = lambda a: a  # noqa: E731
+        key = None if d.get("key") is None else pick(np.array(d["key"], bool)).astype(bool)
+        return cls(list(d["labels"]), np.stack([pick(arr(r)) for r in d["garment_cm"]]), pick(arr(d["design_cm"])),
+                   pick(arr(d["design_body_cm"])), d["fabric"], key)
+
+
+def size_fit(labels: list[str], garment_cm: np.ndarray, base: int, base_body_cm: np.ndarray,
+             fabric: str, measurements: list[str] | None = None) -> SizeFit:
+    """A garment's :class:`SizeFit`: girths (S, R) cm per size, the base size's index and the
+    girths (R,) cm of the base size's own body (from the chart; the body it was uploaded on
+    without a chart); ``measurements``: the names the chart gives (its key regions). Regions
+    not present in every size are dropped (NaN)."""
+    G = np.asarray(garment_cm, np.float64)
+    G[:, ~np.isfinite(G).all(axis=0)] = np.nan
+    given = set(measurements or ())
+    key = np.array([REGION_MEASUREMENT.get(r) in given for r in GIRTH_REGIONS])
+    return SizeFit(list(labels), G, G[base] - base_body_cm, np.asarray(base_body_cm, np.float64), fabric,
+                   key if key.any() else None)
+
+
+def verdicts(ease_cm: np.ndarray, body_cm: np.ndarray, design_cm: np.ndarray, fabric: str) -> np.ndarray:
+    """Verdict index (into ``VERDICTS``) of each ease (..., R) cm on girths body_cm (R,) for a
+    design ease design_cm (R,) of ``fabric`` (:class:`FitThresholds`)."""
+    th = FIT_THRESHOLDS[fabric]
+    pct = 100.0 * ease_cm / body_cm
+    dpct = 100.0 * design_cm / body_cm
+    # a design's own ease, give or take the margin, is a fit: the limits move below (above) it
+    # where the fabric's would not leave that margin, keeping the width of the tight (loose) band
+    tight = np.minimum(th.tight_pct, dpct - th.design_margin_pct)
+    too_tight = np.minimum(th.too_tight_pct, tight - (th.tight_pct - th.too_tight_pct))
+    loose = np.maximum(th.loose_pct, dpct + th.design_margin_pct)
+    too_loose = np.maximum(th.too_loose_pct, loose + (th.too_loose_pct - th.loose_pct))
+    v = np.full(pct.shape, 2, np.int64)
+    v[pct < tight] = 1
+    v[pct < too_tight] = 0
+    v[pct > loose] = 3
+    v[pct > too_loose] = 4
+    return v
+
+
+@dataclass
+class FitReport:
+    """The fit of every size on one body: ease (S, R) cm, strain (S, R) % (0 where the garment
+    is looser than the body), verdicts (S, R) and per size (S,) (indices into ``VERDICTS``),
+    present (R,) bool (regions the garment has), recommended size index."""
+
+    labels: list[str]
+    ease_cm: np.ndarray
+    strain_pct: np.ndarray
+    verdict: np.ndarray
+    size_verdict: np.ndarray
+    present: np.ndarray
+    recommended: int
+
+    def to_dict(self) -> dict:
+        regions = [r for r, p in zip(GIRTH_REGIONS, self.present) if p]
+        idx = np.flatnonzero(self.present)
+        return {"recommended": self.labels[self.recommended],
+                "sizes": [{"label": lb, "verdict": VERDICTS[int(self.size_verdict[s])],
+                           "regions": [{"region": r, "ease_cm": round(float(self.ease_cm[s, i]), 1),
+                                        "strain_pct": round(float(self.strain_pct[s, i]), 1),
+                                        "verdict": VERDICTS[int(self.verdict[s, i])]}
+                                       for r, i in zip(regions, idx)]}
+                          for s, lb in enumerate(self.labels)]}
+
+
+def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
+    """Every size of a garment (``fit``) on a body with girths body_cm (R,) (:func:`body_girths`)."""
+    present = np.isfinite(fit.design_cm) & np.isfinite(body_cm) & (body_cm > 0)
+    G = fit.garment_cm[:, present]
+    B = body_cm[present]
+    ease = np.full(fit.garment_cm.shape, np.nan)
+    strain = np.full(fit.garment_cm.shape, np.nan)
+    ease[:, present] = G - B
+    strain[:, present] = 100.0 * np.maximum(0.0, B / G - 1.0)
+    v = np.full(fit.garment_cm.shape, 2, np.int64)
+    v[:, present] = verdicts(G - B, B, fit.design_cm[present], fit.fabric)
+    size_v = np.array([_size_verdict(row[present]) for row in v], np.int64)
+    key = present if fit.key is None else present & fit.key
+    if not key.any():
+        key = present
+    return FitReport(fit.labels, ease, strain, v, size_v, present,
+                     recommend(ease[:, present], fit.design_cm[present], v[:, present], key[present]))
+
+
+def _size_verdict(v: np.ndarray) -> int:
+    """One size's verdict: its tightest region when any is tight, else its loosest."""
+    if not len(v):
+        return 2
+    return int(v.min()) if v.min() < 2 else int(v.max())
+
+
+def recommend(ease_cm: np.ndarray, design_cm: np.ndarray, verdict: np.ndarray, key: np.ndarray | None = None) -> int:
+    """The size a tailor would pick: of the sizes with no region ``tight`` or ``too_tight``
+    (verdict (S, R)), the one whose ease (S, R) is closest to the design ease (R,) (summed
+    absolute difference over the ``key`` regions (R,) bool, those the chart sizes; None: all);
+    if every size is tight somewhere, the loosest (largest total ease)."""
+    if ease_cm.shape[1] == 0:
+        return 0
+    ok = (verdict >= 2).all(axis=1)
+    if not ok.any():
+        return int(np.argmax(ease_cm.sum(axis=1)))
+    k = np.ones(ease_cm.shape[1], bool) if key is None else np.asarray(key, bool)
+    dist = np.abs(ease_cm - design_cm)[:, k].sum(axis=1)
+    dist[~ok] = np.inf
+    return int(np.argmin(dist))
+
+
+_REGION_SPECS: dict[int, tuple[object, RegionSpec]] = {}
+
+
+def region_spec(model) -> RegionSpec:
+    """The :class:`RegionSpec` of a body model (made once per model)."""
+    hit = _REGION_SPECS.get(id(model))
+    if hit is None or hit[0] is not model:
+        hit = (model, RegionSpec(model))
+        _REGION_SPECS[id(model)] = hit
+    return hit[1]  # type: ignore[return-value]
+
+
+def girths_of_body(model, X: np.ndarray) -> np.ndarray:
+    """(R,) a body's girths (cm) at ``GIRTH_REGIONS`` (X (V, 3) metres)."""
+    return body_girths(region_spec(model).regions(X))
+
+
+def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np.ndarray, labels: list[str],
+                      base: int, base_body: np.ndarray, fabric: str, measurements: list[str] | None = None) -> SizeFit:
+    """The :class:`SizeFit` of a garment in sizes: rest shapes (S, M, 3) each on its body
+    ``bodies_on`` (S, V, 3) (or one body (V, 3) for all), the base size's own body (V, 3)."""
+    rs = region_spec(model)
+    sections = GarmentSections(faces, rests.shape[1])
+    bodies_on = np.asarray(bodies_on)
+    G = np.stack([garment_girths(sections, rests[s], rs.regions(bodies_on[s] if bodies_on.ndim == 3 else bodies_on))
+                  for s in range(len(rests))])
+    return size_fit(labels, G, base, body_girths(rs.regions(base_body)), fabric, measurements)
+
+
+# EN 13402-3:2013 "Size designation of clothes - Part 3: Size designation of clothes for
+# body measurements" (CEN/TC 248), letter codes: the chest girth (men) or bust girth (women)
+# intervals of XS to XL, 8 cm wide; a size made for an interval is made for its middle. The
+# demo catalogue and `tryon bench sizes` use these middles as the size charts of tops.
+EN13402_3_LETTER_CHEST_CM: dict[str, tuple[float, float]] = {
+    "XS": (78.0, 86.0), "S": (86.0, 94.0), "M": (94.0, 102.0), "L": (102.0, 110.0), "XL": (110.0, 118.0),
+}
+
+
+def en13402_chart(measurement: str = "chest_cm") -> dict[str, dict[str, float]]:
+    """The EN 13402-3 letter sizes XS-XL as a size chart of ``measurement`` (the intervals'
+    middles, cm)."""
+    return {k: {measurement: (lo + hi) / 2} for k, (lo, hi) in EN13402_3_LETTER_CHEST_CM.items()}
+
+
+# -- the fit map -----------------------------------------------------------------------------
+# ease map: the gap (metres) between cloth and body where a fabric sits as designed (green),
+# from the fit thresholds' middle of "fit" on a 95 cm girth (gap = ease / 2 pi), and where it
+# hangs (blue). Red at contact (the try-on's clearance, 3 mm, or less).
+EASE_MAP_CONTACT_M = 0.003
+EASE_MAP_HANG_M = 0.06
+FITMAP_KINDS = ("strain", "ease")
+_RED, _GREEN, _BLUE = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.8, 0.1]), np.array([0.05, 0.2, 1.0])
+
+
+def fit_gap_m(fabric: str, girth_cm: float = 95.0) -> float:
+    """The cloth-to-body gap (metres) of a fabric's designed fit: the middle of its ``fit``
+    ease band on a girth of ``girth_cm`` spread around it (ease / 2 pi), at least the contact
+    gap."""
+    th = FIT_THRESHOLDS[fabric]
+    mid_pct = (th.tight_pct + th.loose_pct) / 2
+    return max(EASE_MAP_CONTACT_M * 2, girth_cm / 100 * mid_pct / 100 / (2 * np.pi))
+
+
+def vertex_strain(vertices: np.ndarray, edges: np.ndarray, rest_len: np.ndarray) -> np.ndarray:
+    """(M,) per-vertex stretch: the largest |edge| / rest - 1 over its edges (E, 2), at least 0
+    (a fold is not strain)."""
+    s = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) / rest_len - 1.0
+    out = np.zeros(len(vertices))
+    np.maximum.at(out, edges[:, 0], s)
+    np.maximum.at(out, edges[:, 1], s)
+    return out
+
+
+def _rgba(rgb: np.ndarray) -> np.ndarray:
+    out = np.full((len(rgb), 4), 255, np.uint8)
+    out[:, :3] = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
+    return out
+
+
+def strain_colors(strain: np.ndarray, fabric: str) -> np.ndarray:
+    """COLOR_0 (M, 4) uint8 of a strain map (as CLO's): blue at rest to red at the fabric's
+    stretch limit (``FitThresholds.strain_limit_pct``), through green."""
+    t = np.clip(np.asarray(strain, np.float64) / (FIT_THRESHOLDS[fabric].strain_limit_pct / 100), 0.0, 1.0)[:, None]
+    lo = _BLUE + (_GREEN - _BLUE) * np.clip(2 * t, 0, 1)
+    hi = _GREEN + (_RED - _GREEN) * np.clip(2 * t - 1, 0, 1)
+    return _rgba(np.where(t < 0.5, lo, hi))
+
+
+def ease_colors(gap_m: np.ndarray, fabric: str) -> np.ndarray:
+    """COLOR_0 (M, 4) uint8 of an ease map: red where the cloth presses the body (gap <=
+    ``EASE_MAP_CONTACT_M``), green at the fabric's designed gap (:func:`fit_gap_m`), blue where
+    it hangs (>= ``EASE_MAP_HANG_M``)."""
+    g = np.asarray(gap_m, np.float64)[:, None]
+    mid = fit_gap_m(fabric)
+    a = np.clip((g - EASE_MAP_CONTACT_M) / (mid - EASE_MAP_CONTACT_M), 0, 1)
+    b = np.clip((g - mid) / (EASE_MAP_HANG_M - mid), 0, 1)
+    return _rgba(np.where(g < mid, _RED + (_GREEN - _RED) * a, _GREEN + (_BLUE - _GREEN) * b))
+
+
+def body_gap(vertices: np.ndarray, body_vertices: np.ndarray, body_normals: np.ndarray,
+             nearest: np.ndarray) -> np.ndarray:
+    """(M,) signed gap (metres) of garment vertices (M, 3) over the body: along the normal of
+    each one's nearest body vertex (``nearest`` (M,) ids)."""
+    d = np.asarray(vertices, np.float64) - np.asarray(body_vertices, np.float64)[nearest]
+    return np.einsum("ij,ij->i", d, np.asarray(body_normals, np.float64)[nearest])
