@@ -61,6 +61,18 @@ GOALS: dict[str, tuple[Goal, ...]] = {
         Goal("avatar.glb: latency the look adds, median over bodies", "median_added_ms", "<=", 10.0, "ms",
              1.0, "issue 11: the look must not slow the avatar noticeably"),
     ),
+    "sizes": (
+        Goal("size chart round trip: size X recommended for a customer made from X's chart", "round_trip/recommended",
+             ">=", 15.0, "of 15", 1.0, "issue 44"),
+        Goal("round trip: chest/waist/hip ease within 1 cm of the design ease", "round_trip/share", ">=", 100.0, "%",
+             100.0, "issue 44"),
+        Goal("held-out ANSUR II people in one size: that size recommended", "ansur_heldout/share", ">=", 95.0, "%",
+             100.0, "issue 44; retailers' size charts (True Fit / Fit Analytics publish no figure)"),
+        Goal("monotonic: ease grows, strain falls with size", "monotonic/share", ">=", 100.0, "%", 100.0, "issue 44"),
+        Goal("fit report per garment, in process", "timings/fit_report_ms", "<=", 5.0, "ms", 1.0, "issue 44"),
+        Goal("try-on of one size, in process", "timings/one_size_try_on_ms", "<=", 2.0, "ms", 1.0,
+             "issue 44: as today without sizes"),
+    ),
     "tryon": (
         Goal("in-process try-on, 10,240-vertex skirt, synthesis + push-out + GLB, median CPU time",
              "modes/skirt-10k/plain/template_cpu_ms", "<=", 2.0, "ms", source="a try-on costs milliseconds"),
