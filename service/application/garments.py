@@ -2,6 +2,7 @@
 MakeHuman ``.mhclo``), their clothing bases, and the demo catalogue built at the first start."""
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from typing import TYPE_CHECKING
@@ -228,8 +229,6 @@ class GarmentService:
                      progress: Progress | None = None) -> Garment:
         """Every size's example fits (``sizes.size_example_fits``) and basis, stored together;
         the record with its counts, combined ETag and girths per size (``fit``)."""
-        import hashlib
-
         fits = sizing.per_size_fits(self.model, rests, faces, bodies_on, progress)
         bases = []
         for s, f in enumerate(fits):
