@@ -58,8 +58,7 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
 
 
 @router.get("/v1/customers/{cid}/garments/{gid}/fit", response_model=FitResponse,
-            responses={404: {"description": "Unknown customer or garment"},
-                       409: {"description": "The customer or garment is not ready"}})
+            responses={k: v for k, v in R.CUSTOMER_SCENE_RESPONSE.items() if k not in (200, 304)})
 def garment_fit(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep) -> dict:
     """How each size of the garment fits the customer: per size a verdict and, per region
     (chest, waist, hip, thigh, upper arm, shoulders: those the garment covers), the ease (garment

@@ -40,7 +40,7 @@ class TryOnService:
         self.ctx = ctx
 
     def _load(self, cid: str, gids: list[str], creds: Credentials, sizes: list[str | None] | None = None,
-              query: str = "size"):
+              query: str = "size", refuse: str | None = None):
         """The customer and each garment with the basis of its size: ``sizes[i]`` (a label of
         garment i's chart; 422 listing them when unknown) or, where None, the size recommended
         for this customer (:meth:`fit_report`)."""
@@ -67,6 +67,8 @@ class TryOnService:
                 raise Invalid(("query", query),
                               f"garment '{gid}': unknown size '{want}'; this garment's sizes: {', '.join(labels)}")
             loaded.append((g, basis))
+        if refuse is not None:
+            raise Invalid(("query", query), refuse)
         return record, loaded
 
     def _report(self, record, garment: Garment, basis: GarmentBasis) -> SZ.FitReport:
@@ -129,13 +131,15 @@ class TryOnService:
             raise Invalid(("query", "garments"), f"{len(ids)} garments with pose_correctives cost about {cost:.0f} s "
                                                  f"of CPU; at most {most} garments per outfit with pose_correctives")
         chosen: list[str | None] = [None] * len(ids)
-        if sizes is not None:
+        refuse = None
+        if sizes is not None and ids:  # without garments there is nothing to size
             if len(sizes) != len(given):
-                raise Invalid(("query", "sizes"), f"{len(sizes)} sizes for {len(given)} garments: one size label per "
-                                                  "garment, in the same order (empty: the recommended size)")
-            for gid, sz in zip(given, sizes):
-                chosen[ids.index(gid)] = sz.strip() or None
-        record, loaded = self._load(cid, ids, creds, chosen, "sizes")
+                refuse = (f"{len(sizes)} sizes for {len(given)} garments: one size label per garment, in the same "
+                          "order (empty: the recommended size)")
+            else:
+                for gid, sz in zip(given, sizes):
+                    chosen[ids.index(gid)] = sz.strip() or None
+        record, loaded = self._load(cid, ids, creds, chosen, "sizes", refuse)
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
         layered: list[tuple[Garment, GarmentBasis]] = [loaded[i] for i in order]
