@@ -19,6 +19,7 @@ from service.application.customers import CustomerService
 from service.application.editing import EditingService
 from service.application.garments import GarmentService
 from service.application.jobs import JobService
+from service.application.limits import Limits
 from service.application.tryon import TryOnService
 from service.model.body.model import BodyModel, load_body_model
 from service.settings import Settings, get_settings
@@ -71,11 +72,16 @@ async def get_editing(ctx: ContextDep) -> EditingService:
     return ctx.editing
 
 
+async def get_limits(ctx: ContextDep) -> Limits:
+    return ctx.limits
+
+
 CustomersDep = Annotated[CustomerService, Depends(get_customers)]
 GarmentsDep = Annotated[GarmentService, Depends(get_garments)]
 TryOnDep = Annotated[TryOnService, Depends(get_tryon)]
 JobsDep = Annotated[JobService, Depends(get_jobs)]
 EditingDep = Annotated[EditingService, Depends(get_editing)]
+LimitsDep = Annotated[Limits, Depends(get_limits)]
 
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="Retailer API key (TRYON_RETAILER_KEYS)")
 
@@ -132,12 +138,12 @@ OptionalRetailerDep = Annotated[str | None, Depends(get_optional_retailer)]
 CredentialsDep = Annotated[Credentials, Depends(get_credentials)]
 
 
-async def rate_limited(request: Request, ctx: ContextDep, settings: SettingsDep, key: KeyDep = None) -> None:
+async def rate_limited(request: Request, limits: LimitsDep, settings: SettingsDep, key: KeyDep = None) -> None:
     """Counts an expensive request against its retailer's (valid ``X-API-Key``) or its client's
     rate limit: 429 with ``Retry-After`` when spent (the Redis call runs off the event loop)."""
     retailer = retailer_of(settings, key) if key else None
     client = request.client.host if request.client else None
-    await run_in_threadpool(ctx.limits.check, client, retailer)
+    await run_in_threadpool(limits.check, client, retailer)
 
 
 RateLimited = Depends(rate_limited)

@@ -6,14 +6,13 @@ from __future__ import annotations
 import logging
 import math
 
-import redis
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from service.application.errors import (AppError, Conflict, Forbidden, Invalid, NotFound, TooManyRequests,
                                         Unavailable)
-from service.storage.redis import UNAVAILABLE
+from service.storage.redis import UNAVAILABLE, StorageError
 
 log = logging.getLogger("tryon")
 
@@ -81,5 +80,5 @@ async def unhandled_error(request: Request, exc: Exception) -> JSONResponse:
 def install(app: FastAPI) -> None:
     app.add_exception_handler(AppError, app_error)
     app.add_exception_handler(RequestValidationError, validation_error)
-    app.add_exception_handler(redis.RedisError, storage_error)
+    app.add_exception_handler(StorageError, storage_error)
     app.add_exception_handler(Exception, unhandled_error)

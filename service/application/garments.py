@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Callable
 
 import numpy as np
 
 from typing import Any
 
+from service.model.body.model import BodyModel
 from service.model.garments.autofit import fit_to_examples
 from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
 from service.model.fitting.checks import FitError
@@ -18,7 +19,10 @@ from service.model.formats.mesh_io import scan_type
 from service.model.formats.frames import unit_against
 from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
-from service.storage.records import new_id
+from service.settings import Settings
+from service.storage.bases import BasisStore
+from service.storage.queue import JobQueue
+from service.storage.records import GarmentRepo, new_id
 
 from . import scenes
 from .errors import Conflict, Forbidden, Invalid, NotFound
@@ -27,8 +31,6 @@ from .progress import MonotoneProgress, Progress
 from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
                       read_garment_mesh, read_mhclo_layout, read_texture)
 
-if TYPE_CHECKING:
-    from .context import Context
 
 log = logging.getLogger("tryon.garments")
 
@@ -52,15 +54,18 @@ def build_job_id(gid: str) -> str:
 
 
 class GarmentService:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
-        self.model = ctx.model
-        self.repo = ctx.garments_repo
-        self.bases = ctx.bases
+    def __init__(self, settings: Settings, model: BodyModel, repo: GarmentRepo, bases: BasisStore, queue: JobQueue,
+                 examples: Callable[[], Examples]):
+        self.settings = settings
+        self.model = model
+        self.repo = repo
+        self.bases = bases
+        self.queue = queue
+        self._examples = examples  # the example avatars, built on first use
 
     @property
     def examples(self) -> Examples:
-        return self.ctx.examples
+        return self._examples()
 
     # -- reading -----------------------------------------------------------------------------
     def list(self) -> list[Garment]:
@@ -78,7 +83,7 @@ class GarmentService:
         (retries exhausted) shows as failed."""
         if record.status != "building" or record.job is None:
             return record
-        job = self.ctx.queue.get(record.job.id)
+        job = self.queue.get(record.job.id)
         update: dict[str, Any] = {"job": record.job.model_copy(update={"status": job and job.status}),
                                   "progress": job.progress if job else 0.0}
         if job is not None and job.status == "failed":
@@ -311,8 +316,8 @@ class GarmentService:
                          job=JobRef(id=job_id, url=f"/v1/jobs/{job_id}"))
         self.repo.publish(record, upload.to_bytes())
         try:
-            self.ctx.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
-                                   timeout=self.ctx.settings.garment_timeout, body_model=self.model.version,
+            self.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
+                                   timeout=self.settings.garment_timeout, body_model=self.model.version,
                                    description=f"fit garment {gid} to the example avatars",
                                    meta={"garment_id": gid, "owner": owner})
         except BaseException:
@@ -407,7 +412,7 @@ class GarmentService:
             raise Forbidden(f"garment '{gid}' belongs to another retailer")
         self.repo.delete(gid)
         if record.job is not None:
-            self.ctx.queue.cancel(record.job.id)
+            self.queue.cancel(record.job.id)
         self.bases.delete(gid)
 
     # -- the demo catalogue ------------------------------------------------------------------
@@ -415,7 +420,7 @@ class GarmentService:
         """The catalogue garments served as the demo catalogue (``TRYON_DEMO_ITEMS``: 'all',
         or comma-separated catalogue ids; '' none), in catalogue order."""
         items = load_catalogue().garments()
-        want = self.ctx.settings.demo_items.strip()
+        want = self.settings.demo_items.strip()
         if want == "all":
             return items
         ids = [w.strip() for w in want.split(",") if w.strip()]
