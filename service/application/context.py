@@ -13,7 +13,7 @@ from service.settings import Settings, get_settings
 from service.storage import redis as R
 from service.storage.bases import BasisStore
 from service.storage.meshes import MeshStore
-from service.storage.limits import RateLimiter
+from service.storage.limits import JobTracker, RateLimiter
 from service.storage.poses import PoseStore
 from service.storage.queue import JobQueue, current_connection
 from service.storage.records import CustomerRepo, GarmentRepo
@@ -62,20 +62,20 @@ class Context:
         self.meshes = MeshStore(settings.data_dir)
         self.queue = JobQueue(self.conn)
         self.rate_limiter = RateLimiter(self.conn, prefix)
+        self.limits = Limits(settings, self.rate_limiter, JobTracker(self.conn, prefix, self.queue))
         # per-process caches over the model and storage
         self.bodies = BodyCache(model)
         self.editors = Editors(model, self.meshes)
         self.poses = Poses(model, PoseStore(self.conn, prefix), self.bodies)
         # use cases, each after the ones it calls
         self.customers = CustomerService(model, self.customers_repo, self.queue, self.meshes, self.bodies,
-                                         self.editors, self.poses, settings.fit_timeout)
-        self.garments = GarmentService(settings, model, self.garments_repo, self.bases, self.queue,
+                                         self.editors, self.poses, self.limits, settings.fit_timeout)
+        self.garments = GarmentService(settings, model, self.garments_repo, self.bases, self.queue, self.limits,
                                        lambda: self.examples)
         self.tryon = TryOnService(model, self.customers_repo, self.garments_repo, self.customers, self.garments,
                                   self.poses)
         self.jobs = JobService(self.queue, self.customers_repo, self.customers)
         self.editing = EditingService(model, self.customers, self.editors)
-        self.limits = Limits(settings, self.rate_limiter)
 
     @functools.cached_property
     def examples(self) -> Examples:

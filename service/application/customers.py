@@ -31,8 +31,9 @@ from .editors import Editors, build_editor
 from .auth import ANONYMOUS, Credentials, may_open, new_token
 from .errors import Conflict, Invalid, NotFound
 from .progress import MonotoneProgress, Progress
+from .limits import Limits
 from .poses import Poses
-from .uploads import TemplateAvatar, read_body_upload
+from .uploads import TemplateAvatar, read_body_upload, upload_memory
 
 log = logging.getLogger("tryon.customers")
 
@@ -49,7 +50,7 @@ def fit_job_id(cid: str) -> str:
 
 class CustomerService:
     def __init__(self, model: BodyModel, repo: CustomerRepo, queue: JobQueue, meshes: MeshStore, bodies: BodyCache,
-                 editors: Editors, poses: Poses, fit_timeout: int):
+                 editors: Editors, poses: Poses, limits: Limits, fit_timeout: int):
         self.model = model
         self.repo = repo
         self.queue = queue
@@ -57,6 +58,7 @@ class CustomerService:
         self.bodies = bodies
         self.editors = editors
         self.poses = poses
+        self.limits = limits
         self.fit_timeout = fit_timeout
 
     # -- records -----------------------------------------------------------------------------
@@ -105,8 +107,12 @@ class CustomerService:
         """An avatar mesh in the template topology -> a ready customer (``status`` ready);
         any other mesh or point cloud -> a customer being fitted by a queued job (``status``
         fitting, ``job``), with ``known`` measurements of the person (checked, API units) kept
-        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored."""
-        upload = read_body_upload(self.model, data, filename)
+        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored;
+        a requester at its cap of queued jobs gets :class:`TooManyRequests`, a file that needs
+        more memory to read than the process's budget :class:`TooLarge` (before it is parsed)."""
+        self.limits.check_jobs()
+        with self.limits.memory(upload_memory(data, filename)):
+            upload = read_body_upload(self.model, data, filename)
         if isinstance(upload, TemplateAvatar):
             if known:
                 raise Invalid(("body", next(iter(known))),
@@ -141,6 +147,7 @@ class CustomerService:
         except BaseException:
             self.repo.delete(cid)
             raise
+        self.limits.track_job(job_id)
         assert record.job is not None
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"})}), token
 

@@ -27,9 +27,10 @@ from service.storage.records import GarmentRepo, new_id
 from . import scenes
 from .errors import Conflict, Forbidden, Invalid, NotFound
 from .examples import Examples
+from .limits import Limits
 from .progress import MonotoneProgress, Progress
 from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
-                      read_garment_mesh, read_mhclo_layout, read_texture)
+                      read_garment_mesh, read_mhclo_layout, read_texture, upload_memory)
 
 
 log = logging.getLogger("tryon.garments")
@@ -55,12 +56,13 @@ def build_job_id(gid: str) -> str:
 
 class GarmentService:
     def __init__(self, settings: Settings, model: BodyModel, repo: GarmentRepo, bases: BasisStore, queue: JobQueue,
-                 examples: Callable[[], Examples]):
+                 limits: Limits, examples: Callable[[], Examples]):
         self.settings = settings
         self.model = model
         self.repo = repo
         self.bases = bases
         self.queue = queue
+        self.limits = limits
         self._examples = examples  # the example avatars, built on first use
 
     @property
@@ -147,6 +149,13 @@ class GarmentService:
     # -- creating ----------------------------------------------------------------------------
     def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
                            layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """:meth:`_create_from_meshes` within the process's memory budget for decoding uploads."""
+        need = sum(upload_memory(data, fname) for fname, data in files) + (upload_memory(*texture) if texture else 0)
+        with self.limits.memory(need):
+            return self._create_from_meshes(files, name=name, owner=owner, color=color, layer=layer, texture=texture)
+
+    def _create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
+                            layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
         """A garment fitted by the retailer to every example avatar: one mesh per example, in
         the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
         OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
@@ -280,6 +289,18 @@ class GarmentService:
     def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
                       texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """:meth:`_create_draped` for a requester under its cap of queued jobs, within the
+        process's memory budget for decoding uploads (both checked before anything is parsed)."""
+        self.limits.check_jobs()
+        need = upload_memory(garment, garment_name) + (upload_memory(avatar, avatar_name) if avatar else 0) \
+            + (upload_memory(*texture) if texture else 0)
+        with self.limits.memory(need):
+            return self._create_draped(garment, garment_name, on=on, avatar=avatar, avatar_name=avatar_name,
+                                       name=name, owner=owner, color=color, layer=layer, texture=texture)
+
+    def _create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
+                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
+                       texture: tuple[bytes, str | None] | None = None) -> Garment:
         """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
         retailer's own ``avatar`` of any topology): checked now (422 before any job), then
         carried to every example avatar by a queued build job (:meth:`run_build`). The garment
@@ -323,6 +344,7 @@ class GarmentService:
         except BaseException:
             self.repo.delete(gid)
             raise
+        self.limits.track_job(job_id)
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
                                          "progress": 0.0})
 
