@@ -3,7 +3,7 @@ under ``if TYPE_CHECKING:`` count too, being a cycle of the code if not of the r
 between any of its modules, the model's domain packages import downward only, the layers import
 downward only (api -> application -> model and storage; storage imports no application or
 api; the model no api, application or storage), and no module outside ``service/storage/``
-imports ``redis``. See docs/layout.md and docs/app.md for the layers.
+imports ``redis``. See docs/architecture.md for the layers.
 """
 from __future__ import annotations
 
