@@ -3,22 +3,20 @@ trip (the customer and the garments together), then in-process caches: the custo
 (per weights) and the garments' memory-mapped bases (per etag)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from service.model.body.model import BodyModel
 from service.model.garments import sizing as SZ
 from service.model.garments.tryon import GarmentBasis
 from service.records import Garment
-from service.storage.records import fetch
+from service.storage.records import CustomerRepo, GarmentRepo, fetch
 
 from . import look as looks
 from . import poses as _poses
 from . import scenes
 from . import sizes as sizing
 from .auth import Credentials
+from .customers import CustomerService
 from .errors import Invalid
-
-if TYPE_CHECKING:
-    from .context import Context
+from .garments import GarmentService
 
 MAX_OUTFIT_GARMENTS = 12
 # CPU budget of one outfit request (measured on one core, issue 42: 12 garments with pose
@@ -36,21 +34,27 @@ def outfit_cpu_s(n_garments: int, pose_correctives: bool) -> float:
 
 
 class TryOnService:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
+    def __init__(self, model: BodyModel, customers_repo: CustomerRepo, garments_repo: GarmentRepo,
+                 customers: CustomerService, garments: GarmentService, poses: _poses.Poses):
+        self.model = model
+        self.customers_repo = customers_repo
+        self.garments_repo = garments_repo
+        self.customers = customers
+        self.garments = garments
+        self.poses = poses
 
     def _load(self, cid: str, gids: list[str], creds: Credentials, sizes: list[str | None] | None = None,
               query: str = "size", refuse: str | None = None):
         """The customer and each garment with the basis of its size: ``sizes[i]`` (a label of
         garment i's chart; 422 listing them when unknown) or, where None, the size recommended
         for this customer (:meth:`fit_report`)."""
-        customer, garments = fetch(self.ctx.customers_repo, cid, self.ctx.garments_repo, gids)
-        record = self.ctx.customers.require_ready(self.ctx.customers.open(customer, cid, creds), cid)
+        customer, garments = fetch(self.customers_repo, cid, self.garments_repo, gids)
+        record = self.customers.require_ready(self.customers.open(customer, cid, creds), cid)
         sizes = list(sizes or [])
         loaded = []
         for i, (g, gid) in enumerate(zip(garments, gids)):
             want = sizes[i] if i < len(sizes) else None
-            g, basis = self.ctx.garments.require_ready(g, gid)
+            g, basis = self.garments.require_ready(g, gid)
             labels = g.size_labels()
             if len(labels) > 1:
                 if want is None:
@@ -62,7 +66,7 @@ class TryOnService:
                         raise Invalid(("query", query),
                                       f"garment '{gid}': {exc.message}") from exc
                 if idx != g.base_index():
-                    g, basis = self.ctx.garments.require_ready(g, gid, idx)
+                    g, basis = self.garments.require_ready(g, gid, idx)
             elif want is not None and want not in labels:
                 raise Invalid(("query", query),
                               f"garment '{gid}': unknown size '{want}'; this garment's sizes: {', '.join(labels)}")
@@ -73,21 +77,21 @@ class TryOnService:
 
     def _report(self, record, garment: Garment, basis: GarmentBasis) -> SZ.FitReport:
         """Every size of ``garment`` on the customer ``record``'s body."""
-        body = self.ctx.customers.body(record)
-        return SZ.fit_report(self.ctx.garments.size_fit(garment, basis), sizing.customer_girths(self.ctx.model, body))
+        body = self.customers.body(record)
+        return SZ.fit_report(self.garments.size_fit(garment, basis), sizing.customer_girths(self.model, body))
 
     def fit_report(self, cid: str, gid: str, creds: Credentials) -> dict:
         """How each size of a garment fits the customer: ``{recommended, sizes: [{label,
         verdict, regions: [{region, ease_cm, strain_pct, verdict}]}]}`` in chart order
         (``sizing.fit_report``)."""
-        customer, garments = fetch(self.ctx.customers_repo, cid, self.ctx.garments_repo, [gid])
-        record = self.ctx.customers.require_ready(self.ctx.customers.open(customer, cid, creds), cid)
-        g, basis = self.ctx.garments.require_ready(garments[0], gid)
+        customer, garments = fetch(self.customers_repo, cid, self.garments_repo, [gid])
+        record = self.customers.require_ready(self.customers.open(customer, cid, creds), cid)
+        g, basis = self.garments.require_ready(garments[0], gid)
         out = self._report(record, g, basis).to_dict()
         return {"garment_id": gid, "fabric": g.fabric, "base_size": g.base_size or g.size_labels()[0], **out}
 
     def _etag(self, kind: str, record, loaded: list[tuple[Garment, GarmentBasis]], compression: str | None) -> str:
-        return scenes.etag(kind, self.ctx.model.version, record.weights, compression,
+        return scenes.etag(kind, self.model.version, record.weights, compression,
                            [(g.id, basis.etag() or g.etag) for g, basis in loaded])
 
     def _page_poses(self, record, on: bool):
@@ -95,8 +99,8 @@ class TryOnService:
         that gets them, for ``scenes.outfit_glb`` to call once the outfit is layered. The page
         asks for ``/poses`` together with its first outfit: when the two requests reach
         different server processes, one adapts the poses while the other layers the outfit,
-        then waits for them (``poses.record_poses``' lock) instead of adapting them first."""
-        return (lambda: _poses.pose_arrays(_poses.record_poses(self.ctx.customers, record))) if on else None
+        then waits for them (``Poses.record_poses``' lock) instead of adapting them first."""
+        return (lambda: _poses.pose_arrays(self.poses.record_poses(record))) if on else None
 
     def garment_glb(self, cid: str, gid: str, creds: Credentials, compression: str | None,
                     if_none_match: list[str] | None = None, pose_correctives: bool = False,
@@ -109,8 +113,8 @@ class TryOnService:
                          record, loaded, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
-        body = self.ctx.customers.body(record)
-        return scenes.outfit_glb(self.ctx.model, body, loaded, compression, with_avatar=False,
+        body = self.customers.body(record)
+        return scenes.outfit_glb(self.model, body, loaded, compression, with_avatar=False,
                                  poses=self._page_poses(record, pose_correctives), fitmap=fitmap), tag
 
     def outfit_glb(self, cid: str, gids: list[str], creds: Credentials, compression: str | None,
@@ -147,5 +151,5 @@ class TryOnService:
                          + (f"|fitmap:{fitmap}" if fitmap else ""), record, layered, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
-        return scenes.outfit_glb(self.ctx.model, self.ctx.customers.body(record), layered, compression,
+        return scenes.outfit_glb(self.model, self.customers.body(record), layered, compression,
                                  look=look, poses=self._page_poses(record, pose_correctives), fitmap=fitmap), tag
