@@ -64,3 +64,47 @@ def square(size: float, n: int, y: float = 0.0):
             a, b, d, e = r * n + c, r * n + c + 1, (r + 1) * n + c, (r + 1) * n + c + 1
             F += [[a, d, b], [b, d, e]]
     return V, np.array(F, np.int64)
+
+
+def reference_static(draper, start: np.ndarray) -> np.ndarray:
+    """A slow reference solve of the same energy (``Draper.energy``: stretch, bending, gravity;
+    no body) by L-BFGS from ``start`` with the pinned vertices held: the minimiser (N, 3)."""
+    from scipy.optimize import minimize
+
+    free = np.setdiff1d(np.arange(draper.n), draper.pinned)
+    x = np.array(start, np.float64)
+
+    def f(z):
+        y = x.copy()
+        y[free] = z.reshape(-1, 3)
+        e, g = draper.energy(y)
+        return e, g[free].ravel()
+
+    res = minimize(f, x[free].ravel(), jac=True, method="L-BFGS-B",
+                   options={"maxiter": 50000, "maxfun": 100000, "ftol": 1e-16, "gtol": 1e-12})
+    y = x.copy()
+    y[free] = res.x.reshape(-1, 3)
+    return y
+
+
+def hanging_start(V: np.ndarray, pin_y: float) -> np.ndarray:
+    """A square sheet (:func:`square`, pinned along its z = min edge's corners) turned to hang
+    down in the XY plane: the start of a reference solve."""
+    z0 = V[:, 2].min()
+    out = V.copy()
+    out[:, 1] = pin_y - (V[:, 2] - z0)
+    out[:, 2] = z0
+    return out
+
+
+def square_sag(n: int = 7, size: float = 0.2, fabric: str = "knit", config=None):
+    """The square (n x n, ``size`` m) pinned at its two corners on one edge, settled by the
+    drape engine from flat and by :func:`reference_static` from hanging: (sag m, reference sag
+    m, drape result, reference vertices). Sag: pin height minus the lowest point."""
+    from service.model.drape import Config, precompute
+
+    V, F = square(size, n, y=1.0)
+    d = precompute(V, F, fabric, config or Config(max_iterations=3000, tolerance_m=5e-7), pinned=[0, n - 1])
+    r = d.solve(None, None, V)
+    y = reference_static(d, hanging_start(V, 1.0))
+    return 1.0 - float(r.vertices[:, 1].min()), 1.0 - float(y[:, 1].min()), r, y
