@@ -33,6 +33,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
              "the page's first dressed view of new customers over HTTP (outfit with pose correctives, /poses)"),
     "kernels": ("tests.bench.kernels", "run", "format_result",
                 "the compiled geometry kernels vs the numpy paths, same run: closest points, poses, outfits"),
+    "drape": ("tests.bench.drape", "run", "format_result",
+              "cloth drape engine: analytic tubes, pinned square vs a dense solve and Newton VBD, two bodies, 10k timing"),
     "load": ("tests.bench.load", "run", "format_result",
              "mixed traffic at 80 req/s against a default tryon serve: p50/p99, errors, memory (--limit: seconds)"),
 }
@@ -53,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="tryon: only the in-process try-on latency rows (template fast path vs reference)")
     ap.add_argument("--poses", choices=("anatomical", "free"), default="anatomical",
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
+    ap.add_argument("--no-newton", action="store_true", help="drape: skip the Newton VBD reference row")
     ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
     from tests.bench.fitting import before_kinds
 
@@ -76,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
              "conditions": args.conditions, "person_check": not args.no_person_check,
              "before": args.before, "poses": args.poses, "fit_params": args.fit_params, "known": args.known,
              "via_file": args.via_file} if args.suite == "fitting" else {}
+    if args.suite == "drape":
+        extra = {"newton": not args.no_newton}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")
