@@ -125,6 +125,7 @@ class Garment(Record):
     gender: str | None = None
     catalogue_id: str | None = None
     swatch: str | None = None
+    fabric: str = Field(default="woven", description="the cloth the drape uses: woven, knit or stretch")
 
 
 class Job(BaseModel):

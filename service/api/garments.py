@@ -1,7 +1,7 @@
 """The garment catalogue: list, upload (retailers), read, delete, and the clothing basis."""
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -54,6 +54,9 @@ async def create_garment(
                     "texture coordinates (vt): the 'garment', the first of 'meshes', or the mhclo's 'obj'")] = None,
     color: Annotated[str | None, Form(pattern=r"^#?[0-9a-fA-F]{6}$", description="sRGB colour #rrggbb")] = None,
     layer: Annotated[int, Form(ge=0, le=9, description="Outfit layer (0 innermost)")] = DEFAULT_LAYER,
+    fabric: Annotated[Literal["woven", "knit", "stretch"], Form(
+        description="The cloth: woven (shirting, suiting: barely stretches), knit (jersey) or stretch "
+                    "(elastane); how far the drape lets the garment stretch on each body")] = "woven",
 ) -> Garment:
     """Upload a garment: ``meshes`` (fitted to each example avatar), a MakeHuman ``mhclo`` +
     ``obj`` pair (201: its clothing basis is built and stored now), or one ``garment`` draped on
@@ -67,7 +70,7 @@ async def create_garment(
                                  "file 'avatar')")
     if garment is None and (on is not None or avatar is not None):
         raise invalid(("body", "on" if on is not None else "avatar"), "'on' and 'avatar' go with a file 'garment'")
-    common = {"name": name, "owner": retailer, "color": color, "layer": layer,
+    common = {"name": name, "owner": retailer, "color": color, "layer": layer, "fabric": fabric,
               "texture": (await texture.read(), texture.filename) if texture is not None else None}
     if garment is not None:
         g_data, g_name = await garment.read(), garment.filename

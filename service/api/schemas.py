@@ -263,6 +263,9 @@ class GarmentResponse(BaseModel):
     gender: str | None = Field(default=None, description="Demo catalogue: female, male or unisex")
     catalogue_id: str | None = Field(default=None, description="Demo catalogue: the compiled item's id")
     swatch: str | None = Field(default=None, description="Demo catalogue: thumbnail colour #rrggbb (sRGB)")
+    fabric: Literal["woven", "knit", "stretch"] = Field(
+        default="woven", description="The cloth it is draped as: woven (barely stretches), knit (jersey) or "
+                                     "stretch (elastane); see docs/drape.md")
 
 
 def attribute_ranges(body_model_path: Path | None) -> dict[str, list[float]] | None:

@@ -11,6 +11,7 @@ import numpy as np
 from typing import Any
 
 from service.model.autofit import fit_to_examples
+from service.model.drape import DrapeError, drape_examples
 from service.model.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
 from service.model.fitting import FitError, fit_body
 from service.model.mesh_io import scan_type
@@ -40,6 +41,9 @@ DEFAULT_LAYER = 1
 DEMO_OWNER = "demo"
 DEMO_LOCK_S = 120
 UPLOAD_METALLIC, UPLOAD_ROUGHNESS = 0.0, 0.85  # cloth: dielectric, rough
+# the demo catalogue's cloth, by catalogue id (jersey tops, elastane sportswear; the rest woven)
+DEMO_FABRICS = {"womens-tshirt": "knit", "cropped-tee": "knit", "mens-tshirt": "knit", "longsleeve-tee": "knit",
+                "white-tshirt": "knit", "sports-trousers": "stretch"}
 BUILD_JOB = "worker.jobs.build_garment"  # the rq job, by dotted path
 # shares of a build job's progress
 BUILD_SHARES = {"avatar_fit": 0.3, "autofit": 0.6, "basis": 0.1}
@@ -140,7 +144,8 @@ class GarmentService:
 
     # -- creating ----------------------------------------------------------------------------
     def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
-                           layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+                           layer: int, texture: tuple[bytes, str | None] | None = None,
+                           fabric: str = "woven") -> Garment:
         """A garment fitted by the retailer to every example avatar: one mesh per example, in
         the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
         OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
@@ -150,11 +155,14 @@ class GarmentService:
         tex = read_texture(*texture) if texture is not None else None
         fits, faces, unit = self._fits_from_meshes(files)
         faces, layout = _file_layout(*files[0], faces)
+        # pre-fitted meshes are the retailer's own example fits: used as they are (not draped)
         return self._build_and_store(fits, faces, name=name, owner=owner, source="meshes", color=rgba, layer=layer,
-                                     unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout))
+                                     unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout),
+                                     fabric=fabric)
 
     def create_from_mhclo(self, mhclo: bytes, obj: bytes, *, name: str, owner: str, color: str | None,
-                          layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+                          layer: int, texture: tuple[bytes, str | None] | None = None,
+                          fabric: str = "woven") -> Garment:
         """A MakeHuman garment, fitted to every example avatar through its binding; the OBJ's
         texture coordinates and the optional ``texture`` (bytes, filename) give its look."""
         name = clean_name(name)
@@ -162,7 +170,8 @@ class GarmentService:
         tex = read_texture(*texture) if texture is not None else None
         binding, faces, layout = read_mhclo_layout(self.model, mhclo, obj)
         return self._create_from_binding(binding, faces, layout, _upload_material(tex, rgba, color, layout),
-                                         name=name, owner=owner, source="mhclo", color=rgba, layer=layer)
+                                         name=name, owner=owner, source="mhclo", color=rgba, layer=layer,
+                                         fabric=fabric)
 
     def _create_from_binding(self, binding: Any, faces: np.ndarray, layout: RenderLayout | None,
                              material: Material | None, **record: Any) -> Garment:
@@ -172,7 +181,30 @@ class GarmentService:
         if not np.all(np.isfinite(fits)):
             raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
         self._check_near_bodies(fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
+        if self.ctx.settings.drape:
+            # its size: the garment as bound to the mean example avatar
+            rest = fits[self.examples.index("mean") or 0]
+            try:
+                fits = self.drape_to_examples(rest, faces, fits, record.get("fabric", "woven"))
+            except DrapeError as exc:
+                raise Invalid(("body", "mhclo"), f"the garment cannot be draped: {exc}") from None
         return self._build_and_store(fits, faces, layout=layout, material=material, **record)
+
+    def drape_to_examples(self, rest: np.ndarray, faces: np.ndarray, warp_fits: np.ndarray, fabric: str,
+                          progress: Progress | None = None) -> np.ndarray:
+        """The garment at its own size (``rest`` (N, 3), as uploaded on its body) settled on every
+        example avatar by the cloth drape engine, each solve started from the warp fit there
+        (``warp_fits`` (E, N, 3)): the example fits (E, N, 3) of its clothing basis. The one
+        place a garment meets the examples (per size, for graded garments). Raises
+        ``DrapeError`` (degenerate rest shape, a drape that cannot settle)."""
+        bodies = np.stack([self.model.body_vertices(E) for E in self.examples.vertices]).astype(np.float64)
+        cb = None if progress is None else (lambda f, msg: progress(f, msg))
+        fits, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
+                                     np.asarray(warp_fits, np.float64), bodies, self.model.body_faces, fabric,
+                                     progress=cb)
+        log.info("draped on %d examples: %.1fs, %d of them settled", len(fits),
+                 sum(s["seconds"] for s in stats), sum(bool(s["settled"]) for s in stats))
+        return fits
 
     def _fits_from_meshes(self, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:
         ex = self.examples
@@ -273,7 +305,7 @@ class GarmentService:
 
     def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
-                      texture: tuple[bytes, str | None] | None = None) -> Garment:
+                      texture: tuple[bytes, str | None] | None = None, fabric: str = "woven") -> Garment:
         """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
         retailer's own ``avatar`` of any topology): checked now (422 before any job), then
         carried to every example avatar by a queued build job (:meth:`run_build`). The garment
@@ -307,7 +339,7 @@ class GarmentService:
                          color=[float(c) for c in rgba], layer=int(layer), status="building", unit=unit,
                          textured=_textured(_upload_material(tex, rgba, color, layout), layout),
                          up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)),
-                         job=JobRef(id=job_id, url=f"/v1/jobs/{job_id}"))
+                         job=JobRef(id=job_id, url=f"/v1/jobs/{job_id}"), fabric=fabric)
         self.repo.publish(record, upload.to_bytes())
         try:
             self.ctx.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
@@ -367,12 +399,20 @@ class GarmentService:
                                      progress=progress.scaled(start, span))
         except ValueError as exc:
             return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
+        fits = result.fits
+        if self.ctx.settings.drape:
+            # its size: the garment as uploaded on the body it was draped on (in the model's frame)
+            progress(1.0 - share["basis"], "draping the garment on the example avatars")
+            try:
+                fits = self.drape_to_examples(garment, faces, fits, record.fabric)
+            except DrapeError as exc:
+                return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
         progress(1.0 - share["basis"], "building the clothing basis")
         meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
                 "layer": record.layer, "created": record.created, "id": gid, "body_model": self.model.version}
         rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
         material = _upload_material(upload.texture, rgba, None, upload.layout)
-        basis = build_garment_basis(self.model, result.fits, faces, self.examples.set, meta=meta,
+        basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta,
                                     layout=upload.layout, material=material)
         self.bases.save(gid, basis)
         ready = record.model_copy(update={"status": "ready", "error": None, "progress": None,
@@ -451,7 +491,8 @@ class GarmentService:
                 rec = self._create_from_binding(
                     item.binding, item.faces.astype(np.int32), item.render_layout(), item.material, name=item.name,
                     owner=DEMO_OWNER, source="demo", color=rgba, layer=int(item.layer or 0),
-                    category=item.category, gender=item.gender, catalogue_id=item.id, swatch=item.color)
+                    category=item.category, gender=item.gender, catalogue_id=item.id, swatch=item.color,
+                    fabric=DEMO_FABRICS.get(item.id, "woven"))
                 self.repo.set_demo_id(item.id, rec.id)
                 if old is not None:  # built for another body model: replaced
                     self.repo.delete(old.id)

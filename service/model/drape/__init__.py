@@ -7,5 +7,6 @@ contact, friction and self-contact (projective dynamics, factored once per garme
 """
 from .fabrics import FABRICS, Fabric
 from .solver import Config, DrapeError, DrapeResult, Draper, edge_strain, precompute
+from .examples import drape_examples
 
-__all__ = ["Config", "DrapeError", "DrapeResult", "Draper", "FABRICS", "Fabric", "edge_strain", "precompute"]
+__all__ = ["Config", "DrapeError", "DrapeResult", "Draper", "FABRICS", "Fabric", "drape_examples", "edge_strain", "precompute"]

@@ -71,7 +71,8 @@ class Config:
     settle_window: int = 5  # ... for this many consecutive iterations
     friction_gain: float = 10.0  # the penetration of one step read as this many steps' normal force
     max_step_m: float = 0.01  # no vertex moves farther than this in one iteration
-    contact_refresh: int = 1  # exact closest body points every this many iterations (tangent planes between)
+    contact_refresh: int = 10  # closest body points of every vertex every this many iterations ...
+    contact_near_m: float = 0.02  # ... and in between of those that may be this close to the body
     contact_k: int = 8  # nearest body vertices whose faces are searched for the closest point
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
@@ -353,8 +354,11 @@ class Draper:
                 n_over = self._strain_limit(g)
                 n_self = self._self_contact(g, refresh=refresh)
                 if body is not None:
-                    if refresh:  # tangent planes at the closest points of the (outside) start of the step
+                    # tangent planes at the closest points of the (outside) start of the step
+                    if refresh:
                         body.refresh(x)
+                    else:
+                        body.refresh_near(x, cfg.contact_near_m)
                     g, _ = body.project(g, x, slide)
                 if len(self.pinned):
                     g[self.pinned] = x_pinned
@@ -497,10 +501,26 @@ class _Body:
         self.q = self.n = None
 
     def refresh(self, x: np.ndarray) -> None:
+        """Closest points and normals of every vertex of x (N, 3)."""
+        self.q, self.n = self._query(x)
+        self.reach = np.abs(((x - self.q) * self.n).sum(1))  # how far each may move before its plane is stale
+        self.x_at = x.copy()
+
+    def refresh_near(self, x: np.ndarray, near_m: float) -> None:
+        """Refresh only the vertices that may be within ``near_m`` of the body: their distance
+        at their last refresh minus how far they moved since (the others cannot reach it)."""
+        idx = np.flatnonzero(self.reach - np.linalg.norm(x - self.x_at, axis=1) < near_m)
+        if len(idx):
+            q, n = self._query(x[idx])
+            self.q[idx], self.n[idx] = q, n
+            self.reach[idx] = np.abs(((x[idx] - q) * n).sum(1))
+            self.x_at[idx] = x[idx]
+
+    def _query(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         face, q, bary = geometry.closest_points_on_mesh(x, self.V, self.F, k=self.cfg.contact_k, tree=self.tree,
                                                         vert_faces=self.vf, bounds=self.bounds)
         n = (self.normals[self.F[face]] * bary[:, :, None]).sum(1)
-        self.q, self.n = q, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        return q, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
     def signed_distance(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
         if exact:
