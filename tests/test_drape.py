@@ -113,3 +113,26 @@ def test_a_solve_that_cannot_settle_fails_readably():
         d.solve(None, None, V)
     with pytest.raises(DrapeError, match="finite"):
         d.solve(None, None, V[:-1])
+
+
+def test_drape_examples_keeps_the_garment_size_on_each_body():
+    """drape_examples (what a build calls for every example avatar): one factorisation, one
+    solve per body, each from its warp fit; a failing body names its example."""
+    from service.model.drape import drape_examples
+
+    na, nh, Rg = 32, 6, 0.15
+    V, F = tube(Rg, 0.2, na, nh)
+    bodies, inits = [], []
+    for Rb in (0.155, 0.16):
+        BV, BF = cylinder(Rb, -0.3, 0.6, n_around=64, n_height=12)
+        bodies.append(BV)
+        init = V.copy()
+        init[:, [0, 2]] *= (Rb + 0.002) / Rg
+        inits.append(init)
+    fits, stats = drape_examples(V, F, np.stack(inits), np.stack(bodies), BF, "knit")
+    assert fits.shape == (2, len(V), 3) and fits.dtype == np.float32 and len(stats) == 2
+    for fit, Rb in zip(fits, (0.155, 0.16)):
+        hoop = ring_girth(fit.astype(np.float64), nh // 2, na) / ring_girth(V, nh // 2, na) - 1
+        assert abs(hoop - (Rb / Rg - 1)) < 0.005
+    with pytest.raises(DrapeError, match="example avatar 1"):
+        drape_examples(V, F, np.stack([inits[0], inits[1] * np.nan]), np.stack(bodies), BF, "knit")
