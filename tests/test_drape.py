@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.model import geometry
+from service.model.geometry import mesh as geometry
 from service.model.drape import FABRICS, Config, DrapeError, DrapeResult, Fabric, edge_strain, precompute
 from tests.drape_cases import cylinder, revolved_body, ring_girth, square, square_sag, tube
 

@@ -68,7 +68,7 @@ def self_intersections(V: np.ndarray, F: np.ndarray) -> int:
 def _inside(x: np.ndarray, BV: np.ndarray, BF: np.ndarray, depth_m: float = 0.001) -> int:
     """Garment vertices more than ``depth_m`` inside the closed body (winding number > 0.5 and
     farther than ``depth_m`` from the surface)."""
-    from service.model import geometry
+    from service.model.geometry import mesh as geometry
 
     w = geometry.winding_numbers(x, BV, BF)
     cand = np.flatnonzero(w > 0.5)
@@ -177,9 +177,9 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
                                    "garment_girth_cm": 90.0}
 
     # 6. a ~10k-vertex garment from its warp fit on an example avatar
-    from service.model.body import load_body_model
-    from service.model.catalogue import load_catalogue
-    from service.model.tryon import example_set, example_vertices
+    from service.model.body.model import load_body_model
+    from service.model.garments.catalogue import load_catalogue
+    from service.model.garments.tryon import example_set, example_vertices
 
     m = load_body_model()
     E = example_vertices(m, example_set(m))

@@ -25,11 +25,21 @@ def square_sag(V: np.ndarray, F: np.ndarray, pinned: list[int], density_kg_m2: f
     """Settle the sheet (V (N, 3) m, Y up; F (F, 3)) pinned at ``pinned`` under gravity with
     Newton's VBD solver; returns the final vertices, the sag (pin height - lowest point), the
     largest speed at the end (m/s; settled when small) and the wall time."""
+    import contextlib
+    import io
+
+    import warp as wp
+
+    wp.config.quiet = True  # Warp's banner and module loads go to stdout: keep --json clean
+    with contextlib.redirect_stdout(io.StringIO()):
+        return _square_sag(V, F, pinned, density_kg_m2, stretch_n_m, bending_nm, seconds, fps, substeps, device)
+
+
+def _square_sag(V, F, pinned, density_kg_m2, stretch_n_m, bending_nm, seconds, fps, substeps, device) -> dict:
     import warp as wp
 
     import newton
 
-    wp.config.quiet = True
     t0 = time.perf_counter()
     builder = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=(0.0, -9.81, 0.0))
     builder.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),

@@ -20,8 +20,8 @@ PD Eq. 8-9 without momentum), so the global matrix
 
     K = sum_t k_s A_t G_t^T G_t + L^T diag(B / A_i) L + diag(m_i / h^2)          (PD Eq. 10)
 
-depends on the garment only and is factored once (CHOLMOD where scikit-sparse is installed, else
-SuperLU) and reused for every body and every iteration. A fixed point is a stationary point of
+depends on the garment only and is factored once (``geometry.solvers.factor_spd``: CHOLMOD where
+scikit-sparse is installed, else SuperLU) and reused for every body and every iteration. A fixed point is a stationary point of
 E alone (the proximal term vanishes there). Contact and friction are position projections after
 each global step (the strain limit first, then self-contact, then the body; Macklin et al., "Unified Particle Physics for Real-Time Applications", 2014,
 Sec. 6.1 friction: tangential displacement cancelled up to mu times the penetration depth).
@@ -38,14 +38,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model import geometry
+from service.model.geometry import mesh as geometry
+from service.model.geometry.solvers import factor_spd
 
 from .fabrics import Fabric, fabric as _fabric
-
-try:  # CHOLMOD (scikit-sparse): ~2x faster factor and solve than SuperLU
-    from sksparse.cholmod import cholesky as _cholmod
-except Exception:  # pragma: no cover - depends on the install
-    _cholmod = None
 
 GRAVITY_M_S2 = 9.81  # standard gravity
 
@@ -170,20 +166,6 @@ def _normals(x: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix) -> np.n
     return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-30)
 
 
-class _Factor:
-    """A prefactored SPD matrix: CHOLMOD where available, else SuperLU."""
-
-    def __init__(self, K: sp.csc_matrix):
-        self.kind = "cholmod" if _cholmod is not None else "splu"
-        if _cholmod is not None:
-            self._f = _cholmod(K)
-            self.solve = self._f
-        else:
-            from scipy.sparse.linalg import splu
-            self._f = splu(K)
-            self.solve = self._f.solve
-
-
 def _polar(Fm: np.ndarray) -> np.ndarray:
     """The closest rotations (T, 3, 2) (orthonormal columns, U V^T of the thin SVD) to
     deformation gradients (T, 3, 2), in closed form: R = F (F^T F)^(-1/2), the 2 x 2 square root
@@ -254,7 +236,7 @@ class Draper:
             # One proximal step resolves only part of the normal force (the rest of the hoop
             # tension comes over the next steps), hence `friction_gain`
             slide = np.full(N, fab.friction * cfg.friction_gain)
-            self.levels.append((float(level), _Factor(K[self.free][:, self.free].tocsc()), K_fp, slide))
+            self.levels.append((float(level), factor_spd(K[self.free][:, self.free]), K_fp, slide))
         self.factor = self.levels[-1][1]
         self.gravity_force = self.mass[:, None] * np.asarray(cfg.gravity, np.float64)[None, :]
         # self-contact exclusions: vertex pairs within `self_rings` edges (always close in any drape)
@@ -415,7 +397,7 @@ class Draper:
         stats = {"iterations": it, "settled": bool(settled), "last_move_mm": 1000 * moves[-1] if moves else 0.0,
                  "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self), "over_limit_edges": int(n_over), "anderson_restarts": restarts,
                  "energy_j": e, "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s,
-                 "local_s": t_local, "global_s": t_global, "contact_s": t_contact, "factor": self.factor.kind, "levels": n_levels,
+                 "local_s": t_local, "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
                  "fabric": fab.name}
         return DrapeResult(vertices=x.astype(np.float32), stats=stats)
 
