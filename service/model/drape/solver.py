@@ -68,7 +68,8 @@ class Config:
     friction_gain: float = 10.0  # the penetration of one step read as this many steps' normal force
     max_step_m: float = 0.01  # no vertex moves farther than this in one iteration
     contact_refresh: int = 10  # closest body points of every vertex every this many iterations ...
-    contact_near_m: float = 0.02  # ... and in between of those that may be this close to the body
+    contact_near_m: float = 0.02  # ... and in between of those that may be this close to the body ...
+    contact_moved_m: float = 0.0005  # ... and have moved more than this since their last refresh
     contact_k: int = 8  # nearest body vertices whose faces are searched for the closest point
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
@@ -340,7 +341,7 @@ class Draper:
                     if refresh:
                         body.refresh(x)
                     else:
-                        body.refresh_near(x, cfg.contact_near_m)
+                        body.refresh_near(x, cfg.contact_near_m, cfg.contact_moved_m)
                     g, _ = body.project(g, x, slide)
                 if len(self.pinned):
                     g[self.pinned] = x_pinned
@@ -488,10 +489,12 @@ class _Body:
         self.reach = np.abs(((x - self.q) * self.n).sum(1))  # how far each may move before its plane is stale
         self.x_at = x.copy()
 
-    def refresh_near(self, x: np.ndarray, near_m: float) -> None:
-        """Refresh only the vertices that may be within ``near_m`` of the body: their distance
-        at their last refresh minus how far they moved since (the others cannot reach it)."""
-        idx = np.flatnonzero(self.reach - np.linalg.norm(x - self.x_at, axis=1) < near_m)
+    def refresh_near(self, x: np.ndarray, near_m: float, moved_m: float) -> None:
+        """Refresh only the vertices that may be within ``near_m`` of the body (their distance
+        at their last refresh minus how far they moved since: the others cannot reach it) and
+        have moved more than ``moved_m`` since (a resting vertex keeps its plane)."""
+        moved = np.linalg.norm(x - self.x_at, axis=1)
+        idx = np.flatnonzero((self.reach - moved < near_m) & (moved > moved_m))
         if len(idx):
             q, n = self._query(x[idx])
             self.q[idx], self.n[idx] = q, n
