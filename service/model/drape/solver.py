@@ -9,10 +9,11 @@ The garment's rest shape (edge lengths, angles, curvature as uploaded) is its si
 
 is minimised subject to a strain limit (no edge longer than the fabric's stretch limit allows:
 Provot, "Deformation constraints in a mass-spring model to describe rigid cloth behavior", GI
-1995, edges shortened after each step), one-sided body contact (every vertex at least ``clearance`` outside the
-body), Coulomb friction against the body and vertex-vertex self-contact. F_t is the deformation
-gradient of triangle t (3 x 2, against its rest frame), R_t its closest rotation, L the rest cotangent Laplacian, h0_i the
-rest signed mean-curvature magnitude, n_i the current vertex normal, m_i = rho A_i.
+1995, edges shortened after each step), one-sided body contact (every vertex at least
+``clearance`` outside the body), Coulomb friction against the body and vertex-vertex
+self-contact. F_t is the deformation gradient of triangle t (3 x 2, against its rest frame),
+R_t its closest rotation, L the rest cotangent Laplacian, h0_i the rest signed mean-curvature
+magnitude, n_i the current vertex normal, m_i = rho A_i.
 
 Static equilibrium is reached by proximal local/global iterations: each iteration adds
 w_i / 2 ||x_i - x_i^k||^2 with w_i = m_i / h^2 (an implicit Euler step with all velocity damped,
@@ -20,11 +21,16 @@ PD Eq. 8-9 without momentum), so the global matrix
 
     K = sum_t k_s A_t G_t^T G_t + L^T diag(B / A_i) L + diag(m_i / h^2)          (PD Eq. 10)
 
-depends on the garment only and is factored once (``geometry.solvers.factor_spd``: CHOLMOD where
-scikit-sparse is installed, else SuperLU) and reused for every body and every iteration. A fixed point is a stationary point of
-E alone (the proximal term vanishes there). Contact and friction are position projections after
-each global step (the strain limit first, then self-contact, then the body; Macklin et al., "Unified Particle Physics for Real-Time Applications", 2014,
-Sec. 6.1 friction: tangential displacement cancelled up to mu times the penetration depth).
+depends on the garment only and is factored once (``geometry.solvers.factor_spd``: CHOLMOD
+where scikit-sparse is installed, else SuperLU) and reused for every body and every iteration.
+A fixed point is a stationary point of E alone (the proximal term vanishes there). PD's fixed
+matrix is as stiff against rotations as against stretch, so stiff cloth that has to turn
+converges slowly: the membrane stiffness is continued from soft to the fabric's (one factor per
+level), and solves without a body are Anderson-accelerated (Peng et al. 2018). Contact and
+friction are position projections after each global step (the strain limit first, then
+self-contact, then the body; Macklin et al., "Unified Particle Physics for Real-Time
+Applications", 2014, Sec. 6.1 friction: tangential displacement cancelled up to mu times the
+penetration depth).
 
 Shapes: rest and current vertices (N, 3) metres, Y up; faces (F, 3) int; body (B, 3), (G, 3).
 """
@@ -394,11 +400,12 @@ class Draper:
             if max_inside > cfg.max_inside_m:
                 raise DrapeError(f"the drape ends with garment vertices {1000 * max_inside:.1f} mm inside the body "
                                  f"(limit {1000 * cfg.max_inside_m:.1f} mm): the garment cannot be placed on it")
-        e, g = self.energy(x)
+        e, _ = self.energy(x)
         stats = {"iterations": it, "settled": bool(settled), "last_move_mm": 1000 * moves[-1] if moves else 0.0,
-                 "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self), "over_limit_edges": int(n_over), "anderson_restarts": restarts,
-                 "energy_j": e, "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s,
-                 "local_s": t_local, "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
+                 "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self),
+                 "over_limit_edges": int(n_over), "anderson_restarts": restarts, "energy_j": e,
+                 "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s, "local_s": t_local,
+                 "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
                  "fabric": fab.name}
         return DrapeResult(vertices=x.astype(np.float32), stats=stats)
 
