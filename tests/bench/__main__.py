@@ -40,6 +40,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
                 "the compiled geometry kernels vs the numpy paths, same run: closest points, poses, outfits"),
     "drape": ("tests.bench.drape", "run", "format_result",
               "cloth drape engine: analytic tubes, pinned square vs a dense solve and Newton VBD, two bodies, 10k timing"),
+    "hostile": ("tests.bench.hostile", "run", "format_result",
+                "a default tryon serve tried as an attacker would: size bombs, slow bodies, spoofing, floods, logs"),
     "load": ("tests.bench.load", "run", "format_result",
              "mixed traffic at 80 req/s against a default tryon serve: p50/p99, errors, memory (--limit: seconds)"),
 }
