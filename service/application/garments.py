@@ -198,7 +198,7 @@ class GarmentService:
         if not np.all(np.isfinite(fits)):
             raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
         self._check_near_bodies(fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
-        if self.ctx.settings.drape:
+        if self.settings.drape:
             # its size: the garment as bound to the mean example avatar
             rest = fits[self.examples.index("mean") or 0]
             try:
@@ -431,7 +431,7 @@ class GarmentService:
         except ValueError as exc:
             return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
         fits = result.fits
-        if self.ctx.settings.drape:
+        if self.settings.drape:
             # its size: the garment as uploaded on the body it was draped on (in the model's frame)
             progress(1.0 - share["basis"], "draping the garment on the example avatars")
             try:
