@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -69,9 +70,17 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 OUTSIDE_STATE_ENV = ("REDIS_URL", "TRYON_REDIS_PREFIX", "TRYON_DATA_DIR")
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def pytest_configure(config: pytest.Config) -> None:
     for var in OUTSIDE_STATE_ENV:
         os.environ.pop(var, None)
+    # SIGTERM (a CI timeout, `timeout`) ends the run as Ctrl-C does: fixtures tear down (servers,
+    # workers, redis-servers stopped) and the session's redis-server is shut down.
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _interrupt)
     config.addinivalue_line("markers", "slow: real processes, browsers, builds or whole fits (run with --full)")
 
 

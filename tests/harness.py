@@ -74,14 +74,19 @@ class RedisServer:
         self.binary = redis_server_binary()
         self.proc: subprocess.Popen | None = None
 
-    def url(self, db: int = 0) -> str:
+    @property
+    def url(self) -> str:
+        """The ``REDIS_URL`` of DB 0."""
+        return self.db_url(0)
+
+    def db_url(self, db: int) -> str:
         """The ``REDIS_URL`` of DB ``db``."""
         if self.socket is not None:
             return f"unix://{self.socket}?db={db}"
         return f"redis://127.0.0.1:{self.port}/{db}"
 
     def client(self, db: int = 0, **kw: Any) -> redis.Redis:
-        return redis.Redis.from_url(self.url(db), **kw)
+        return redis.Redis.from_url(self.db_url(db), **kw)
 
     def start(self) -> None:
         listen = (["--port", "0", "--unixsocket", str(self.socket), "--unixsocketperm", "700"]
@@ -100,7 +105,7 @@ class RedisServer:
                 pass
             if time.monotonic() > deadline or self.proc.poll() is not None:
                 self.stop()
-                raise HarnessError(f"redis-server at {self.url()} did not start")
+                raise HarnessError(f"redis-server at {self.url} did not start")
             time.sleep(0.02)
 
     def stop(self) -> None:
@@ -195,7 +200,7 @@ def stop_session_redis() -> None:
 
 def redis_url(db: int) -> str:
     """The ``REDIS_URL`` of DB ``db`` of the session's redis-server (see :func:`redis_db`)."""
-    return SESSION_REDIS.server().url(db)
+    return SESSION_REDIS.server().db_url(db)
 
 
 @contextmanager

@@ -1,7 +1,6 @@
 """Clothing bases, synthesis, push-out, MakeHuman bindings, demo garments, avatar projection."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,8 +8,9 @@ import pytest
 from service.model import avatar_io, demo_garments as D, garment as G, mhclo, lbs, tryon as T
 
 from service.model.geometry import vertex_faces, vertex_normals
+from tests.bench.common import shared_data_dir
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = shared_data_dir()
 
 
 
