@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.application.scenes import obj_text
-from service.model.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.settings import Settings
 from tests import draped_data as D
 from tests.harness import RETAILERS, assert_422, redis_db, redis_url
@@ -128,7 +128,7 @@ def _textured_obj(model) -> tuple[bytes, np.ndarray]:
 
 
 def _texture() -> bytes:
-    from service.model.catalogue import DEFAULT_CATALOGUE_DIR
+    from service.model.garments.catalogue import DEFAULT_CATALOGUE_DIR
 
     return (DEFAULT_CATALOGUE_DIR / "textures" / "womens-tshirt.jpg").read_bytes()
 
@@ -137,6 +137,9 @@ def _assert_textured_glb(glb_bytes: bytes, texture: bytes, validate_glb) -> dict
     """Validator-clean, the uploaded texture embedded once, and one double-sided mesh with UVs
     in [0, 1] whose base-colour texture is that image (an outfit also carries the avatar's look,
     with images of its own)."""
+    from service.application.uploads import read_texture
+
+    texture = read_texture(texture, "t").data  # as stored: decoded and re-encoded
     report = validate_glb(glb_bytes)
     assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]
     glb = read_glb(glb_bytes)
@@ -227,8 +230,8 @@ def test_bad_textures_get_422(client: TestClient, model) -> None:
 
 
 def test_draped_glb_keeps_embedded_texture(client: TestClient, model, validate_glb) -> None:
-    from service.model.catalogue import Material, Texture
-    from service.model.gltf import mesh_to_glb
+    from service.model.garments.catalogue import Material, Texture
+    from service.model.formats.gltf import mesh_to_glb
 
     draped = D.on_mean(model)
     G, faces = draped.reference, D.binding(model)[1]

@@ -9,15 +9,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.model import gltf
-from service.model.body import BONES, BodyModel
-from service.model.frames import rotation_to_y
-from service.model.geometry import vertex_normals
-from service.model.fitting import FitError, FitResult, fit_body
-from service.model.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
-from service.model.scan_cleanup import kept_faces
-from service.model.shape import MeasurementError, avatar_from_measurements, estimate_gender
-from service.model.tryon import CustomerBody, customer_body
+from service.model.formats import gltf
+from service.model.body.model import BONES, BodyModel
+from service.model.formats.frames import rotation_to_y
+from service.model.geometry.mesh import vertex_normals
+from service.model.fitting.checks import FitError
+from service.model.fitting.fit import FitResult, fit_body
+from service.model.formats.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
+from service.model.fitting.scan_cleanup import kept_faces
+from service.model.body.shape import MeasurementError, avatar_from_measurements, estimate_gender
+from service.model.garments.tryon import CustomerBody, customer_body
 from service.records import Customer, FitStats, JobRef, ScanInfo
 from service.storage.cache import VersionedLRU
 from service.storage.records import new_id
@@ -28,7 +29,7 @@ from .editing import build_editor
 from .auth import ANONYMOUS, Credentials, may_open, new_token
 from .errors import Conflict, Invalid, NotFound
 from .progress import MonotoneProgress, Progress
-from .uploads import TemplateAvatar, read_body_upload
+from .uploads import TemplateAvatar, read_body_upload, upload_memory
 
 if TYPE_CHECKING:
     from .context import Context
@@ -119,8 +120,12 @@ class CustomerService:
         """An avatar mesh in the template topology -> a ready customer (``status`` ready);
         any other mesh or point cloud -> a customer being fitted by a queued job (``status``
         fitting, ``job``), with ``known`` measurements of the person (checked, API units) kept
-        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored."""
-        upload = read_body_upload(self.model, data, filename)
+        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored;
+        a requester at its cap of queued jobs gets :class:`TooManyRequests`, a file that needs
+        more memory to read than the process's budget :class:`TooLarge` (before it is parsed)."""
+        self.ctx.limits.check_jobs()
+        with self.ctx.limits.memory(upload_memory(data, filename)):
+            upload = read_body_upload(self.model, data, filename)
         if isinstance(upload, TemplateAvatar):
             if known:
                 raise Invalid(("body", next(iter(known))),
@@ -155,6 +160,7 @@ class CustomerService:
         except BaseException:
             self.repo.delete(cid)
             raise
+        self.ctx.limits.track_job(job_id)
         assert record.job is not None
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"})}), token
 

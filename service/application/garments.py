@@ -10,12 +10,13 @@ import numpy as np
 
 from typing import Any
 
-from service.model.autofit import fit_to_examples
-from service.model.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
-from service.model.fitting import FitError, fit_body
-from service.model.mesh_io import scan_type
-from service.model.frames import unit_against
-from service.model.tryon import GarmentBasis, build_garment_basis, refresh_skinning
+from service.model.garments.autofit import fit_to_examples
+from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
+from service.model.fitting.checks import FitError
+from service.model.fitting.fit import fit_body
+from service.model.formats.mesh_io import scan_type
+from service.model.formats.frames import unit_against
+from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
 from service.storage.records import new_id
 
@@ -24,7 +25,7 @@ from .errors import Conflict, Forbidden, Invalid, NotFound
 from .examples import Examples
 from .progress import MonotoneProgress, Progress
 from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
-                      read_garment_mesh, read_mhclo_layout, read_texture)
+                      read_garment_mesh, read_mhclo_layout, read_texture, upload_memory)
 
 if TYPE_CHECKING:
     from .context import Context
@@ -141,6 +142,13 @@ class GarmentService:
     # -- creating ----------------------------------------------------------------------------
     def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
                            layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """:meth:`_create_from_meshes` within the process's memory budget for decoding uploads."""
+        need = sum(upload_memory(data, fname) for fname, data in files) + (upload_memory(*texture) if texture else 0)
+        with self.ctx.limits.memory(need):
+            return self._create_from_meshes(files, name=name, owner=owner, color=color, layer=layer, texture=texture)
+
+    def _create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
+                            layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
         """A garment fitted by the retailer to every example avatar: one mesh per example, in
         the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
         OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
@@ -274,6 +282,18 @@ class GarmentService:
     def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
                       texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """:meth:`_create_draped` for a requester under its cap of queued jobs, within the
+        process's memory budget for decoding uploads (both checked before anything is parsed)."""
+        self.ctx.limits.check_jobs()
+        need = upload_memory(garment, garment_name) + (upload_memory(avatar, avatar_name) if avatar else 0) \
+            + (upload_memory(*texture) if texture else 0)
+        with self.ctx.limits.memory(need):
+            return self._create_draped(garment, garment_name, on=on, avatar=avatar, avatar_name=avatar_name,
+                                       name=name, owner=owner, color=color, layer=layer, texture=texture)
+
+    def _create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
+                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
+                       texture: tuple[bytes, str | None] | None = None) -> Garment:
         """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
         retailer's own ``avatar`` of any topology): checked now (422 before any job), then
         carried to every example avatar by a queued build job (:meth:`run_build`). The garment
@@ -317,6 +337,7 @@ class GarmentService:
         except BaseException:
             self.repo.delete(gid)
             raise
+        self.ctx.limits.track_job(job_id)
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
                                          "progress": 0.0})
 
@@ -425,7 +446,7 @@ class GarmentService:
 
     def ensure_demo(self) -> list[str]:
         """Build and store the demo catalogue (the compiled MakeHuman garments, see
-        ``service.model.catalogue``) where missing or built for another body model, through the
+        ``service.model.garments.catalogue``) where missing or built for another body model, through the
         path a retailer's ``.mhclo`` upload takes (fitted to every example avatar by its
         binding, checked, basis built), keyed by catalogue item id, with its UVs, material,
         category, gender and layer (idempotent; one process builds, the others wait on the

@@ -1,22 +1,59 @@
-"""Rate limits on the expensive routes (an avatar fit, a new customer, an upload): per client
-(its IP address, as the server sees it behind trusted proxies) and, for requests with a valid
-``X-API-Key``, per retailer instead. Shared across processes and hosts (Redis counters)."""
+"""Limits per client (its IP address, as the server sees it behind trusted proxies) and, for
+requests with a valid ``X-API-Key``, per retailer instead: rate limits on the expensive routes
+(an avatar fit, a new customer, an upload; Redis counters shared across processes and hosts),
+caps on the jobs one of them may have queued or running (Redis), expensive requests one of
+them may have in progress in one process, and the process's memory budget for decoding
+uploads."""
 from __future__ import annotations
 
 import math
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from .errors import TooManyRequests
+from .errors import TooLarge, TooManyRequests, Unavailable
 
 if TYPE_CHECKING:
     from .context import Context
 
 BURST_FACTOR = 2.0  # a client may send this many seconds' worth of requests at once
+JOBS_RETRY_AFTER_S = 10  # Retry-After of a refusal for too many queued jobs
+BUSY_RETRY_AFTER_S = 1  # Retry-After of a refusal for too many expensive requests at once
+MEMORY_RETRY_AFTER_S = 2  # Retry-After when uploads being decoded hold the memory budget
+ENDED_JOB_STATES = ("finished", "failed", "stopped", "canceled")
+JOB_TRACK_FACTOR = 4  # a tracked job is forgotten after this many job timeouts (its retries included)
+
+
+@dataclass(frozen=True)
+class Requester:
+    """Who a request counts against: its retailer (a valid API key) or else its client address."""
+
+    client: str | None
+    retailer: str | None
+
+    @property
+    def bucket(self) -> str:
+        return f"retailer:{self.retailer}" if self.retailer is not None else f"client:{self.client or 'unknown'}"
+
+    @property
+    def who(self) -> str:
+        return f"retailer '{self.retailer}'" if self.retailer is not None else "this client"
+
+
+# set by the expensive routes' dependency; read by the use cases that queue jobs
+current_requester: ContextVar[Requester | None] = ContextVar("current_requester", default=None)
 
 
 class Limits:
     def __init__(self, ctx: "Context"):
         self.ctx = ctx
+        self._lock = threading.Lock()
+        self._running: dict[str, int] = {}
+        self._memory = 0
 
     def check(self, client: str | None, retailer: str | None) -> None:
         """Count one expensive request; :class:`TooManyRequests` (429 + Retry-After) when the
@@ -32,3 +69,92 @@ class Limits:
         if wait > 0:
             raise TooManyRequests(f"rate limit of {rate:g} requests/s for {who} on this route reached; retry in "
                                   f"{math.ceil(wait)} s", retry_after=wait)
+
+    # -- expensive requests at once (per process) ------------------------------------------------
+    @contextmanager
+    def slot(self, requester: Requester) -> Iterator[None]:
+        """Hold one of the requester's ``TRYON_MAX_EXPENSIVE_CLIENT`` slots of this process while
+        an expensive request runs; :class:`TooManyRequests` when all are taken."""
+        cap = self.ctx.settings.max_expensive_client
+        with self._lock:
+            n = self._running.get(requester.bucket, 0)
+            if n >= cap:
+                raise TooManyRequests(f"{requester.who} already has {n} expensive requests in progress; at most "
+                                      f"{cap} at once", retry_after=BUSY_RETRY_AFTER_S)
+            self._running[requester.bucket] = n + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                left = self._running.get(requester.bucket, 1) - 1
+                if left > 0:
+                    self._running[requester.bucket] = left
+                else:
+                    self._running.pop(requester.bucket, None)
+
+    # -- queued jobs (all processes: Redis) ------------------------------------------------------
+    def _jobs_key(self, requester: Requester) -> str:
+        return f"{self.ctx.settings.redis_prefix}jobs:{requester.bucket}"
+
+    def _live_jobs(self, requester: Requester) -> int:
+        """The requester's tracked jobs still queued or running (ended or vanished ones are
+        forgotten)."""
+        s = self.ctx.settings
+        key = self._jobs_key(requester)
+        oldest = time.time() - JOB_TRACK_FACTOR * max(s.fit_timeout, s.garment_timeout)
+        conn = self.ctx.conn
+        conn.zremrangebyscore(key, "-inf", oldest)
+        live = 0
+        for raw in conn.zrange(key, 0, -1):
+            job_id = raw.decode() if isinstance(raw, bytes) else str(raw)
+            job = self.ctx.queue.fetch(job_id)
+            status = None if job is None else job.get_status(refresh=False)
+            if job is None or str(getattr(status, "value", status)) in ENDED_JOB_STATES:
+                conn.zrem(key, job_id)
+            else:
+                live += 1
+        return live
+
+    def check_jobs(self) -> None:
+        """Before an upload that queues a job is parsed: :class:`TooManyRequests` (429 +
+        Retry-After) when the requester of this request already has its cap of jobs queued or
+        running (``TRYON_MAX_QUEUED_CLIENT`` / ``TRYON_MAX_QUEUED_RETAILER``)."""
+        requester = current_requester.get()
+        if requester is None:
+            return
+        s = self.ctx.settings
+        cap = s.max_queued_retailer if requester.retailer is not None else s.max_queued_client
+        live = self._live_jobs(requester)
+        if live >= cap:
+            raise TooManyRequests(f"{requester.who} has {live} jobs queued or running; at most {cap}: retry when "
+                                  "one is done", retry_after=JOBS_RETRY_AFTER_S)
+
+    def track_job(self, job_id: str) -> None:
+        """Count a job just queued against this request's requester."""
+        requester = current_requester.get()
+        if requester is None:
+            return
+        key = self._jobs_key(requester)
+        self.ctx.conn.zadd(key, {job_id: time.time()})
+        self.ctx.conn.expire(key, JOB_TRACK_FACTOR * max(self.ctx.settings.fit_timeout,
+                                                         self.ctx.settings.garment_timeout))
+
+    # -- memory for decoding uploads (per process) -----------------------------------------------
+    @contextmanager
+    def memory(self, nbytes: int) -> Iterator[None]:
+        """Reserve ``nbytes`` of the process's ``TRYON_MEMORY_BUDGET_MB`` while an upload is
+        decoded: :class:`TooLarge` (413) when one upload alone needs more, :class:`Unavailable`
+        (503 + Retry-After) when uploads being decoded hold too much of it now."""
+        budget = self.ctx.settings.memory_budget_mb * 1024 * 1024
+        if nbytes > budget:
+            raise TooLarge(f"this upload needs about {nbytes // 2**20} MiB to read; this server reads at most "
+                           f"{budget // 2**20} MiB at once (decimate the mesh or split the upload)")
+        with self._lock:
+            if self._memory + nbytes > budget:
+                raise Unavailable("the server is reading other uploads; retry shortly", retry_after=MEMORY_RETRY_AFTER_S)
+            self._memory += nbytes
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._memory -= nbytes

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from service.model.tryon import GarmentBasis
+from service.model.garments.tryon import GarmentBasis
 from service.records import Garment
 from service.storage.records import fetch
 
@@ -19,6 +19,18 @@ if TYPE_CHECKING:
     from .context import Context
 
 MAX_OUTFIT_GARMENTS = 12
+# CPU budget of one outfit request (measured on one core, issue 42: 12 garments with pose
+# targets cost 11-14 s): layering one garment over the others, and one pose target of one
+# garment (doc of pose_correctives: 40-160 ms per garment and pose; the upper end here).
+LAYER_CPU_S = 0.3
+POSE_TARGET_CPU_S = 0.16
+PAGE_POSES = 4  # the page's pose presets (web_client/poses.json)
+MAX_REQUEST_CPU_S = 6.0
+
+
+def outfit_cpu_s(n_garments: int, pose_correctives: bool) -> float:
+    """Estimated CPU seconds of an outfit of ``n_garments`` not cached yet."""
+    return n_garments * (LAYER_CPU_S + (PAGE_POSES * POSE_TARGET_CPU_S if pose_correctives else 0.0))
 
 
 class TryOnService:
@@ -66,6 +78,11 @@ class TryOnService:
         ids = list(dict.fromkeys(g.strip() for g in gids if g.strip()))
         if len(ids) > MAX_OUTFIT_GARMENTS:
             raise Invalid(("query", "garments"), f"at most {MAX_OUTFIT_GARMENTS} garments per outfit")
+        cost = outfit_cpu_s(len(ids), pose_correctives)
+        if cost > MAX_REQUEST_CPU_S:
+            most = int(MAX_REQUEST_CPU_S // outfit_cpu_s(1, pose_correctives))
+            raise Invalid(("query", "garments"), f"{len(ids)} garments with pose_correctives cost about {cost:.0f} s "
+                                                 f"of CPU; at most {most} garments per outfit with pose_correctives")
         record, loaded = self._load(cid, ids, creds)
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
