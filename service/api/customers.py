@@ -18,7 +18,6 @@ from service.api.deps import (Compression, CredentialsDep, CustomersDep, Editing
                               Expensive)
 from service.api.errors import invalid
 from service.api.schemas import AvatarRequest, CustomerResponse, EditRequest
-from service.application import poses as _poses
 from service.application.errors import Conflict, Invalid, NotFound
 from service.application.uploads import (KNOWN_FIELD_DOC, KNOWN_FIELDS, SCAN_FORMATS, parse_bool, parse_gender,
                                          parse_known_measurements)
@@ -159,7 +158,7 @@ def customer_poses(cid: str, customers: CustomersDep, creds: CredentialsDep) -> 
     ``{preset: {bone: [x, y, z]}}``, local rotations of the 17 bones as axis-angle (radians;
     the bones' rest frames are the world axes: Y up, facing +Z). Each arm's abduction is
     increased until no arm vertex is inside the torso or thighs."""
-    return _poses.customer_poses(customers, cid, creds)
+    return customers.page_poses(cid, creds)
 
 
 @router.delete("/v1/customers/{cid}", status_code=204, response_class=Response,

@@ -20,7 +20,7 @@ from service.application.customers import CustomerService
 from service.application.editing import EditingService
 from service.application.garments import GarmentService
 from service.application.jobs import JobService
-from service.application.limits import Requester, current_requester
+from service.application.limits import Limits, Requester, current_requester
 from service.application.tryon import TryOnService
 from service.model.body.model import BodyModel, load_body_model
 from service.settings import Settings, get_settings
@@ -73,11 +73,16 @@ async def get_editing(ctx: ContextDep) -> EditingService:
     return ctx.editing
 
 
+async def get_limits(ctx: ContextDep) -> Limits:
+    return ctx.limits
+
+
 CustomersDep = Annotated[CustomerService, Depends(get_customers)]
 GarmentsDep = Annotated[GarmentService, Depends(get_garments)]
 TryOnDep = Annotated[TryOnService, Depends(get_tryon)]
 JobsDep = Annotated[JobService, Depends(get_jobs)]
 EditingDep = Annotated[EditingService, Depends(get_editing)]
+LimitsDep = Annotated[Limits, Depends(get_limits)]
 
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="Retailer API key (TRYON_RETAILER_KEYS)")
 
@@ -141,26 +146,26 @@ def requester_of(request: Request, settings: Settings, key: str | None) -> Reque
     return Requester(client=request.client.host if request.client else None, retailer=retailer)
 
 
-async def expensive(request: Request, ctx: ContextDep, settings: SettingsDep,
+async def expensive(request: Request, limits: LimitsDep, settings: SettingsDep,
                     key: KeyDep = None) -> AsyncIterator[None]:
     """An expensive request holds one of its requester's ``TRYON_MAX_EXPENSIVE_CLIENT`` slots of
     this process until it is answered (429 with ``Retry-After`` when all are taken)."""
     requester = requester_of(request, settings, key)
     current_requester.set(requester)
-    with ctx.limits.slot(requester):
+    with limits.slot(requester):
         yield
 
 
-async def rate_limited(request: Request, ctx: ContextDep, settings: SettingsDep,
+async def rate_limited(request: Request, limits: LimitsDep, settings: SettingsDep,
                        key: KeyDep = None) -> AsyncIterator[None]:
     """Counts an expensive request against its retailer's (valid ``X-API-Key``) or its client's
     rate limit: 429 with ``Retry-After`` when spent (the Redis call runs off the event loop);
     then holds a slot as :func:`expensive` does. The use cases that queue jobs count them
     against the same requester."""
     requester = requester_of(request, settings, key)
-    await run_in_threadpool(ctx.limits.check, requester.client, requester.retailer)
+    await run_in_threadpool(limits.check, requester.client, requester.retailer)
     current_requester.set(requester)
-    with ctx.limits.slot(requester):
+    with limits.slot(requester):
         yield
 
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import math
 
-import redis
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
@@ -20,7 +19,7 @@ from starlette.requests import ClientDisconnect
 from service.api.middleware import BodyTimeout
 from service.application.errors import (AppError, Conflict, Forbidden, Invalid, NotFound, TooLarge,
                                         TooManyRequests, Unavailable)
-from service.storage.redis import UNAVAILABLE
+from service.storage.redis import UNAVAILABLE, StorageError
 
 log = logging.getLogger("tryon")
 
@@ -121,5 +120,5 @@ def install(app: FastAPI) -> None:
     app.add_exception_handler(ClientDisconnect, client_gone)
     app.add_exception_handler(BodyTimeout, body_timeout)
     app.add_exception_handler(RequestValidationError, validation_error)
-    app.add_exception_handler(redis.RedisError, storage_error)
+    app.add_exception_handler(StorageError, storage_error)
     app.add_exception_handler(Exception, unhandled_error)

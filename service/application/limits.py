@@ -8,23 +8,19 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from service.settings import Settings
+from service.storage.limits import JobTracker, RateLimiter
 
 from .errors import TooLarge, TooManyRequests, Unavailable
-
-if TYPE_CHECKING:
-    from .context import Context
 
 BURST_FACTOR = 2.0  # a client may send this many seconds' worth of requests at once
 JOBS_RETRY_AFTER_S = 10  # Retry-After of a refusal for too many queued jobs
 BUSY_RETRY_AFTER_S = 1  # Retry-After of a refusal for too many expensive requests at once
 MEMORY_RETRY_AFTER_S = 2  # Retry-After when uploads being decoded hold the memory budget
-ENDED_JOB_STATES = ("finished", "failed", "stopped", "canceled")
 JOB_TRACK_FACTOR = 4  # a tracked job is forgotten after this many job timeouts (its retries included)
 
 
@@ -49,8 +45,10 @@ current_requester: ContextVar[Requester | None] = ContextVar("current_requester"
 
 
 class Limits:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
+    def __init__(self, settings: Settings, rate_limiter: RateLimiter, jobs: JobTracker):
+        self.settings = settings
+        self.rate_limiter = rate_limiter
+        self.jobs = jobs
         self._lock = threading.Lock()
         self._running: dict[str, int] = {}
         self._memory = 0
@@ -58,14 +56,14 @@ class Limits:
     def check(self, client: str | None, retailer: str | None) -> None:
         """Count one expensive request; :class:`TooManyRequests` (429 + Retry-After) when the
         client's or retailer's budget is spent."""
-        s = self.ctx.settings
+        s = self.settings
         if retailer is not None:
             bucket, rate, who = f"retailer:{retailer}", s.rate_limit_retailer, f"retailer '{retailer}'"
         else:
             bucket, rate, who = f"client:{client or 'unknown'}", s.rate_limit_client, "this client"
         if rate <= 0:
             return
-        wait = self.ctx.rate_limiter.hit(bucket, rate, max(BURST_FACTOR * rate, 1.0))
+        wait = self.rate_limiter.hit(bucket, rate, max(BURST_FACTOR * rate, 1.0))
         if wait > 0:
             raise TooManyRequests(f"rate limit of {rate:g} requests/s for {who} on this route reached; retry in "
                                   f"{math.ceil(wait)} s", retry_after=wait)
@@ -75,7 +73,7 @@ class Limits:
     def slot(self, requester: Requester) -> Iterator[None]:
         """Hold one of the requester's ``TRYON_MAX_EXPENSIVE_CLIENT`` slots of this process while
         an expensive request runs; :class:`TooManyRequests` when all are taken."""
-        cap = self.ctx.settings.max_expensive_client
+        cap = self.settings.max_expensive_client
         with self._lock:
             n = self._running.get(requester.bucket, 0)
             if n >= cap:
@@ -93,27 +91,9 @@ class Limits:
                     self._running.pop(requester.bucket, None)
 
     # -- queued jobs (all processes: Redis) ------------------------------------------------------
-    def _jobs_key(self, requester: Requester) -> str:
-        return f"{self.ctx.settings.redis_prefix}jobs:{requester.bucket}"
-
-    def _live_jobs(self, requester: Requester) -> int:
-        """The requester's tracked jobs still queued or running (ended or vanished ones are
-        forgotten)."""
-        s = self.ctx.settings
-        key = self._jobs_key(requester)
-        oldest = time.time() - JOB_TRACK_FACTOR * max(s.fit_timeout, s.garment_timeout)
-        conn = self.ctx.conn
-        conn.zremrangebyscore(key, "-inf", oldest)
-        live = 0
-        for raw in conn.zrange(key, 0, -1):
-            job_id = raw.decode() if isinstance(raw, bytes) else str(raw)
-            job = self.ctx.queue.fetch(job_id)
-            status = None if job is None else job.get_status(refresh=False)
-            if job is None or str(getattr(status, "value", status)) in ENDED_JOB_STATES:
-                conn.zrem(key, job_id)
-            else:
-                live += 1
-        return live
+    def _track_age_s(self) -> float:
+        """How long a tracked job counts at most (its retries included)."""
+        return JOB_TRACK_FACTOR * max(self.settings.fit_timeout, self.settings.garment_timeout)
 
     def check_jobs(self) -> None:
         """Before an upload that queues a job is parsed: :class:`TooManyRequests` (429 +
@@ -122,9 +102,9 @@ class Limits:
         requester = current_requester.get()
         if requester is None:
             return
-        s = self.ctx.settings
+        s = self.settings
         cap = s.max_queued_retailer if requester.retailer is not None else s.max_queued_client
-        live = self._live_jobs(requester)
+        live = self.jobs.live(requester.bucket, self._track_age_s())
         if live >= cap:
             raise TooManyRequests(f"{requester.who} has {live} jobs queued or running; at most {cap}: retry when "
                                   "one is done", retry_after=JOBS_RETRY_AFTER_S)
@@ -134,10 +114,7 @@ class Limits:
         requester = current_requester.get()
         if requester is None:
             return
-        key = self._jobs_key(requester)
-        self.ctx.conn.zadd(key, {job_id: time.time()})
-        self.ctx.conn.expire(key, JOB_TRACK_FACTOR * max(self.ctx.settings.fit_timeout,
-                                                         self.ctx.settings.garment_timeout))
+        self.jobs.track(requester.bucket, job_id, self._track_age_s())
 
     # -- memory for decoding uploads (per process) -----------------------------------------------
     @contextmanager
@@ -145,7 +122,7 @@ class Limits:
         """Reserve ``nbytes`` of the process's ``TRYON_MEMORY_BUDGET_MB`` while an upload is
         decoded: :class:`TooLarge` (413) when one upload alone needs more, :class:`Unavailable`
         (503 + Retry-After) when uploads being decoded hold too much of it now."""
-        budget = self.ctx.settings.memory_budget_mb * 1024 * 1024
+        budget = self.settings.memory_budget_mb * 1024 * 1024
         if nbytes > budget:
             raise TooLarge(f"this upload needs about {nbytes // 2**20} MiB to read; this server reads at most "
                            f"{budget // 2**20} MiB at once (decimate the mesh or split the upload)")
