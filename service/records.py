@@ -135,7 +135,7 @@ class Garment(Record):
     swatch: str | None = None
     sizes: list[GarmentSize] | None = Field(default=None, description="the size chart in chart order (None: one size)")
     base_size: str | None = None
-    fabric: str = "woven"
+    fabric: str = Field(default="woven", description="the cloth the drape uses: woven, knit or stretch")
     fit: dict | None = Field(default=None, description="sizing.SizeFit.to_meta(): the girths of every size")
 
     def size_labels(self) -> list[str]:

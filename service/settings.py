@@ -77,6 +77,13 @@ class Settings(BaseSettings):
         description="Seconds a garment build job (one draped garment carried to every example avatar) "
         "may run before the worker kills it (then retried).",
     )
+    drape: bool = Field(
+        default=False,
+        validation_alias="TRYON_DRAPE",
+        description="Garment builds (draped `garment`, `.mhclo`, demo catalogue) settle the garment at its own "
+        "size on every example avatar with the cloth drape engine (service.model.drape) instead of carrying "
+        "it with the body. Off by default until a build fits the time budget (see docs/drape.md).",
+    )
     demo_items: str = Field(
         default="all",
         validation_alias="TRYON_DEMO_ITEMS",

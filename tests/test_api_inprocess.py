@@ -174,11 +174,16 @@ def test_catalogue_upload_tryon_and_basis(client: TestClient, customer: str, aut
     files = {"mhclo": ("shoes01.mhclo", (SHOES / "shoes01.mhclo").read_bytes()),
              "obj": ("shoes01.obj", (SHOES / "shoes01.obj").read_bytes())}
     assert client.post("/v1/garments", data={"name": "Shoes"}, files=files).status_code == 401
-    r = client.post("/v1/garments", data={"name": "Shoes", "color": "#223344", "layer": "0"}, files=files,
-                    headers=KEY)
+    # the cloth (issue 43): woven, knit or stretch, else 422; the demo's jersey tops are knit
+    assert {g["catalogue_id"]: g["fabric"] for g in demo}["mens-tshirt"] == "knit"
+    assert_422(client.post("/v1/garments", data={"name": "Shoes", "fabric": "silk"}, files=files, headers=KEY),
+               ["body", "fabric"])
+    r = client.post("/v1/garments", data={"name": "Shoes", "color": "#223344", "layer": "0", "fabric": "stretch"},
+                    files=files, headers=KEY)
     assert r.status_code == 201, r.text
     shoes = r.json()
     assert shoes["owner"] == "acme" and shoes["source"] == "mhclo" and shoes["n_components"] == 32
+    assert shoes["fabric"] == "stretch" and client.get(f"/v1/garments/{shoes['id']}").json()["fabric"] == "stretch"
     glb = read_glb(client.get(f"/v1/customers/{customer}/garments/{shoes['id']}.glb", headers=auth).content)
     assert glb["meshes"][0]["name"] == "Shoes"
     ids = ",".join([shoes["id"], demo[0]["id"]])

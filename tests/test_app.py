@@ -24,10 +24,10 @@ def client(tmp_path: Path) -> TestClient:
 
 def test_settings_from_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setenv("TRYON_DATA_DIR", str(tmp_path))
-    monkeypatch.setenv("REDIS_URL", "redis://127.0.0.1:6379/0")
+    monkeypatch.setenv("REDIS_URL", "redis://redis.example:6379/0")
     monkeypatch.setenv("TRYON_BODY_MODEL", "/models/x.npz")
     s = Settings()
-    assert s.data_dir == tmp_path and s.redis_url == "redis://127.0.0.1:6379/0"
+    assert s.data_dir == tmp_path and s.redis_url == "redis://redis.example:6379/0"
     assert s.body_model_path == Path("/models/x.npz")
     assert s.max_upload_bytes == 50 * 1024 * 1024
 

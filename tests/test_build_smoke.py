@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from service.model.body.model import DEFAULT_MODEL_PATH, BodyModel
+from tests.bench.common import shared_data_dir
 
 pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED = REPO.parent / "shared" / "data"
+SHARED = shared_data_dir()
 
 
 def _build(out: Path, cache: Path) -> str:

@@ -17,9 +17,10 @@ from service.model.garments.catalogue import DEFAULT_CATALOGUE_DIR, load_catalog
 from service.model.geometry.mesh import closest_point_on_triangles, closest_points_on_mesh, vertex_normals
 from service.model.formats.mhclo import parse_obj, parse_obj_faces
 from service.model.garments.tryon import example_set, example_vertices
+from tests.bench.common import shared_data_dir
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED = REPO.parent / "shared" / "data"
+SHARED = shared_data_dir()
 MAX_BYTES = 6_000_000  # the committed catalogue stays small
 NEAR_MEDIAN_M, NEAR_MAX_M = 0.08, 0.40  # the retailer upload's rule (application/garments.py)
 

@@ -127,9 +127,9 @@ def test_embedded_worker_setting(monkeypatch: pytest.MonkeyPatch) -> None:
     for var in ("REDIS_URL", "TRYON_EMBEDDED_WORKER", "TRYON_FIT_TIMEOUT"):
         monkeypatch.delenv(var, raising=False)
     assert Settings().runs_embedded_worker() and Settings().fit_timeout == 600
-    assert not Settings(REDIS_URL="redis://127.0.0.1:6379/0").runs_embedded_worker()
+    assert not Settings(REDIS_URL="redis://redis.example:6379/0").runs_embedded_worker()
     monkeypatch.setenv("TRYON_EMBEDDED_WORKER", "true")
-    assert Settings(REDIS_URL="redis://127.0.0.1:6379/0").runs_embedded_worker()
+    assert Settings(REDIS_URL="redis://redis.example:6379/0").runs_embedded_worker()
     monkeypatch.setenv("TRYON_EMBEDDED_WORKER", "0")
     assert not Settings().runs_embedded_worker()
 

@@ -1,7 +1,6 @@
 """Clothing bases, synthesis, push-out, MakeHuman bindings, demo garments, avatar projection."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +13,9 @@ from service.model.body import lbs
 from service.model.garments import tryon as T
 
 from service.model.geometry.mesh import vertex_faces, vertex_normals
+from tests.bench.common import shared_data_dir
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = shared_data_dir()
 
 
 

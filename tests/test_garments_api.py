@@ -17,12 +17,13 @@ from service.model.garments.catalogue import load_catalogue
 from service.model.garments.demo_garments import make_demo_garments
 from service.model.formats.gltf_read import read_glb
 from service.model.garments.tryon import example_set, example_vertices
+from tests.bench.common import shared_data_dir
 from tests.conftest import valid_glb
 from tests.harness import GLB, RETAILERS, Server, assert_422, run_server
 
 pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
 
-MH_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "makehuman_clothes" / "male_casualsuit04"
+MH_DIR = shared_data_dir() / "makehuman_clothes" / "male_casualsuit04"
 ACME = {"X-API-Key": RETAILERS["acme"]}
 GLOBEX = {"X-API-Key": RETAILERS["globex"]}
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections import Counter
 
+import numba
 import numpy as np
 import pytest
 import trimesh
@@ -92,26 +93,42 @@ def test_covered_body_matches_the_reference_on_a_sleeve() -> None:
 
 
 # -- outfit.glb ---------------------------------------------------------------------------------
-def ray_hits(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray, t_max: float,
-             chunk: int = 128) -> np.ndarray:
-    """(R,) bool: whether each ray (origin (R, 3), unit direction (R, 3)) meets any triangle
-    (T, 3, 3) at a distance in (0, t_max] (Moller-Trumbore, either side of the triangle)."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    e1, e2 = b - a, c - a
-    out = np.zeros(len(origins), bool)
-    for s in range(0, len(origins), chunk):
-        o, d = origins[s:s + chunk, None], directions[s:s + chunk, None]
-        p = np.cross(d, e2[None])
-        det = np.einsum("rtk,tk->rt", p, e1)
-        ok = np.abs(det) > 1e-12
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        tv = o - a[None]
-        u = np.einsum("rtk,rtk->rt", tv, p) * inv
-        q = np.cross(tv, e1[None])
-        v = np.einsum("rk,rtk->rt", d[:, 0], q) * inv
-        t = np.einsum("rtk,tk->rt", q, e2) * inv
-        out[s:s + chunk] = (ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t <= t_max)).any(axis=1)
+@numba.njit(cache=True, nogil=True)
+def _ray_hits(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray, t_max: float) -> np.ndarray:
+    out = np.zeros(len(origins), np.bool_)
+    for r in range(len(origins)):
+        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+        dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
+        for t in range(len(triangles)):
+            ax, ay, az = triangles[t, 0, 0], triangles[t, 0, 1], triangles[t, 0, 2]
+            e1x, e1y, e1z = triangles[t, 1, 0] - ax, triangles[t, 1, 1] - ay, triangles[t, 1, 2] - az
+            e2x, e2y, e2z = triangles[t, 2, 0] - ax, triangles[t, 2, 1] - ay, triangles[t, 2, 2] - az
+            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x  # d x e2
+            det = px * e1x + py * e1y + pz * e1z
+            if abs(det) <= 1e-12:
+                continue
+            inv = 1.0 / det
+            tx, ty, tz = ox - ax, oy - ay, oz - az
+            u = (tx * px + ty * py + tz * pz) * inv
+            if u < 0.0 or u > 1.0:
+                continue
+            qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x  # (o - a) x e1
+            v = (dx * qx + dy * qy + dz * qz) * inv
+            if v < 0.0 or u + v > 1.0:
+                continue
+            dist = (qx * e2x + qy * e2y + qz * e2z) * inv
+            if 0.0 < dist <= t_max:
+                out[r] = True
+                break
     return out
+
+
+def ray_hits(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray, t_max: float) -> np.ndarray:
+    """(R,) bool: whether each ray (origin (R, 3), unit direction (R, 3)) meets any triangle
+    (T, 3, 3) at a distance in (0, t_max] (Moller-Trumbore, either side of the triangle; one
+    compiled loop per ray that stops at its first hit)."""
+    return _ray_hits(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(directions, np.float64),
+                     np.ascontiguousarray(triangles, np.float64), float(t_max))
 
 
 def record(name: str, layer: int, alpha: float = 1.0) -> Garment:

@@ -3,16 +3,16 @@ files cut into many slices, on the MakeHuman catalogue's OBJs and on a 45 MB sca
 from __future__ import annotations
 
 import tracemalloc
-from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
 from service.model.formats.obj_io import ObjError, read_obj
+from tests.bench.common import shared_data_dir
 from tests.test_faults import _person_tube, _text
 
-MH_CLOTHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "makehuman_clothes"
+MH_CLOTHES = shared_data_dir() / "makehuman_clothes"
 
 
 def reference(data: bytes, uv: bool = False):

@@ -18,7 +18,7 @@ import pytest
 from service.application.context import Context
 from service.model.body.model import BodyModel
 from service.model.garments.catalogue import load_catalogue
-from service.records import SCHEMA_VERSION, Customer
+from service.records import SCHEMA_VERSION, Customer, Garment
 from service.settings import Settings
 from service.storage import redis as R
 from service.storage.queue import JobQueue
@@ -81,7 +81,9 @@ def test_replace_if_exists_and_scans(ctx: Context, model: BodyModel) -> None:
 
 def test_fetch_is_one_round_trip(ctx: Context, model: BodyModel) -> None:
     ctx.customers_repo.put(_customer("c3", model))
-    gids = ctx.garments.ensure_demo()
+    ctx.garments_repo.put(Garment(id="g1", body_model=model.version, owner="acme", name="tee", source="demo",
+                                  color=[0.4, 0.5, 0.6, 1.0], layer=1))
+    gids = ["g1"]
     calls = []
     real = ctx.conn.mget
 

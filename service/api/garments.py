@@ -1,7 +1,7 @@
 """The garment catalogue: list, upload (retailers), read, delete, and the clothing basis."""
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -51,8 +51,9 @@ async def create_garment(
                     'same names, increasing in each). Without it the garment is one size')] = None,
     base_size: Annotated[str | None, Form(
         description="With `size_chart`: the size of the uploaded mesh (default: the middle size)")] = None,
-    fabric: Annotated[str | None, Form(description="woven (default), knit or stretch: how the cloth stretches, "
-                                                   "which sets the fit verdicts' thresholds")] = None,
+    fabric: Annotated[str | None, Form(description=(
+        "The cloth: woven (default; shirting, suiting: barely stretches), knit (jersey) or stretch (elastane); "
+        "how far the drape lets the garment stretch on each body, and the fit verdicts' thresholds"))] = None,
     on: Annotated[str | None, Form(description="With `garment`: the example avatar it was draped on (an id of "
                                                "/v1/example-avatars; default mean)")] = None,
     avatar: Annotated[UploadFile | None, File(

@@ -272,7 +272,9 @@ class GarmentResponse(BaseModel):
         "The size chart in chart order: each size's label and the body measurements it is made for (one "
         "entry, empty measurements, for a garment without a chart)"))
     base_size: str | None = Field(default=None, description="The size of the uploaded mesh")
-    fabric: Literal["woven", "knit", "stretch"] = Field(default="woven", description="How the cloth stretches")
+    fabric: Literal["woven", "knit", "stretch"] = Field(
+        default="woven", description="The cloth it is draped as: woven (barely stretches), knit (jersey) or "
+                                     "stretch (elastane); see docs/drape.md and docs/sizes.md")
 
     @model_validator(mode="before")
     @classmethod

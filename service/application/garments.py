@@ -13,6 +13,7 @@ from typing import Any
 
 from service.model.body.model import BodyModel
 from service.model.garments.autofit import fit_to_examples
+from service.model.drape import DrapeError, drape_examples
 from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
 from service.model.fitting.checks import FitError
 from service.model.fitting.fit import fit_body
@@ -48,6 +49,9 @@ DEFAULT_LAYER = 1
 DEMO_OWNER = "demo"
 DEMO_LOCK_S = 120
 UPLOAD_METALLIC, UPLOAD_ROUGHNESS = 0.0, 0.85  # cloth: dielectric, rough
+# the demo catalogue's cloth, by catalogue id (jersey tops, elastane sportswear; the rest woven)
+DEMO_FABRICS = {"womens-tshirt": "knit", "cropped-tee": "knit", "mens-tshirt": "knit", "longsleeve-tee": "knit",
+                "white-tshirt": "knit", "sports-trousers": "stretch"}
 BUILD_JOB = "worker.jobs.build_garment"  # the rq job, by dotted path
 # shares of a build job's progress
 BUILD_SHARES = {"avatar_fit": 0.3, "autofit": 0.6, "basis": 0.1}
@@ -188,6 +192,7 @@ class GarmentService:
                                                   "meshes with 'garment_sizes') or an 'mhclo'")
         fits, faces, unit = self._fits_from_meshes(files)
         faces, layout = _file_layout(*files[0], faces)
+        # pre-fitted meshes are the retailer's own example fits: used as they are (not draped)
         return self._build_and_store(fits, faces, name=name, owner=owner, source="meshes", color=rgba, layer=layer,
                                      fabric=chart.fabric if chart is not None else SZ.DEFAULT_FABRIC,
                                      unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout))
@@ -223,7 +228,10 @@ class GarmentService:
         gid = new_id()
         rec = Garment(id=gid, body_model=self.model.version, textured=_textured(material, layout),
                       **chart.record_fields(), **record)
-        rec = self._store_sizes(rec, rests, faces, on, bodies[chart.base], chart, layout, material)
+        try:
+            rec = self._store_sizes(rec, rests, faces, on, bodies[chart.base], chart, layout, material)
+        except DrapeError as exc:
+            raise Invalid(("body", "mhclo"), f"the garment cannot be draped: {exc}") from None
         try:
             self.repo.publish(rec)
         except BaseException:
@@ -237,6 +245,8 @@ class GarmentService:
         """Every size's example fits (``sizes.size_example_fits``) and basis, stored together;
         the record with its counts, combined ETag and girths per size (``fit``)."""
         fits = sizing.per_size_fits(self.model, rests, faces, bodies_on, progress)
+        if self.settings.drape:  # each size keeps its own size: its rest shape settled on every example
+            fits = [self.drape_to_examples(rests[s], faces, f, chart.fabric) for s, f in enumerate(fits)]
         bases = []
         for s, f in enumerate(fits):
             meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
@@ -261,7 +271,30 @@ class GarmentService:
         if not np.all(np.isfinite(fits)):
             raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
         self._check_near_bodies(fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
+        if self.settings.drape:
+            # its size: the garment as bound to the mean example avatar
+            rest = fits[self.examples.index("mean") or 0]
+            try:
+                fits = self.drape_to_examples(rest, faces, fits, record.get("fabric", "woven"))
+            except DrapeError as exc:
+                raise Invalid(("body", "mhclo"), f"the garment cannot be draped: {exc}") from None
         return self._build_and_store(fits, faces, layout=layout, material=material, **record)
+
+    def drape_to_examples(self, rest: np.ndarray, faces: np.ndarray, warp_fits: np.ndarray, fabric: str,
+                          progress: Progress | None = None) -> np.ndarray:
+        """The garment at its own size (``rest`` (N, 3), as uploaded on its body) settled on every
+        example avatar by the cloth drape engine, each solve started from the warp fit there
+        (``warp_fits`` (E, N, 3)): the example fits (E, N, 3) of its clothing basis. The one
+        place a garment meets the examples (per size, for graded garments). Raises
+        ``DrapeError`` (degenerate rest shape, a drape that cannot settle)."""
+        bodies = np.stack([self.model.body_vertices(E) for E in self.examples.vertices]).astype(np.float64)
+        cb = None if progress is None else (lambda f, msg: progress(f, msg))
+        fits, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
+                                     np.asarray(warp_fits, np.float64), bodies, self.model.body_faces, fabric,
+                                     progress=cb)
+        log.info("draped on %d examples: %.1fs, %d of them settled", len(fits),
+                 sum(s["seconds"] for s in stats), sum(bool(s["settled"]) for s in stats))
+        return fits
 
     def _fits_from_meshes(self, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:
         ex = self.examples
@@ -425,7 +458,7 @@ class GarmentService:
         job_id = build_job_id(gid)
         record = Garment(id=gid, body_model=self.model.version, owner=owner, name=name, source="draped",
                          **(chart.record_fields() if chart is not None and chart.sizes
-                            else {"fabric": chart.fabric} if chart is not None else {}),
+                            else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}),
                          color=[float(c) for c in rgba], layer=int(layer), status="building", unit=unit,
                          textured=_textured(_upload_material(tex, rgba, color, layout), layout),
                          up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)),
@@ -511,6 +544,14 @@ class GarmentService:
                                      progress=progress.scaled(start, span))
         except ValueError as exc:
             return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
+        fits = result.fits
+        if self.settings.drape:
+            # its size: the garment as uploaded on the body it was draped on (in the model's frame)
+            progress(1.0 - share["basis"], "draping the garment on the example avatars")
+            try:
+                fits = self.drape_to_examples(garment, faces, fits, record.fabric)
+            except DrapeError as exc:
+                return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
         progress(1.0 - share["basis"], "building the clothing basis")
         meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
                 "layer": record.layer, "created": record.created, "id": gid, "body_model": self.model.version}
@@ -553,7 +594,7 @@ class GarmentService:
             material = _upload_material(upload.texture, rgba, None, upload.layout)
             ready = self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, upload.layout, material,
                                       progress.scaled(start + 0.05, 0.95 - start))
-        except (ValueError, Invalid) as exc:
+        except (ValueError, Invalid, DrapeError) as exc:
             return self._fail_build(record, f"the garment could not be graded or fitted: {exc}", progress)
         ready = ready.model_copy(update={"status": "ready", "error": None, "progress": None})
         if not self.repo.complete(ready):
@@ -627,7 +668,8 @@ class GarmentService:
                 rec = self._create_from_binding(
                     item.binding, item.faces.astype(np.int32), item.render_layout(), item.material, name=item.name,
                     owner=DEMO_OWNER, source="demo", color=rgba, layer=int(item.layer or 0),
-                    category=item.category, gender=item.gender, catalogue_id=item.id, swatch=item.color)
+                    category=item.category, gender=item.gender, catalogue_id=item.id, swatch=item.color,
+                    fabric=DEMO_FABRICS.get(item.id, "woven"))
                 self.repo.set_demo_id(item.id, rec.id)
                 if old is not None:  # built for another body model: replaced
                     self.repo.delete(old.id)

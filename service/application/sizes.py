@@ -101,9 +101,10 @@ def chart_bodies(model, chart: Chart, gender: str | None = None) -> np.ndarray:
 def size_example_fits(model, rest: np.ndarray, faces: np.ndarray, body: np.ndarray) -> np.ndarray:
     """THE per-size example fit: one size's garment, rest shape ``rest`` (M, 3) on ``body``
     (V, 3), fitted to every example avatar -> (1 + 2N, M, 3). Today the warp carries it
-    (``autofit.fit_to_examples``: made to measure, the garment follows each body); the cloth
-    drape (``service.model.drape``: rest shape = this size, settled on each example) replaces
-    this function when it lands, and every size then keeps its own size on every body."""
+    (``autofit.fit_to_examples``: made to measure, the garment follows each body); with the
+    drape on (``Settings.drape``) ``GarmentService._store_sizes`` then settles each size's rest
+    shape on every example from these fits (``drape_to_examples``), and every size keeps its
+    own size on every body."""
     return fit_to_examples(model, rest, faces, source_body=body).fits
 
 

@@ -40,6 +40,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
                 "the compiled geometry kernels vs the numpy paths, same run: closest points, poses, outfits"),
     "sizes": ("tests.bench.sizes", "run", "format_result",
               "sizes and fit: chart round trip, ANSUR II held-out recommendation, monotonicity, timings"),
+    "drape": ("tests.bench.drape", "run", "format_result",
+              "cloth drape engine: analytic tubes, pinned square vs a dense solve and Newton VBD, two bodies, 10k timing"),
     "hostile": ("tests.bench.hostile", "run", "format_result",
                 "a default tryon serve tried as an attacker would: size bombs, slow bodies, spoofing, floods, logs"),
     "load": ("tests.bench.load", "run", "format_result",
@@ -78,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="tryon: only the in-process try-on latency rows (template fast path vs reference)")
     ap.add_argument("--poses", choices=("anatomical", "free"), default="anatomical",
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
+    ap.add_argument("--no-newton", action="store_true", help="drape: skip the Newton VBD reference row")
     ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
     from tests.bench.fitting import before_kinds
 
@@ -101,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
              "conditions": args.conditions, "person_check": not args.no_person_check,
              "before": args.before, "poses": args.poses, "fit_params": args.fit_params, "known": args.known,
              "via_file": args.via_file} if args.suite == "fitting" else {}
+    if args.suite == "drape":
+        extra = {"newton": not args.no_newton}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")

@@ -1,0 +1,219 @@
+"""``tryon bench drape``: the cloth drape engine (``service.model.drape``) against its analytic
+cases, a dense reference solve of the same energy, NVIDIA Newton's VBD solver (when installed:
+``pip install -e '.[bench-cloth]'``; its first run compiles Warp kernels for ~3 minutes), one
+garment on two bodies of different waists, contact and self-intersection counts, and the time
+of one ~10k-vertex garment on one body.
+
+Rows (goals from issue 43):
+- ``hoop_strain_pts``: a tube of rest girth Cg on a cylinder of girth Cb > Cg: |hoop strain -
+  (Cb / Cg - 1)| in percentage points (goal <= 0.5);
+- ``own_girth_pct``: the same tube hung from a wider band over a thinner cylinder: its girth
+  below the band vs Cg, % (goal <= 1);
+- ``sag_vs_dense_mm`` per fabric: a 20 cm square pinned at two corners, sag vs the L-BFGS
+  minimiser of the same energy (goal <= 5 mm);
+- ``sag_vs_newton_mm``: the same square (knit) vs Newton VBD on CPU (goal <= 5 mm);
+- ``two_bodies_girth_cm``: one garment (a skirt of girth 90 cm hung from the hips) on two bodies
+  whose waists are 70 and 80 cm: its girth at the waist on each, and their difference (goal <= 2);
+- ``inside_vertices`` / ``self_intersections``: garment vertices > 1 mm inside the body (winding
+  numbers), self-intersecting face pairs, over every drape of the run (goal 0 / 0);
+- ``garment_10k_s``: a catalogue T-shirt subdivided to ~10k vertices, draped from its warp fit on
+  an example avatar (goal <= 4 s on 2 cores).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def self_intersections(V: np.ndarray, F: np.ndarray) -> int:
+    """Pairs of faces (sharing no vertex) that intersect: an edge of one crosses the other
+    (Moller-Trumbore on candidate pairs whose bounding spheres overlap)."""
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    tri = V[F]
+    c = tri.mean(1)
+    r = np.linalg.norm(tri - c[:, None], axis=2).max(1)
+    pairs = cKDTree(c).query_pairs(2 * float(r.max()), output_type="ndarray")
+    if not len(pairs):
+        return 0
+    a, b = pairs[:, 0], pairs[:, 1]
+    near = np.linalg.norm(c[a] - c[b], axis=1) <= r[a] + r[b]
+    shared = (F[a][:, :, None] == F[b][:, None, :]).any(axis=(1, 2))
+    pairs = pairs[near & ~shared]
+    if not len(pairs):
+        return 0
+    hit = np.zeros(len(pairs), bool)
+    for s, t in ((0, 1), (1, 0)):
+        P, Q = pairs[:, s], pairs[:, t]
+        T = tri[Q]
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            o = tri[P, i]
+            d = tri[P, j] - o
+            e1, e2 = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
+            h = np.cross(d, e2)
+            det = (e1 * h).sum(1)
+            ok = np.abs(det) > 1e-14
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            sv = o - T[:, 0]
+            u = (sv * h).sum(1) * inv
+            q = np.cross(sv, e1)
+            v = (d * q).sum(1) * inv
+            tt = (e2 * q).sum(1) * inv
+            hit |= ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (tt >= 0) & (tt <= 1)
+    return int(hit.sum())
+
+
+def _inside(x: np.ndarray, BV: np.ndarray, BF: np.ndarray, depth_m: float = 0.001) -> int:
+    """Garment vertices more than ``depth_m`` inside the closed body (winding number > 0.5 and
+    farther than ``depth_m`` from the surface)."""
+    from service.model.geometry import mesh as geometry
+
+    w = geometry.winding_numbers(x, BV, BF)
+    cand = np.flatnonzero(w > 0.5)
+    if not len(cand):
+        return 0
+    _, q, _ = geometry.closest_points_on_mesh(x[cand], BV, BF)
+    return int((np.linalg.norm(x[cand] - q, axis=1) > depth_m).sum())
+
+
+def _subdivide(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Midpoint subdivision (each face into four): vertices, faces and the (E, 2) parents of
+    each new vertex (to carry any positions along: the mean of its two parents)."""
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    inv = inv.reshape(3, -1).T + len(V)  # (F, 3): midpoints of edges 01, 12, 20
+    a, b, c = F[:, 0], F[:, 1], F[:, 2]
+    m01, m12, m20 = inv[:, 0], inv[:, 1], inv[:, 2]
+    F2 = np.concatenate([np.stack([a, m01, m20], 1), np.stack([m01, b, m12], 1), np.stack([m20, m12, c], 1),
+                         np.stack([m01, m12, m20], 1)])
+    V2 = np.vstack([V, 0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]])])
+    return V2, F2, uniq
+
+
+def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
+    from service.model.drape import FABRICS, Config, precompute
+    from tests.drape_cases import cylinder, revolved_body, ring_girth, square_sag, tube
+
+    out: dict = {"rows": {}, "drapes": []}
+    rows = out["rows"]
+    inside = selfx = 0
+
+    def record(name, V, F, BV, BF, r):
+        nonlocal inside, selfx
+        x = r.vertices.astype(np.float64)
+        n_in = _inside(x, BV, BF) if BV is not None else 0
+        n_sx = self_intersections(x, F)
+        inside += n_in
+        selfx += n_sx
+        out["drapes"].append({"case": name, "n_vertices": len(V), "seconds": r.stats["seconds"],
+                              "iterations": r.stats["iterations"], "settled": r.stats["settled"],
+                              "inside": n_in, "self_intersections": n_sx})
+
+    # 1. tube on a wider cylinder: hoop strain
+    na, nh, Rg, Rb = 64, 12, 0.15, 0.156
+    V, F = tube(Rg, 0.3, na, nh)
+    BV, BF = cylinder(Rb, -0.3, 0.6)
+    init = V.copy()
+    init[:, [0, 2]] *= (Rb + 0.002) / Rg
+    r = precompute(V, F, "knit").solve(BV, BF, init)
+    x = r.vertices.astype(np.float64)
+    hoop = ring_girth(x, nh // 2, na) / ring_girth(V, nh // 2, na) - 1
+    rows["hoop_strain_pts"] = {"value": 100 * abs(hoop - (Rb / Rg - 1)), "goal": 0.5, "hoop_pct": 100 * hoop,
+                               "expected_pct": 100 * (Rb / Rg - 1)}
+    record("tube_on_wider", V, F, BV, BF, r)
+
+    # 2. hung from a wider band over a thinner cylinder: own girth
+    na2, nh2 = 32, 10
+    V2, F2 = tube(Rg, 0.5, na2, nh2, y0=0.05)
+    ys = np.linspace(-0.2, 0.7, 31)
+    BV2, BF2 = revolved_body(ys, np.interp(ys, [-0.2, 0.25, 0.35, 0.7], [0.10, 0.10, 0.16, 0.16]), 64)
+    r = precompute(V2, F2, "knit").solve(BV2, BF2, V2)
+    g = ring_girth(r.vertices.astype(np.float64), 1, na2) / ring_girth(V2, 1, na2) - 1
+    rows["own_girth_pct"] = {"value": 100 * abs(g), "goal": 1.0, "settled": r.stats["settled"]}
+    record("tube_on_thinner", V2, F2, BV2, BF2, r)
+
+    # 3. pinned square vs the dense reference, each fabric
+    for fab in ("woven", "knit", "stretch"):
+        sag, ref, r, _ = square_sag(7, 0.2, fab)
+        rows[f"sag_vs_dense_mm_{fab}"] = {"value": 1000 * abs(sag - ref), "goal": 5.0, "sag_mm": 1000 * sag,
+                                          "reference_mm": 1000 * ref, "settled": r.stats["settled"],
+                                          "iterations": r.stats["iterations"]}
+        if fab == "knit":
+            knit_sag = sag
+
+    # 4. vs Newton VBD (CPU)
+    from tests.bench import drape_newton
+
+    why = drape_newton.available() if newton else "skipped (--no-newton)"
+    if why is None:
+        from tests.drape_cases import square
+        n = 7
+        Vs, Fs = square(0.2, n, y=1.0)
+        f = FABRICS["knit"]
+        nr = drape_newton.square_sag(Vs, Fs, [0, n - 1], f.density_kg_per_m2, f.stretch_stiffness_n_per_m,
+                                     f.bending_stiffness_nm)
+        rows["sag_vs_newton_mm"] = {"value": 1000 * abs(knit_sag - nr["sag_m"]), "goal": 5.0,
+                                    "newton_sag_mm": 1000 * nr["sag_m"], "newton_max_speed_m_s": nr["max_speed_m_s"],
+                                    "newton_s": nr["seconds"]}
+    else:
+        rows["sag_vs_newton_mm"] = {"value": None, "goal": 5.0, "skipped": why}
+
+    # 5. one garment on two bodies with waists 10 cm apart
+    girths = []
+    Rs = 0.90 / (2 * np.pi)
+    V3, F3 = tube(Rs, 0.45, 48, 12, y0=0.10)
+    d3 = precompute(V3, F3, "woven")
+    for waist in (0.70, 0.80):
+        Rw = waist / (2 * np.pi)
+        ys = np.linspace(-0.2, 0.7, 37)
+        BV3, BF3 = revolved_body(ys, np.interp(ys, [-0.2, 0.3, 0.45, 0.7], [Rw, Rw, 0.165, 0.165]), 96)
+        r = d3.solve(BV3, BF3, V3)
+        girths.append(ring_girth(r.vertices.astype(np.float64), 2, 48))
+        record(f"skirt_waist_{int(100 * waist)}", V3, F3, BV3, BF3, r)
+    rows["two_bodies_girth_cm"] = {"value": 100 * abs(girths[1] - girths[0]), "goal": 2.0,
+                                   "girths_cm": [100 * g for g in girths], "body_waists_cm": [70, 80],
+                                   "garment_girth_cm": 90.0}
+
+    # 6. a ~10k-vertex garment from its warp fit on an example avatar
+    from service.model.body.model import load_body_model
+    from service.model.garments.catalogue import load_catalogue
+    from service.model.garments.tryon import example_set, example_vertices
+
+    m = load_body_model()
+    E = example_vertices(m, example_set(m))
+    item = next(i for i in load_catalogue().garments() if i.id == "white-tshirt")
+    rest0, init0 = item.binding.fit(E[0]).astype(np.float64), item.binding.fit(E[1]).astype(np.float64)
+    Vg, Fg, par = _subdivide(rest0, item.faces.astype(np.int64))
+    init = np.vstack([init0, 0.5 * (init0[par[:, 0]] + init0[par[:, 1]])])
+    BVg = m.body_vertices(E[1]).astype(np.float64)
+    t0 = time.perf_counter()
+    dg = precompute(Vg, Fg, "knit")
+    r = dg.solve(BVg, m.body_faces, init)
+    rows["garment_10k_s"] = {"value": time.perf_counter() - t0, "goal": 4.0, "n_vertices": len(Vg),
+                             "precompute_s": dg.precompute_s, "iterations": r.stats["iterations"],
+                             "settled": r.stats["settled"], "local_s": r.stats["local_s"],
+                             "global_s": r.stats["global_s"], "contact_s": r.stats["contact_s"],
+                             "factor": r.stats["factor"]}
+    record("white_tshirt_10k", Vg, Fg, BVg, m.body_faces, r)
+
+    rows["inside_vertices"] = {"value": inside, "goal": 0}
+    rows["self_intersections"] = {"value": selfx, "goal": 0}
+    return out
+
+
+def format_result(res: dict) -> str:
+    lines = [f"{'figure':<26}{'value':>10}{'goal':>8}  detail"]
+    for k, v in res["rows"].items():
+        val = v.get("value")
+        sval = "skipped" if val is None else (f"{val:.3f}" if isinstance(val, float) else str(val))
+        detail = ", ".join(f"{a}={b:.3g}" if isinstance(b, float) else f"{a}={b}"
+                           for a, b in v.items() if a not in ("value", "goal"))
+        lines.append(f"{k:<26}{sval:>10}{v['goal']:>8}  {detail}")
+    lines.append("")
+    lines.append(f"{'drape':<22}{'verts':>7}{'s':>8}{'iters':>7}{'settled':>9}{'inside':>8}{'selfx':>7}")
+    for d in res["drapes"]:
+        lines.append(f"{d['case']:<22}{d['n_vertices']:>7}{d['seconds']:>8.2f}{d['iterations']:>7}"
+                     f"{str(d['settled']):>9}{d['inside']:>8}{d['self_intersections']:>7}")
+    return "\n".join(lines)

@@ -1,0 +1,74 @@
+"""The reference cloth solver of ``tryon bench drape``: NVIDIA Newton's VBD solver (Apache-2.0,
+``pip install newton``; bench only, never imported by the service). The pinned square of the
+bench settled by a damped simulation on CPU (Warp compiles its kernels on the first run, ~3
+minutes, cached in ``~/.cache/warp`` or ``WARP_CACHE_PATH``)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def available() -> str | None:
+    """None if Newton imports, else why not."""
+    try:
+        import newton  # noqa: F401
+        import warp  # noqa: F401
+    except Exception as exc:  # pragma: no cover - depends on the install
+        return f"newton not installed ({type(exc).__name__}: {exc}); pip install -e '.[bench-cloth]'"
+    return None
+
+
+def square_sag(V: np.ndarray, F: np.ndarray, pinned: list[int], density_kg_m2: float, stretch_n_m: float,
+               bending_nm: float, seconds: float = 4.0, fps: int = 60, substeps: int = 10,
+               device: str = "cpu") -> dict:
+    """Settle the sheet (V (N, 3) m, Y up; F (F, 3)) pinned at ``pinned`` under gravity with
+    Newton's VBD solver; returns the final vertices, the sag (pin height - lowest point), the
+    largest speed at the end (m/s; settled when small) and the wall time."""
+    import contextlib
+    import io
+
+    import warp as wp
+
+    wp.config.quiet = True  # Warp's banner and module loads go to stdout: keep --json clean
+    with contextlib.redirect_stdout(io.StringIO()):
+        return _square_sag(V, F, pinned, density_kg_m2, stretch_n_m, bending_nm, seconds, fps, substeps, device)
+
+
+def _square_sag(V, F, pinned, density_kg_m2, stretch_n_m, bending_nm, seconds, fps, substeps, device) -> dict:
+    import warp as wp
+
+    import newton
+
+    t0 = time.perf_counter()
+    builder = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=(0.0, -9.81, 0.0))
+    builder.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
+                           vertices=[wp.vec3(*map(float, p)) for p in V], indices=[int(i) for i in F.reshape(-1)],
+                           density=float(density_kg_m2), tri_ke=float(stretch_n_m), tri_ka=float(stretch_n_m),
+                           tri_kd=float(stretch_n_m) * 1e-3, edge_ke=float(bending_nm), edge_kd=0.0,
+                           particle_radius=0.002)
+    for i in pinned:
+        builder.particle_mass[i] = 0.0
+    builder.color(include_bending=True)
+    with wp.ScopedDevice(device):
+        model = builder.finalize()
+        solver = newton.solvers.SolverVBD(model=model, iterations=10)
+        s0, s1 = model.state(), model.state()
+        control = model.control()
+        pipeline = newton.CollisionPipeline(model)
+        contacts = pipeline.contacts()
+        dt = 1.0 / fps / substeps
+        steps = int(seconds * fps * substeps)
+        for k in range(steps):
+            s0.clear_forces()
+            # air damping (the quasi-static answer): velocities scaled down every substep
+            if k % substeps == 0:
+                s0.particle_qd.assign(s0.particle_qd.numpy() * 0.9)
+            pipeline.collide(s0, contacts)
+            solver.step(s0, s1, control, contacts, dt)
+            s0, s1 = s1, s0
+        x = s0.particle_q.numpy().astype(np.float64)
+        v = s0.particle_qd.numpy()
+    pin_y = float(V[pinned, 1].mean())
+    return {"vertices": x, "sag_m": pin_y - float(x[:, 1].min()), "max_speed_m_s": float(np.linalg.norm(v, axis=1).max()),
+            "seconds": time.perf_counter() - t0, "device": device}

@@ -1,0 +1,138 @@
+"""The cloth drape engine (service.model.drape): analytic cases with known answers, a tiny case
+against a dense reference solve of the same energy, the fabric presets, contact, failures."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.model.geometry import mesh as geometry
+from service.model.drape import FABRICS, Config, DrapeError, DrapeResult, Fabric, edge_strain, precompute
+from tests.drape_cases import cylinder, revolved_body, ring_girth, square, square_sag, tube
+
+
+def _tube_on_cylinder(fabric: str, Rg: float, Rb: float, na: int = 64, nh: int = 12):
+    V, F = tube(Rg, 0.3, na, nh)
+    BV, BF = cylinder(Rb, -0.3, 0.6)
+    init = V.copy()
+    init[:, [0, 2]] *= (Rb + 0.002) / Rg  # the warp's guess: around the body
+    r = precompute(V, F, fabric).solve(BV, BF, init)
+    return V, F, BV, BF, r
+
+
+def test_tube_on_wider_cylinder_takes_the_hoop_strain():
+    """A tube of girth Cg on a cylinder of girth Cb > Cg: hoop strain Cb / Cg - 1 (within 0.5
+    percentage points: the cloth rests `clearance` outside the body)."""
+    Rg, Rb, na, nh = 0.15, 0.156, 64, 12
+    V, F, BV, BF, r = _tube_on_cylinder("knit", Rg, Rb, na, nh)
+    assert isinstance(r, DrapeResult) and r.vertices.dtype == np.float32 and r.vertices.shape == V.shape
+    x = r.vertices.astype(np.float64)
+    expected = Rb / Rg - 1  # polygons of the same segment count: the same ratio
+    for k in (2, nh // 2, nh - 2):
+        hoop = ring_girth(x, k, na) / ring_girth(V, k, na) - 1
+        assert abs(hoop - expected) < 0.005, (k, hoop, expected)
+    # strain map: the tube's vertices are stretched about as much (edges along the axis are not)
+    s = edge_strain(V, F, x)
+    assert s.shape == (len(V),) and 0.2 * expected < np.median(s) < expected
+    # contact: no vertex inside the body (winding numbers, independent of the solver's own test)
+    w = geometry.winding_numbers(x, BV, BF)
+    assert (w < 0.5).all()
+    assert r.stats["max_penetration_mm"] <= 1.0
+    # friction holds the tight tube where it was put
+    assert abs(x[:, 1].min() - V[:, 1].min()) < 0.01
+
+
+def test_tube_hangs_with_its_own_girth_below_a_wider_band():
+    """The same tube on a thinner cylinder (hung from a wider band at the top, as a skirt from
+    the hips): below the band it keeps its own girth (within 1 %)."""
+    na, nh, Rg = 32, 10, 0.15
+    V, F = tube(Rg, 0.5, na, nh, y0=0.05)
+    ys = np.linspace(-0.2, 0.7, 31)
+    BV, BF = revolved_body(ys, np.interp(ys, [-0.2, 0.25, 0.35, 0.7], [0.10, 0.10, 0.16, 0.16]), 64)
+    r = precompute(V, F, "knit", Config(max_iterations=250)).solve(BV, BF, V)
+    x = r.vertices.astype(np.float64)
+    g0 = ring_girth(V, 0, na)
+    for k in (0, 1, 2):  # the rings below the cone
+        assert abs(ring_girth(x, k, na) / g0 - 1) < 0.01
+    assert ring_girth(x, nh, na) / g0 - 1 > 0.05  # stretched over the band
+    assert (geometry.winding_numbers(x, BV, BF) < 0.5).all()
+
+
+def test_pinned_square_sag_matches_a_dense_reference_solve():
+    """A square pinned at two corners: the sag the engine settles to is the sag of the
+    minimiser of the same energy found by L-BFGS (within 1 mm), at the same energy."""
+    sag, ref, r, y = square_sag(7, 0.2, "knit")
+    assert r.stats["settled"]
+    assert abs(sag - ref) < 0.001, (sag, ref)
+    assert 0.15 < sag < 0.25  # it hangs: a 20 cm square from one edge's corners
+    d = precompute(*square(0.2, 7, 1.0), "knit", pinned=[0, 6])
+    assert d.energy(r.vertices.astype(np.float64))[0] <= d.energy(y)[0] * 1.002
+
+
+def test_fabric_presets_differ_as_expected():
+    assert set(FABRICS) >= {"woven", "knit", "stretch"}
+    w, k, s = FABRICS["woven"], FABRICS["knit"], FABRICS["stretch"]
+    for f in (w, k, s):
+        assert isinstance(f, Fabric) and f.source and f.weight_g_per_m2 > 0 and f.bending_stiffness_nm > 0
+    assert w.stretch_limit_pct < k.stretch_limit_pct < s.stretch_limit_pct
+    assert w.stretch_stiffness_n_per_m > k.stretch_stiffness_n_per_m > s.stretch_stiffness_n_per_m
+    assert w.bending_stiffness_nm > k.bending_stiffness_nm
+    # the same long strip hanging from its top edge: the softer fabric stretches more
+    V, F = square(0.3, 7, y=1.0)
+    V = V[:, [0, 2, 1]] + [0.0, 1.0, 0.0]  # turned to a vertical sheet in the XY plane
+    top = np.flatnonzero(V[:, 1] >= V[:, 1].max() - 1e-9)
+    stretch = {}
+    for name in ("woven", "knit", "stretch"):
+        r = precompute(V, F, name, Config(max_iterations=600), pinned=top).solve(None, None, V)
+        stretch[name] = float(np.median(edge_strain(V, F, r.vertices)))
+    assert stretch["woven"] < stretch["knit"] < stretch["stretch"], stretch
+    assert stretch["woven"] < 0.001 and stretch["stretch"] < 0.6
+
+
+def test_degenerate_rest_shapes_are_refused():
+    V, F = square(0.2, 4)
+    bad = V.copy()
+    bad[F[0, 1]] = bad[F[0, 0]]  # a zero-area face
+    with pytest.raises(DrapeError, match="zero-area"):
+        precompute(bad, F)
+    extra = np.vstack([V, [[0.0, 0.1, 0.0]]])
+    e = F[0, :2]
+    F3 = np.vstack([F, [[e[0], e[1], len(V)]], [[e[1], e[0], len(V)]]])  # three faces on one edge
+    with pytest.raises(DrapeError, match="non-manifold"):
+        precompute(extra, F3)
+    with pytest.raises(DrapeError, match="unknown fabric"):
+        precompute(V, F, "denim-ish")
+    with pytest.raises(DrapeError):
+        precompute(V * np.nan, F)
+    assert issubclass(DrapeError, ValueError)
+
+
+def test_a_solve_that_cannot_settle_fails_readably():
+    V, F = square(0.2, 5, y=1.0)
+    d = precompute(V, F, "woven", Config(diverge_m=0.01))  # nothing holds it: it falls
+    with pytest.raises(DrapeError, match="diverged"):
+        d.solve(None, None, V)
+    with pytest.raises(DrapeError, match="finite"):
+        d.solve(None, None, V[:-1])
+
+
+def test_drape_examples_keeps_the_garment_size_on_each_body():
+    """drape_examples (what a build calls for every example avatar): one factorisation, one
+    solve per body, each from its warp fit; a failing body names its example."""
+    from service.model.drape import drape_examples
+
+    na, nh, Rg = 32, 6, 0.15
+    V, F = tube(Rg, 0.2, na, nh)
+    bodies, inits = [], []
+    for Rb in (0.155, 0.16):
+        BV, BF = cylinder(Rb, -0.3, 0.6, n_around=64, n_height=12)
+        bodies.append(BV)
+        init = V.copy()
+        init[:, [0, 2]] *= (Rb + 0.002) / Rg
+        inits.append(init)
+    fits, stats = drape_examples(V, F, np.stack(inits), np.stack(bodies), BF, "knit")
+    assert fits.shape == (2, len(V), 3) and fits.dtype == np.float32 and len(stats) == 2
+    for fit, Rb in zip(fits, (0.155, 0.16)):
+        hoop = ring_girth(fit.astype(np.float64), nh // 2, na) / ring_girth(V, nh // 2, na) - 1
+        assert abs(hoop - (Rb / Rg - 1)) < 0.005
+    with pytest.raises(DrapeError, match="example avatar 1"):
+        drape_examples(V, F, np.stack([inits[0], inits[1] * np.nan]), np.stack(bodies), BF, "knit")
