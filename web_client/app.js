@@ -64,7 +64,7 @@ const controls = new OrbitControls(camera, canvas);
 controls.target.set(0, 0.9, 0);
 controls.enableDamping = false;
 controls.listenToKeyEvents(canvas); // arrow keys when the canvas has focus
-controls.addEventListener('change', render);
+controls.addEventListener('change', () => { orientRuler(); render(); });
 
 // Lighting for cloth: a sky/ground hemisphere for soft fill, a warm key light that casts a soft
 // shadow on the floor, a cool rim light from behind to separate the silhouette.
@@ -157,7 +157,7 @@ function frame() {
   const box = body.clone().union(new THREE.Box3(
     new THREE.Vector3(bc.x - FRAME_REFERENCE_WIDTH_M / 2, body.min.y, bc.z - FRAME_REFERENCE_DEPTH_M / 2),
     new THREE.Vector3(bc.x + FRAME_REFERENCE_WIDTH_M / 2, body.min.y + referenceHeight(), bc.z + FRAME_REFERENCE_DEPTH_M / 2)));
-  if (ruler.visible) box.expandByPoint(new THREE.Vector3(ruler.position.x + 0.25, body.min.y, bc.z));
+  if (ruler.visible) box.expandByPoint(ruler.position.clone().addScaledVector(ruler.userData.right, 0.25));
   const centre = box.getCenter(new THREE.Vector3()), size = body.getSize(new THREE.Vector3());
   const dir = camera.position.clone().sub(controls.target);
   if (dir.lengthSq() < 1e-8) dir.set(...START_DIRECTION);
@@ -244,13 +244,35 @@ function buildRuler(topM) {
   ruler.add(head);
   ruler.userData.top = topM;
 }
+// The ruler stands to the camera's right of the body, facing the camera, wherever the shopper
+// turned it (never between the camera and the body).
+let rulerBody = null;
+function orientRuler() {
+  if (!rulerBody) return;
+  const back = camera.position.clone().sub(controls.target);
+  back.y = 0;
+  if (back.lengthSq() < 1e-8) back.set(0, 0, 1);
+  back.normalize();
+  const right = new THREE.Vector3(back.z, 0, -back.x); // up x back
+  const c = rulerBody.getCenter(new THREE.Vector3()), p = new THREE.Vector3();
+  let reach = 0;
+  for (let i = 0; i < 8; i += 1) {
+    p.set(i & 1 ? rulerBody.max.x : rulerBody.min.x, 0, i & 4 ? rulerBody.max.z : rulerBody.min.z).sub(c);
+    reach = Math.max(reach, p.dot(right));
+  }
+  ruler.position.copy(c).addScaledVector(right, reach + RULER_GAP_M);
+  ruler.position.y = rulerBody.min.y;
+  ruler.rotation.set(0, Math.atan2(back.x, back.z), 0); // its ticks towards the camera's right
+  ruler.userData.right = right;
+}
 function placeRuler(body) {
   const top = Math.ceil(referenceHeight() * 10) / 10;
   if (ruler.userData.top !== top) buildRuler(top);
   const m = scanMesh && scanMesh.visible ? scanMesh : avatarMesh();
   const own = m ? visibleBox(m) : body;
   const h = own.max.y - body.min.y;
-  ruler.position.set(body.max.x + RULER_GAP_M, body.min.y, (body.min.z + body.max.z) / 2);
+  rulerBody = body;
+  orientRuler();
   const head = ruler.getObjectByName('ruler-head');
   head.position.set(-0.05, h, 0);
   const inches = Math.round(h * 100 / CM_PER_IN);
@@ -387,11 +409,12 @@ const hook = {
   values: () => ({ ...state.values }),
   headTop,
   sceneScreenBox: () => screenBox(visibleBox(shown())),
+  sceneWorldHeight: () => visibleBox(shown()).getSize(new THREE.Vector3()).y,
   meshPixels,
   cameraDirection: () => camera.position.clone().sub(controls.target).normalize().toArray(),
   orbit: (azimuth) => { // turn the camera about the vertical through the target (radians), as a drag would
     const off = camera.position.clone().sub(controls.target).applyAxisAngle(new THREE.Vector3(0, 1, 0), azimuth);
-    camera.position.copy(controls.target).add(off); controls.update(); render();
+    camera.position.copy(controls.target).add(off); controls.update(); orientRuler(); render();
   },
   hair: () => state.hair,
   scanSize: () => (scanMesh ? new THREE.Box3().setFromObject(scanMesh).getSize(new THREE.Vector3()).toArray() : null),
@@ -1017,9 +1040,12 @@ function filterCatalogue() {
     li.classList.toggle('other', Boolean(gender) && !mine);
     if (!mine) hidden += 1;
   }
-  // the shopper's garments first, the others after them
+  // the shopper's gender first, then unisex, then the others (each in the catalogue's order)
   const ul = $('#catalogue');
-  [...ul.children].filter((li) => li.classList.contains('other')).forEach((li) => ul.append(li));
+  const rank = (li) => { const g = garment(li.dataset.garment); return !g || !gender ? 0 : g.gender === gender ? 0 : forShopper(g, gender) ? 1 : 2; };
+  const index = new Map(state.garments.map((g, i) => [g.id, i]));
+  [...ul.children].sort((a, b) => rank(a) - rank(b) || index.get(a.dataset.garment) - index.get(b.dataset.garment))
+    .forEach((li) => ul.append(li));
   const btn = $('#catalogue-all');
   btn.hidden = !gender || hidden === 0;
   btn.setAttribute('aria-pressed', String(state.catalogueAll));
@@ -1032,9 +1058,7 @@ $('#catalogue-all').addEventListener('click', () => { state.catalogueAll = !stat
 function buildCatalogue() {
   const ul = $('#catalogue');
   ul.innerHTML = '';
-  const gender = shopperGender();
-  const order = [...state.garments].sort((a, b) => Number(!forShopper(a, gender)) - Number(!forShopper(b, gender)));
-  for (const g of order) {
+  for (const g of state.garments) {
     const li = document.createElement('li');
     li.dataset.garment = g.id;
     const btn = document.createElement('button');
