@@ -379,8 +379,8 @@ try {
     { name: 'm193-118', gender: 'male', height: 193, weight: 118 }];
   for (const b of phoneBodies) {
     await setBody(page, b);
-    const mine = await visibleGarments();
-    const top = tops.find((g) => mine.includes(g.id)), bottom = bottoms.find((g) => mine.includes(g.id));
+    const mine = (g) => genderOf[g.id] === b.gender;
+    const top = tops.find(mine), bottom = bottoms.find(mine);
     await wear(page, [top, bottom].filter(Boolean).map((g) => g.id));
     await shot(page, `phone-${b.name}`);
     await page.screenshot({ path: path.join(outdir, `phone-${b.name}-full.png`), fullPage: true });
