@@ -21,8 +21,8 @@ from service.api.middleware import (
 )
 from service.api.schemas import attribute_ranges, document_measurements
 from service.application.context import Context
-from service.model import shape
-from service.model.body import load_body_model
+from service.model.body import shape
+from service.model.body.model import load_body_model
 from service.settings import SERVE_PID_ENV, Settings, get_settings
 from service.storage.redis import die_with_parent
 from service.storage.supervise import EmbeddedWorker

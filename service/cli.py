@@ -1,4 +1,5 @@
-"""The ``tryon`` command line: serve, worker, build-body-model, build-catalogue, bench, openapi."""
+"""The ``tryon`` command line: serve, worker, build-body-model, build-catalogue, bench, bench-report,
+openapi."""
 from __future__ import annotations
 
 import argparse
@@ -26,7 +27,8 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 PASS_THROUGH = {
     "build-body-model": "Compile the body model (needs the `build` extra: torch, anny).",
     "build-catalogue": "Compile the demo catalogue and avatar assets from ../shared/data (Pillow).",
-    "bench": "Run a benchmark suite: tryon bench <suite> [--json] [...].",
+    "bench": "Run a benchmark suite: tryon bench <suite> [--json] [--save] [...].",
+    "bench-report": "Write docs/benchmarks.md from the results saved by `tryon bench <suite> --save`.",
 }
 
 
@@ -140,7 +142,7 @@ def _run_module(module: str, prog: str, argv: list[str]) -> int:
     return 0
 
 
-def _bench(argv: list[str]) -> int:
+def _bench(argv: list[str], module: str = "tests.bench", prog: str = "tryon bench") -> int:
     """``tryon bench``: the benchmarks live beside the tests (``tests/bench``), not in the service
     package or its image; run them from a checkout."""
     if not (REPO_ROOT / "tests" / "bench" / "__main__.py").is_file():
@@ -149,7 +151,7 @@ def _bench(argv: list[str]) -> int:
         return 2
     if str(REPO_ROOT) not in sys.path:
         sys.path.insert(0, str(REPO_ROOT))
-    return _run_module("tests.bench", "tryon bench", argv)
+    return _run_module(module, prog, argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -161,6 +163,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run_module("worker.build.body_model", "tryon build-body-model", rest)
         if command == "build-catalogue":
             return _run_module("worker.build.catalogue", "tryon build-catalogue", rest)
+        if command == "bench-report":
+            return _bench(rest, "tests.bench.report", "tryon bench-report")
         if not rest or (rest[0].startswith("-") and rest[0] not in ("-h", "--help")):
             print("usage: tryon bench <suite> [--json] [...]", file=sys.stderr)
             return 2
@@ -174,8 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s", "%H:%M:%S"))
         logging.getLogger("tryon").addHandler(handler)  # rq configures its own loggers
         logging.getLogger("tryon").setLevel(logging.INFO)
-        from service.model import shape
-        from service.model.body import load_body_model
+        from service.model.body import shape
+        from service.model.body.model import load_body_model
         from service.storage.supervise import run_worker
 
         settings = get_settings()

@@ -49,7 +49,7 @@ def format_issues(report: dict[str, Any]) -> str:
 
 def valid_glb(validate: Callable[[bytes], dict[str, Any]], data: bytes) -> dict[str, Any]:
     """Assert ``data`` is a GLB with 0 validator errors; return it read back (``read_glb``)."""
-    from service.model.gltf import read_glb
+    from service.model.formats.gltf_read import read_glb
 
     assert data[:4] == b"glTF"
     report = validate(data)
@@ -85,6 +85,6 @@ def validate_glb(tmp_path: Path) -> Callable[[bytes], dict[str, Any]]:
 @pytest.fixture(scope="session")
 def model():
     """The packaged body model, loaded once for the whole test session."""
-    from service.model.body import load_body_model
+    from service.model.body.model import load_body_model
 
     return load_body_model()

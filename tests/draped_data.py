@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.application.scenes import obj_text
-from service.model import mhclo
+from service.model.formats import mhclo
 from tests.bench import synthetic_scans as SS
 from tests.bench.common import heldout_people, shared_data_dir
 

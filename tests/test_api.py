@@ -11,8 +11,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.model.body import BONES
-from service.model.gltf import read_glb
+from service.model.body.model import BONES
+from service.model.formats.gltf_read import read_glb
 from tests.conftest import format_issues
 from tests.harness import run_server
 

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.model.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.settings import Settings
 from tests.bench.common import shared_data_dir
 from tests.harness import GLB, RETAILERS, assert_422, redis_db, redis_url

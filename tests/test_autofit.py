@@ -1,4 +1,4 @@
-"""The garment auto-fit (service/model/autofit.py, issue 10): a draped garment carried onto
+"""The garment auto-fit (service/model/garments/autofit.py, issue 10): a draped garment carried onto
 other bodies stays off them (exact closest-point test), keeps its shape on its own body, follows
 a body that grows, and reports progress."""
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.model import autofit as AF
-from service.model import tryon as T
-from service.model.geometry import vertex_faces, vertex_normals, winding_numbers
+from service.model.garments import autofit as AF
+from service.model.garments import tryon as T
+from service.model.geometry.mesh import vertex_faces, vertex_normals, winding_numbers
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_resolve_collisions_moves_inside_vertices_out(model, tee):
     i = np.arange(0, len(g), 7)
     nn = body.tree.query(g[i])[1]
     dented[i] -= 0.015 * n[nn]  # 7 mm inside the skin
-    from service.model.garment import laplacian_smoother
+    from service.model.garments.garment import laplacian_smoother
     gap = np.full(len(g), 0.0015)
     out, moved = AF.resolve_collisions(dented, body, gap, laplacian_smoother(faces, len(g)).tocsc(), AF.AutofitParams())
     assert moved >= len(i)

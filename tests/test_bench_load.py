@@ -37,7 +37,7 @@ def test_bench_kernels_smoke() -> None:
     """`tryon bench kernels` on two customers (one of each gender): every row timed both ways,
     and every output of the compiled kernels equal to the numpy path's (closest points, adapted
     poses, both outfits' GLB bytes; winding numbers to 1e-12)."""
-    from service.model import kernels as K
+    from service.model.geometry import kernels as K
     from tests.bench import kernels
 
     if not K.AVAILABLE:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.model.body import BONES, DEFAULT_MODEL_PATH
+from service.model.body.model import BONES, DEFAULT_MODEL_PATH
 
 
 
@@ -23,7 +23,7 @@ def test_body_surface_is_watertight_and_outward(model):
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     assert np.all(counts == 2), "every edge is shared by exactly two triangles"
-    from service.model.measurements import volume
+    from service.model.body.measurements import volume
 
     assert volume(model.mean.astype(np.float64), f) > 0.03  # outward normals, ~ 70 L
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.model.body import DEFAULT_MODEL_PATH, BodyModel
+from service.model.body.model import DEFAULT_MODEL_PATH, BodyModel
 
 pytestmark = pytest.mark.slow  # real processes (see tests/conftest.py: tiers)
 

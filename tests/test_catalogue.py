@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.model.catalogue import DEFAULT_CATALOGUE_DIR, load_catalogue, read_catalogue, render_layout
-from service.model.geometry import closest_point_on_triangles, closest_points_on_mesh, vertex_normals
-from service.model.mhclo import parse_obj, parse_obj_faces
-from service.model.tryon import example_set, example_vertices
+from service.model.garments.catalogue import DEFAULT_CATALOGUE_DIR, load_catalogue, read_catalogue, render_layout
+from service.model.geometry.mesh import closest_point_on_triangles, closest_points_on_mesh, vertex_normals
+from service.model.formats.mhclo import parse_obj, parse_obj_faces
+from service.model.garments.tryon import example_set, example_vertices
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared" / "data"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.body import BONES, BodyModel
+from service.model.body.model import BONES, BodyModel
 from tests.conftest import valid_glb
 from tests.harness import GLB, Server, assert_422, bearer, run_server
 

@@ -1,4 +1,4 @@
-"""Editing a fitted clothed avatar (service/model/editing.py, issue 13): no edit is no change,
+"""Editing a fitted clothed avatar (service/model/nonrigid/editing.py, issue 13): no edit is no change,
 measurement edits reach their targets and hold the others, pose edits go through the graph and
 carry a clothing layer with the body, dual-quaternion skinning against closed forms, and the
 editor's partial forward pass against the body model's."""
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.model import editing as E
-from service.model import lbs
-from service.model.body import BONES
-from service.model.geometry import vertex_normals
-from service.model.shape import MeasurementError
+from service.model.nonrigid import editing as E
+from service.model.body import lbs
+from service.model.body.model import BONES
+from service.model.geometry.mesh import vertex_normals
+from service.model.body.shape import MeasurementError
 
 OFFSET = 0.006  # a skin-tight suit 6 mm off the skin
 
@@ -131,7 +131,7 @@ def test_reskin_scan_round_trip(model):
 def test_twisted_elbow_keeps_more_volume_than_skinning_the_suit(model):
     """Paper Fig. 8: a 90-degree forearm twist of a closed suit, through the graph (default: M*
     by dual quaternions) against LBS of the suit with weights transferred from the body."""
-    from service.model.measurements import volume
+    from service.model.body.measurements import volume
 
     nb = model.n_body_vertices
     w = np.zeros(model.n_components)

@@ -11,8 +11,8 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from service.app import create_app
-from service.model import scan_cleanup as SC
-from service.model.gltf import read_glb
+from service.model.fitting import scan_cleanup as SC
+from service.model.formats.gltf_read import read_glb
 from service.settings import Settings
 from tests.bench import synthetic_scans as S
 from tests.bench.common import heldout_people

@@ -1,4 +1,4 @@
-"""Parametric body fitting (service/model/fitting.py): Jacobians against finite differences,
+"""Parametric body fitting (service/model/fitting/fit.py): Jacobians against finite differences,
 the prefactored Eq. 2 solve against a dense reference on both sparse back ends, and whole fits
 of synthetic scans with a known body (tests/bench/synthetic_scans.py)."""
 from __future__ import annotations
@@ -6,79 +6,87 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.model import fitting as F
-from service.model.body import BONES
+from service.model.fitting import fit as F
+from service.model.fitting import alg1 as F_alg1
+from service.model.fitting import checks as F_checks
+from service.model.fitting import initialise as F_initialise
+from service.model.fitting import params as F_params
+from service.model.fitting import prepare as F_prepare
+from service.model.fitting import regions as F_regions
+from service.model.fitting import rig as F_rig
+from service.model.body.model import BONES
 from tests.bench import synthetic_scans as SS
 from tests.bench.fitting import v2v_mm
-from service.model.lbs import axis_angle_to_matrix
-from service.model.geometry import vertex_normals
+from service.model.body.lbs import axis_angle_to_matrix, bone_hops
+from service.model.geometry import kernels
+from service.model.geometry.mesh import vertex_normals
 from scipy.spatial import cKDTree
 
 
 @pytest.fixture(scope="module")
 def rig(model):
-    return F._rig(model)
+    return F_rig._rig(model)
 
 
 def _random_state(model, rig, seed=1):
     rng = np.random.default_rng(seed)
-    return F._State(rng.normal(size=len(rig.U)) * np.sqrt(model.variances) * 0.5,
+    return F_rig._State(rng.normal(size=len(rig.U)) * np.sqrt(model.variances) * 0.5,
                     axis_angle_to_matrix(rng.normal(size=(17, 3)) * 0.3), rng.normal(size=3) * 0.1)
 
 
 def test_pose_model_matches_skinning(model, rig):
     s = _random_state(model, rig)
-    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 53))
+    sub = F_rig._subset(rig, np.arange(0, model.n_body_vertices, 53))
     ref = model.forward(s.beta, s.rot, s.trans).vertices[: model.n_body_vertices][sub.idx]
-    assert np.abs(F._pose_model(rig, s, sub).v - ref).max() < 1e-6
+    assert np.abs(F_rig._pose_model(rig, s, sub).v - ref).max() < 1e-6
 
 
 def test_jacobians_match_finite_differences(model, rig):
     s = _random_state(model, rig, 2)
-    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 97))
-    p = F._pose_model(rig, s, sub)
-    J = F._pose_jacobian(rig, p, F.ALL_BONES)
+    sub = F_rig._subset(rig, np.arange(0, model.n_body_vertices, 97))
+    p = F_rig._pose_model(rig, s, sub)
+    J = F_rig._pose_jacobian(rig, p, F_rig.ALL_BONES)
     eps = 1e-6
     for k in range(J.shape[2]):  # translation and every bone's rotation
         d = np.zeros(J.shape[2])
         d[k] = eps
         s2 = s.copy()
-        F._apply_pose(rig, s2, p, F.ALL_BONES, d)
-        fd = (F._pose_model(rig, s2, sub).v - p.v) / eps
+        F_rig._apply_pose(rig, s2, p, F_rig.ALL_BONES, d)
+        fd = (F_rig._pose_model(rig, s2, sub).v - p.v) / eps
         assert np.abs(fd - J[:, :, k]).max() < 1e-4 * max(1.0, np.abs(J[:, :, k]).max()), k
     comps = np.array([0, 3, 17, 75])
-    Jb = F._shape_jacobian(rig, p, comps)
+    Jb = F_rig._shape_jacobian(rig, p, comps)
     for c, k in enumerate(comps):
         s2 = s.copy()
         s2.beta[k] += eps
-        fd = (F._pose_model(rig, s2, sub).v - p.v) / eps
+        fd = (F_rig._pose_model(rig, s2, sub).v - p.v) / eps
         assert np.abs(fd - Jb[:, :, c]).max() < 1e-6
     # both in one array, the shape's columns written in place after the pose's
-    assert np.array_equal(F._pose_jacobian(rig, p, F.ALL_BONES, comps), np.concatenate([J, Jb], axis=2))
+    assert np.array_equal(F_rig._pose_jacobian(rig, p, F_rig.ALL_BONES, comps), np.concatenate([J, Jb], axis=2))
 
 
-@pytest.mark.skipif(not F.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
-@pytest.mark.parametrize("bones", [F.ALL_BONES, F.ROOT_ONLY, np.array([BONES.index("thigh_l"), BONES.index("shin_l"),
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+@pytest.mark.parametrize("bones", [F_rig.ALL_BONES, F_rig.ROOT_ONLY, np.array([BONES.index("thigh_l"), BONES.index("shin_l"),
                                                                        BONES.index("upper_arm_r")])])
 def test_compiled_pose_jacobian_equals_the_numpy_reference(model, rig, bones):
     """The compiled pose Jacobian (kernels.pose_jacobian_into) is the numpy path's, with and
     without the shape's columns, on every vertex of a posed random body."""
     s = _random_state(model, rig, 5)
-    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 41))
-    p = F._pose_model(rig, s, sub)
+    sub = F_rig._subset(rig, np.arange(0, model.n_body_vertices, 41))
+    p = F_rig._pose_model(rig, s, sub)
     for comps in (None, np.arange(10)):
-        fast = F._pose_jacobian(rig, p, bones, comps, compiled=True)
-        ref = F._pose_jacobian(rig, p, bones, comps, compiled=False)
+        fast = F_rig._pose_jacobian(rig, p, bones, comps, compiled=True)
+        ref = F_rig._pose_jacobian(rig, p, bones, comps, compiled=False)
         assert fast.shape == ref.shape
         assert np.abs(fast - ref).max() <= 1e-13 * np.abs(ref).max()
         assert np.abs(ref).max() > 0.1  # not an all-zero comparison
 
 
-@pytest.mark.skipif(not F.kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
 def test_compiled_pair_rows_equal_the_numpy_reference():
     """The point-to-plane normal equations with the compiled rows (kernels.pair_rows) are the
     numpy path's, with and without the per-region stand-off unknowns, and a slow sum pair by pair."""
-    from service.model.nonrigid import point_to_plane_normal_equations
+    from service.model.geometry.solvers import point_to_plane_normal_equations
 
     rng = np.random.default_rng(3)
     m, k, P = 40, 90, 11
@@ -101,9 +109,9 @@ def test_compiled_pair_rows_equal_the_numpy_reference():
 def test_unit_detection_errors_are_fit_errors():
     pts = np.random.default_rng(0).normal(size=(500, 3)) * [0.2, 0.5, 0.1]
     pts[:, 1] = np.linspace(0, 1.75, 500)
-    assert F.detect_scan_unit(pts * 100)[0] == "cm"
-    with pytest.raises(F.FitError, match="units"):
-        F.detect_scan_unit(pts * 10)
+    assert F_prepare.detect_scan_unit(pts * 100)[0] == "cm"
+    with pytest.raises(F_checks.FitError, match="units"):
+        F_prepare.detect_scan_unit(pts * 10)
 
 
 
@@ -136,7 +144,7 @@ def test_fit_unclothed_scan(model):
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False, progress=report)
     assert (fit.unit, fit.up) == ("cm", "+z")
     assert progress[-1] == 1.0 and progress == sorted(progress)
-    assert threads and set(threads) == {F.DEFAULT_PARAMS.blas_threads}, threads
+    assert threads and set(threads) == {F_params.DEFAULT_PARAMS.blas_threads}, threads
     assert blas_threads() == before
     err = v2v_mm(model, scan, fit)
     assert err < 8.0, err
@@ -150,7 +158,7 @@ def test_fit_unclothed_scan(model):
 def test_fit_clothed_point_cloud_stays_inside_clothes(model):
     """A clothed point cloud without normals (estimated) in mm: the body is recovered and sits
     inside the clothes, not inflated to them."""
-    from service.model.geometry import winding_numbers
+    from service.model.geometry.mesh import winding_numbers
 
     person = _person(model)
     if not SS.default_clothes_dir().is_dir():
@@ -190,26 +198,26 @@ def test_fit_recovers_rest_pose_stature_of_posed_scan(model):
 
 
 def test_fit_rejects_non_person(model):
-    with pytest.raises(F.FitError):
+    with pytest.raises(F_checks.FitError):
         F.fit_body(model, np.random.default_rng(0).normal(size=(50, 3)))
-    with pytest.raises(F.FitError, match="units"):
+    with pytest.raises(F_checks.FitError, match="units"):
         F.fit_body(model, np.random.default_rng(0).uniform(0, 5, size=(2000, 3)))
 
 
-# -- the person check (service/model/person_check.py) ----------------------------------------
+# -- the person check (service/model/fitting/person_check.py) ----------------------------------------
 @pytest.mark.parametrize("kind", ["box", "ellipsoid", "two_people"])
 def test_person_check_before_the_fit_rejects_shapes(model, kind):
     """A box and an ellipsoid are convex solids; two people apart are two person-sized
     components: refused before any fitting, 'not a person: <reason>'."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     pts, nrm, unit, up = SS.non_person_scan(model, kind, np.random.default_rng(3), n_points=4000)
     P = pts / SS.UNIT_SCALE[unit]
     assert (PC.convex_solid(P) is None) == (kind == "two_people")
     assert (PC.separate_bodies(P) is None) == (kind != "two_people")
-    with pytest.raises(F.FitError, match="^not a person: "):
-        F.check_person_before(P)
-    with pytest.raises(F.FitError, match="^not a person: "):  # in the file's unit, before any fitting
+    with pytest.raises(F_checks.FitError, match="^not a person: "):
+        F_checks.check_person_before(P)
+    with pytest.raises(F_checks.FitError, match="^not a person: "):  # in the file's unit, before any fitting
         F.fit_body(model, pts, nrm)
 
 
@@ -221,16 +229,16 @@ def test_a_stick_figure_is_not_a_bare_person(model):
     surface. Bare people are 1.5-2.1 mm off it (``person_check.bare_surface``): refused. Declared
     clothed, the population check refuses it (hips and thighs out of range)."""
     pts, nrm, unit, up = SS.non_person_scan(model, "stick_figure", np.random.default_rng(3), n_points=6000)
-    with pytest.raises(F.FitError, match="^not a person: the best-fitting body is .* from the scan's surface"):
+    with pytest.raises(F_checks.FitError, match="^not a person: the best-fitting body is .* from the scan's surface"):
         F.fit_body(model, pts, nrm, clothed=False)
-    with pytest.raises(F.FitError):
+    with pytest.raises(F_checks.FitError):
         F.fit_body(model, pts, nrm, clothed=True)
 
 
 @pytest.mark.parametrize("clothed,cloud", [(False, True), (True, False)])
 def test_person_check_before_the_fit_passes_people(model, clothed, cloud):
     """Posed people, bare or clothed, mesh or cloud, pass the checks before the fit."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     if clothed and not SS.default_clothes_dir().is_dir():
         pytest.skip("MakeHuman clothes (../shared/data/makehuman_clothes) not available")
@@ -239,24 +247,24 @@ def test_person_check_before_the_fit_passes_people(model, clothed, cloud):
                         point_cloud=cloud, n_points=4000, max_pose_deg=30)
     P = scan.points_in_model_frame()
     assert PC.concave_share(P) > 2 * PC.CONCAVE_SHARE_MIN
-    F.check_person_before(P)
+    F_checks.check_person_before(P)
 
 
 def test_population_check(model):
     """The accepted measurement ranges and the shape prior: the mean body passes; a shape with
     an attribute out of range, or far from the population, fails saying which."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     w = np.zeros(model.n_components)
-    assert F.check_population(model, w)["mahalanobis"] == 0.0
+    assert F_checks.check_population(model, w)["mahalanobis"] == 0.0
     attrs = model.attributes
     reason, _ = PC.population_check(w, model.variances, {"waist_cm": 37.0, "height_cm": 158.0}, attrs)
     assert reason.startswith("waist_cm 37.0 outside the accepted 48.6")
     w[5] = 1.5 * PC.COMPONENT_Z_MAX * np.sqrt(model.variances[5])
     reason, fig = PC.population_check(w, model.variances, {}, attrs)
     assert "standard deviations" in reason and fig["max_component_sd"] > PC.COMPONENT_Z_MAX
-    with pytest.raises(F.FitError, match="^the fitted body is outside the population: "):
-        F.check_population(model, w * 3)
+    with pytest.raises(F_checks.FitError, match="^the fitted body is outside the population: "):
+        F_checks.check_population(model, w * 3)
 
 
 def test_a_part_of_the_scan_far_from_the_body_is_unexplained(model):
@@ -264,7 +272,7 @@ def test_a_part_of_the_scan_far_from_the_body_is_unexplained(model):
     points reaching 50 cm out from the chest (a limb the fit left elsewhere, or an object held)
     is refused saying how much of the scan is left out; the body alone, or with the rod only
     15 cm long (loose clothes, hair), passes."""
-    from service.model import person_check as PC
+    from service.model.fitting import person_check as PC
 
     body = model.vertices(np.zeros(model.n_components))[: model.n_body_vertices].astype(np.float64)
     chest = body[np.argmax(body[:, 2] * (np.abs(body[:, 1] - 1.3) < 0.05))]  # the front of the chest
@@ -311,8 +319,8 @@ def test_a_wrong_fit_of_a_scanner_scan_at_45_degrees_is_refused(model):
     scan = SS.degrade(scan, ("holes", "cut_head", "scanner_floor"), np.random.default_rng([BF.SEED, 11, person["index"]]))
     try:
         fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True)
-    except F.FitError as exc:
-        assert str(exc).startswith(F.NOT_FITTED) and "not explained" in str(exc), exc
+    except F_checks.FitError as exc:
+        assert str(exc).startswith(F_checks.NOT_FITTED) and "not explained" in str(exc), exc
         return
     ev = BF.evaluate(model, scan, fit, BF.BodySurface(model.body_faces, model.n_body_vertices))
     assert ev["p2s_mm"] < 10.0, ev["p2s_mm"]
@@ -335,30 +343,30 @@ def test_joint_limits_data_and_penalty_gradient(model, rig):
     """Every bone but the pelvis has hand-set limits with lo < 0 < hi (the rest pose inside);
     the penalty's gradient over the world-frame pose parameters matches finite differences of
     weight/2 sum ||violation||^2."""
-    from service.model.body import BONES
-    from service.model.lbs import matrix_to_axis_angle
+    from service.model.body.model import BONES
+    from service.model.body.lbs import matrix_to_axis_angle
 
-    assert set(F.JOINT_LIMITS_DEG) == set(BONES) - {"pelvis"}
-    lo, hi = F.joint_limits()
+    assert set(F_rig.JOINT_LIMITS_DEG) == set(BONES) - {"pelvis"}
+    lo, hi = F_rig.joint_limits()
     assert np.all(lo[1:] < 0) and np.all(hi[1:] > 0) and np.isinf(lo[0]).all()
-    assert not F.limit_violation(np.zeros((17, 3))).any()
+    assert not F_rig.limit_violation(np.zeros((17, 3))).any()
     s = _random_state(model, rig, 5)
     s.rot = axis_angle_to_matrix(np.random.default_rng(5).normal(size=(17, 3)) * 1.2)  # many outside
-    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 97))
-    p = F._pose_model(rig, s, sub)
+    sub = F_rig._subset(rig, np.arange(0, model.n_body_vertices, 97))
+    p = F_rig._pose_model(rig, s, sub)
     w = 3.0
 
     def energy(st):
-        return 0.5 * w * float((F.limit_violation(matrix_to_axis_angle(st.rot)) ** 2).sum())
+        return 0.5 * w * float((F_rig.limit_violation(matrix_to_axis_angle(st.rot)) ** 2).sum())
 
     assert energy(s) > 0
-    H, g = F._joint_limit_terms(rig, s, p, F.ALL_BONES, w)
+    H, g = F_rig._joint_limit_terms(rig, s, p, F_rig.ALL_BONES, w)
     eps = 1e-6
     for k in range(3, g.size):
         d = np.zeros(g.size)
         d[k] = eps
         s2 = s.copy()
-        F._apply_pose(rig, s2, p, F.ALL_BONES, d)
+        F_rig._apply_pose(rig, s2, p, F_rig.ALL_BONES, d)
         assert abs((energy(s2) - energy(s)) / eps - g[k]) < 1e-3 * max(1.0, abs(g[k])), k
     assert np.all(np.linalg.eigvalsh(H) > -1e-9)
 
@@ -371,21 +379,21 @@ def test_loose_region_weight_against_a_per_pair_reference():
     rng = np.random.default_rng(5)
     signed = rng.normal(-0.01, 0.012, size=300)
     region = rng.integers(0, 5, size=300)
-    got = F.loose_region_weight(signed, region, 0.01)
+    got = F_regions.loose_region_weight(signed, region, 0.01)
     for k in range(len(signed)):
         same = region == region[k]
         med = np.median([max(-x, 0.0) for x in signed[same]])
         want = 1.0 / (1.0 + (med / 0.01) ** 2) if signed[k] < 0 else 1.0
         assert abs(got[k] - want) < 1e-12
     snug, loose = -rng.uniform(0.002, 0.004, 50), -rng.uniform(0.02, 0.03, 50)
-    w = F.loose_region_weight(np.r_[snug, loose, 0.001], np.r_[np.zeros(50, int), np.ones(50, int), 1], 0.01)
+    w = F_regions.loose_region_weight(np.r_[snug, loose, 0.001], np.r_[np.zeros(50, int), np.ones(50, int), 1], 0.01)
     assert np.all(w[:50] > 0.85) and np.all(w[50:100] < 0.2) and w[100] == 1.0
 
 
 def test_cloth_offset_normal_equations_against_a_per_pair_reference():
     """``point_to_plane_normal_equations`` with regions: point-to-plane rows n_k^T J_{vi_k} with a
     one-hot column per region (the residual r_k + o_{region_k}), summed pair by pair."""
-    from service.model.nonrigid import point_to_plane_normal_equations
+    from service.model.geometry.solvers import point_to_plane_normal_equations
 
     rng = np.random.default_rng(8)
     m, P, R, k = 7, 5, 4, 30
@@ -411,7 +419,7 @@ def test_offset_step_is_the_bounded_least_squares_step():
     problems where some bounds are active and some are not)."""
     from scipy.optimize import minimize
 
-    params = F.FitParams(damping=1e-12, levenberg=0.0)
+    params = F_params.FitParams(damping=1e-12, levenberg=0.0)
     rng = np.random.default_rng(3)
     active = 0
     for _ in range(20):
@@ -419,7 +427,7 @@ def test_offset_step_is_the_bounded_least_squares_step():
         A = rng.normal(size=(40, n + R))
         H, g = A.T @ A, rng.normal(size=n + R) * 3
         offsets = rng.uniform(0.0, 1.0, R) * (rng.uniform(size=R) < 0.6)
-        d = F._offset_step(H, g, offsets, params)
+        d = F_initialise._offset_step(H, g, offsets, params)
         bounds = [(None, None)] * n + [(-o, None) for o in offsets]
         ref = minimize(lambda x: 0.5 * x @ H @ x + g @ x, np.zeros(n + R), jac=lambda x: H @ x + g,
                        bounds=bounds, method="L-BFGS-B", options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000}).x
@@ -434,16 +442,16 @@ def test_clothing_weight_is_asymmetric_and_redescending():
     touching them from inside (within the contact depth) nearly so, one deep under a loose
     jacket almost none -- far less than the constant ``inside_weight`` -- and the pull
     (weight x depth) falls again beyond the contact depth (redescending)."""
-    p = F.FitParams()
+    p = F_params.FitParams()
     signed = np.array([0.01, 0.0, -0.001, -0.004, -0.03, -0.06])
-    w = F._clothing_weight(signed, True, p, p.clothing_contact)
+    w = F_regions._clothing_weight(signed, True, p, p.clothing_contact)
     assert w[0] == w[1] == 1.0 and w[2] > 0.9
     assert abs(w[3] - 0.5) < 1e-12  # half weight at the contact depth
     assert w[4] < 0.1 * p.inside_weight + 0.01 and w[5] < w[4]
     pull = w * np.abs(signed)
     assert pull[3] > pull[4] > pull[5]
-    assert np.all(F._clothing_weight(signed, False, p, p.clothing_contact) == 1.0)
-    assert np.all(F._clothing_weight(signed[2:], True, p, None) == p.inside_weight)
+    assert np.all(F_regions._clothing_weight(signed, False, p, p.clothing_contact) == 1.0)
+    assert np.all(F_regions._clothing_weight(signed[2:], True, p, None) == p.inside_weight)
 
 
 @pytest.mark.slow
@@ -522,7 +530,7 @@ def test_the_body_does_not_fill_a_loose_suit(model):
                         noise_mm=BF.NOISE_MM, max_pose_deg=45, clothes_dir=SS.default_clothes_dir())
     surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
     ev = {}
-    for name, params in (("prior", F.FitParams()), ("none", replace(F.FitParams(), clothed_shape_prior=None))):
+    for name, params in (("prior", F_params.FitParams()), ("none", replace(F_params.FitParams(), clothed_shape_prior=None))):
         fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True, params=params)
         ev[name] = BF.evaluate(model, scan, fit, surface)
     print({k: (round(v["p2s_mm"], 2), round(v["measurements"]["weight_kg"], 1), round(v["measurements"]["waist_cm"], 1))
@@ -564,7 +572,7 @@ def _fits(model, scan, **variants) -> dict:
 
     surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
     return {name: BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True,
-                                                      params=F.FitParams(**kw)), surface)
+                                                      params=F_params.FitParams(**kw)), surface)
             for name, kw in variants.items()}
 
 
@@ -635,7 +643,7 @@ def test_vertex_areas_and_area_weighted_trimmed_mean(model, rig):
     """The template's vertex areas sum to its surface area and are far from uniform (the hands'
     and the head's vertices are dense: per vertex they would outweigh the legs); the weighted
     trimmed mean keeps the smallest values holding ``keep`` of the weight."""
-    from service.model.nonrigid import trimmed_mean
+    from service.model.geometry.solvers import trimmed_mean
 
     faces = rig.faces
     v = rig.mean[faces]
@@ -656,17 +664,17 @@ def test_posture_anchor_pulls_each_bone_back(model, rig):
     rotation (the root's too) back to the anchored posture; at the anchor the gradient is 0."""
     s = _random_state(model, rig, 7)
     anchor = s.rot.copy()
-    sub = F._subset(rig, np.arange(0, model.n_body_vertices, 97))
-    p = F._pose_model(rig, s, sub)
-    H, g = F._anchor_terms(rig, s, p, F.ALL_BONES, anchor, 2.0)
+    sub = F_rig._subset(rig, np.arange(0, model.n_body_vertices, 97))
+    p = F_rig._pose_model(rig, s, sub)
+    H, g = F_rig._anchor_terms(rig, s, p, F_rig.ALL_BONES, anchor, 2.0)
     assert np.abs(g).max() < 1e-9
     s.rot = axis_angle_to_matrix(np.random.default_rng(8).normal(size=(17, 3)) * 0.3) @ anchor
     for _ in range(6):
-        p = F._pose_model(rig, s, sub)
-        H, g = F._anchor_terms(rig, s, p, F.ALL_BONES, anchor, 2.0)
+        p = F_rig._pose_model(rig, s, sub)
+        H, g = F_rig._anchor_terms(rig, s, p, F_rig.ALL_BONES, anchor, 2.0)
         H[:3, :3] += np.eye(3)  # the translation is free of the term
-        F._apply_pose(rig, s, p, F.ALL_BONES, -np.linalg.solve(H, g))
-    from service.model.lbs import matrix_to_axis_angle
+        F_rig._apply_pose(rig, s, p, F_rig.ALL_BONES, -np.linalg.solve(H, g))
+    from service.model.body.lbs import matrix_to_axis_angle
 
     left = np.linalg.norm(matrix_to_axis_angle(np.einsum("bji,bjk->bik", anchor, s.rot)), axis=1)
     assert left.max() < 1e-4, left
@@ -794,9 +802,9 @@ def test_a_scan_with_holes_does_not_drift_in_alg1(model):
         fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False, params=params)
         return BF.evaluate(model, scan, fit, surface)["p2s_mm"], fit.outer_iterations
 
-    p2s, outer = error(F.FitParams(unseen_prior=0.0))
+    p2s, outer = error(F_params.FitParams(unseen_prior=0.0))
     assert p2s < 1.6 and outer <= 3
-    p2s, outer = error(F.FitParams(rim_reject=False, unseen_prior=0.0))
+    p2s, outer = error(F_params.FitParams(rim_reject=False, unseen_prior=0.0))
     assert p2s < 1.6 and outer <= 3
     # (since FitParams.finger_scale the drift needs the fingers weighted as any vertex too: 1.33 mm)
     p2s, outer = error(replace(BF.BEFORE_PARAMS("alg1_outer"), rim_reject=False, unseen_prior=0.0, finger_scale=None))
@@ -828,18 +836,18 @@ def test_a_face_in_a_hole_does_not_nod_the_head(model):
 def test_seen_shares_find_a_hand_in_a_hole(model):
     """``fitting.seen_shares`` on the template itself as the scan, the left hand's points taken
     out: the hand unseen, every bone away from it wholly seen."""
-    rig = F._rig(model)
-    state = F._State(np.zeros(len(rig.U)), np.broadcast_to(np.eye(3), (len(BONES), 3, 3)).copy(), np.zeros(3))
+    rig = F_rig._rig(model)
+    state = F_rig._State(np.zeros(len(rig.U)), np.broadcast_to(np.eye(3), (len(BONES), 3, 3)).copy(), np.zeros(3))
     bone = np.argmax(rig.W, axis=1)
     hand = BONES.index("hand_l")
     wrist = rig.mean[bone == hand].mean(0)
     P = rig.mean[np.linalg.norm(rig.mean - wrist, axis=1) > 0.12]
-    seen = F.seen_shares(rig, state, P, None)
+    seen = F_prepare.seen_shares(rig, state, P, None)
     assert seen.shape == (len(BONES),)
-    assert seen[hand] < F.UNSEEN_SHARE
+    assert seen[hand] < F_params.TUNING.unseen_share
     far = [b for b in range(len(BONES)) if b not in (hand, BONES.index("forearm_l"))]
     assert np.all(seen[far] == 1.0), dict(zip(BONES, seen.round(2)))
-    assert np.all(F.seen_shares(rig, state, rig.mean, None) == 1.0)
+    assert np.all(F_prepare.seen_shares(rig, state, rig.mean, None) == 1.0)
 
 
 def test_the_scalp_region_holds_the_scalp_not_the_face(model):
@@ -849,15 +857,15 @@ def test_the_scalp_region_holds_the_scalp_not_the_face(model):
     of it."""
     from scipy.spatial import cKDTree
 
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
 
-    rig = F._rig(model)
+    rig = F_rig._rig(model)
     bone = np.argmax(rig.W, axis=1)
     head, neck = bone == BONES.index("head"), bone == BONES.index("neck")
     scalp = rig.scalp
     assert not (scalp & ~(head | neck)).any() and scalp[neck].all()
     y = rig.mean[:, 1]
-    assert scalp[head & (y > y[head].max() - F.SCALP_HAIRLINE_M)].all()
+    assert scalp[head & (y > y[head].max() - F_params.TUNING.scalp_hairline_m)].all()
     hv = np.flatnonzero(head)
     assert not scalp[hv[np.argmax(rig.mean[hv, 2])]]  # the nose tip
     assert 0.1 < 1 - scalp[head].mean() < 0.3  # the face's front is out (~19 % of the head)
@@ -872,7 +880,7 @@ def _hair_fit(model, k: int, condition: str, **params) -> tuple:
     from tests.bench import fitting as BF
 
     _, scan = _bench_scan(model, k, condition, deg=20.0)
-    result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False, params=F.FitParams(**params))
+    result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False, params=F_params.FitParams(**params))
     stats = dict(result.stats, unseen=result.unseen)
     return BF.evaluate(model, scan, result, BF.BodySurface(model.body_faces, model.n_body_vertices)), stats
 
@@ -989,14 +997,14 @@ def test_hair_back_region_is_the_upper_back(model):
     """``fitting.hair_back_region`` on the rest template: vertices on the back of the torso
     (facing backwards, behind the torso's middle), between the shoulders, above the middle of
     the back, none of the scalp's."""
-    rig = F._rig(model)
+    rig = F_rig._rig(model)
     m = rig.hair_back
     V = rig.mean
     head = rig.jmean[BONES.index("head")]
     assert 100 < m.sum() < 0.05 * len(m) and not (m & rig.scalp).any()
     torso = np.isin(np.argmax(rig.W, axis=1), [BONES.index("spine"), BONES.index("chest")])
     assert (V[m, 2] < np.median(V[torso, 2])).all() and (vertex_normals(V, rig.faces)[m, 2] < 0).all()
-    assert (V[m, 1] > head[1] - F.HAIR_BACK_BELOW_M).all() and V[m, 1].max() < head[1]
+    assert (V[m, 1] > head[1] - F_params.TUNING.hair_back_below_m).all() and V[m, 1].max() < head[1]
 
 
 @pytest.mark.slow
@@ -1023,7 +1031,7 @@ def test_finger_region_is_the_fingers(model):
     """``fitting.finger_region`` on the rest template: on the hands only, beyond the wrist,
     most of each hand's vertices (the fingers are dense), the same count on both hands, and
     farther along the hand than any of the hand's vertices it leaves out."""
-    rig = F._rig(model)
+    rig = F_rig._rig(model)
     bone = np.argmax(rig.W, axis=1)
     for name in ("hand_l", "hand_r"):
         hand = bone == BONES.index(name)
@@ -1058,7 +1066,7 @@ def test_a_dense_scan_is_fitted_on_a_random_share_of_its_points(model):
     out = {}
     for cap in (12_000, None):
         result = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
-                            params=dataclasses.replace(F.FitParams(), max_points=cap))
+                            params=dataclasses.replace(F_params.FitParams(), max_points=cap))
         out[cap] = (BF.evaluate(model, scan, result, surface), result.stats["points"], result.kept)
     (few, p_few, kept_few), (full, p_full, kept_full) = out[12_000], out[None]
     assert p_few["fitted"] == 12_000 and p_full["fitted"] == p_few["scan"] == p_full["scan"] > 30_000
@@ -1067,7 +1075,7 @@ def test_a_dense_scan_is_fitted_on_a_random_share_of_its_points(model):
     assert abs(few["stature_err_cm"]) < 0.6, few
     # the same points as a bare cloud (no faces, no normals): the normals estimated on the share
     result = F.fit_body(model, scan.points, None, None, clothed=False,
-                        params=dataclasses.replace(F.FitParams(), max_points=12_000))
+                        params=dataclasses.replace(F_params.FitParams(), max_points=12_000))
     cloud = BF.evaluate(model, scan, result, surface)
     assert result.stats["points"]["fitted"] == 12_000 and cloud["p2s_mm"] < 1.5, (result.stats["points"], cloud)
 
@@ -1075,13 +1083,13 @@ def test_a_dense_scan_is_fitted_on_a_random_share_of_its_points(model):
 def test_absent_bones_take_no_pairs(model):
     """``FitParams.absent_bones``: Alg. 1's pairs (``_correspondences``) leave out every template
     vertex the absent bone moves most, and only those."""
-    rig = F._rig(model)
+    rig = F_rig._rig(model)
     T = rig.mean
     tree = cKDTree(T)
     N = vertex_normals(T, rig.faces)
     head = np.argmax(rig.W, axis=1) == BONES.index("head")
-    _, _, w_all = F._correspondences(T, rig, tree, T, N, False, F.FitParams())
-    _, _, w = F._correspondences(T, rig, tree, T, N, False, F.FitParams(absent_bones=("head",)))
+    _, _, w_all = F_prepare._correspondences(T, rig, tree, T, N, False, F_params.FitParams())
+    _, _, w = F_prepare._correspondences(T, rig, tree, T, N, False, F_params.FitParams(absent_bones=("head",)))
     assert w_all[head].all() and not w[head].any() and np.array_equal(w[~head], w_all[~head])
 
 
@@ -1126,7 +1134,7 @@ def test_known_terms_against_finite_differences(model):
     """``fitting.known_terms``: the residuals (in sigmas) are the measurements' misses, the
     gradient g is J^T r and H = J^T J, with J the finite differences of the body model's own
     measurements of float64 vertices (the slow, obvious reference)."""
-    from service.model import measurements as M
+    from service.model.body import measurements as M
 
     rng = np.random.default_rng(5)
     beta = rng.normal(size=model.n_components) * np.sqrt(model.variances) * 0.5
@@ -1136,8 +1144,8 @@ def test_known_terms_against_finite_differences(model):
     true = measure(beta)
     known = {"height_cm": true["height_cm"] + 1.0, "weight_kg": true["weight_kg"] - 2.0, "waist_cm": true["waist_cm"]}
     names = [n for n in M.ATTRIBUTES if n in known]
-    sigma = np.array([F.KNOWN_SIGMA.get(n, F.KNOWN_SIGMA_CM) for n in names])
-    H, g, r = F.known_terms(model, known, "male")(beta)
+    sigma = np.array([F_params.TUNING.known_sigma.get(n, F_params.TUNING.known_sigma_cm) for n in names])
+    H, g, r = F_alg1.known_terms(model, known, "male")(beta)
     np.testing.assert_allclose(r, [(true[n] - known[n]) / s for n, s in zip(names, sigma)], atol=0.02)
     J = np.zeros((len(names), len(beta)))
     for k in range(len(beta)):
@@ -1147,7 +1155,7 @@ def test_known_terms_against_finite_differences(model):
     np.testing.assert_allclose(g, J.T @ r, rtol=0.02, atol=0.01 * np.abs(J.T @ r).max())
     np.testing.assert_allclose(H, J.T @ J, rtol=0.02, atol=0.01 * np.abs(J.T @ J).max())
     with pytest.raises(ValueError, match="not a body measurement"):
-        F.known_terms(model, {"shoe_size": 42.0}, "male")
+        F_alg1.known_terms(model, {"shoe_size": 42.0}, "male")
 
 
 @pytest.mark.slow
@@ -1172,10 +1180,10 @@ def test_measurements_given_with_a_loose_suit_scan_are_kept(model):
 
 
 def test_bone_hops_against_a_breadth_first_search(model):
-    """``fitting.bone_hops`` (Floyd-Warshall) against a breadth-first search per bone on the
+    """``lbs.bone_hops`` against a breadth-first search per bone on the
     body model's skeleton."""
     parents = np.asarray(model.bone_parents)
-    hops = F.bone_hops(parents)
+    hops = bone_hops(parents)
     J = len(parents)
     nbrs = [[p for p in (parents[j],) if p >= 0] + [c for c in range(J) if parents[c] == j] for j in range(J)]
     for a in range(J):
@@ -1235,7 +1243,7 @@ def test_a_poorly_seen_face_does_not_shape_the_body(model):
     before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
                                                  params=replace(BF.BEFORE_PARAMS("face_shape"), init_stature_max=None)),
                         surface)
-    assert after.stats["face_shape_from_body"] and after.stats["seen"]["head"] < F.FitParams().face_shape_min_seen
+    assert after.stats["face_shape_from_body"] and after.stats["seen"]["head"] < F_params.FitParams().face_shape_min_seen
     assert abs(fit["stature_err_cm"]) < 0.5 and fit["p2s_mm"] < 1.5, fit
     assert before["stature_err_cm"] > 2.0 and before["p2s_mm"] > 2.5, before
 
@@ -1243,7 +1251,7 @@ def test_a_poorly_seen_face_does_not_shape_the_body(model):
 def test_scan_to_surface_mm_against_brute_force():
     """``fitting.scan_to_surface_mm`` (the head hypotheses' score): the mean over points of the
     distance to the nearest of every triangle, each clipped, as a loop over all triangles."""
-    from service.model.geometry import closest_point_on_triangles
+    from service.model.geometry.mesh import closest_point_on_triangles
 
     rng = np.random.default_rng(3)
     g = np.stack(np.meshgrid(np.linspace(0, 0.3, 7), np.linspace(0, 0.3, 7)), -1).reshape(-1, 2)
@@ -1308,7 +1316,7 @@ def test_a_poorly_seen_head_is_fitted_twice_and_the_better_kept(model):
     _, scan = _bench_scan(model, 7, "scanner_raw", deg=20.0, draw=11)
     default = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False), surface)
     assert abs(default["stature_err_cm"]) < 0.5 and default["p2s_mm"] < 1.5, default
-    coarse = F.FitParams(init_stature_max=None)
+    coarse = F_params.FitParams(init_stature_max=None)
     after = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False, params=coarse)
     fit = BF.evaluate(model, scan, after, surface)
     before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
@@ -1342,7 +1350,7 @@ def test_a_clothed_scans_hand_in_a_hole_is_left_to_the_prior(model):
     _, scan = _bench_scan(model, 4, "scanner", deg=20.0)
     up = BF.as_uploaded(model, scan, "ply")
     surface = BF.BodySurface(model.body_faces, model.n_body_vertices)
-    hand = (np.argmax(F._rig(model).W, axis=1) == BONES.index("hand_l"))[:model.n_body_vertices]
+    hand = (np.argmax(F_rig._rig(model).W, axis=1) == BONES.index("hand_l"))[:model.n_body_vertices]
 
     def hand_mm(fit) -> float:
         C = scan.to_model @ np.linalg.inv(np.asarray(fit.to_model, np.float64))
@@ -1410,10 +1418,10 @@ def test_the_initial_stature_follows_the_scans_height(model, rig, avatar):
 
     person = next(p for p in heldout_people(model, 12) if p["index"] == avatar)
     rot = axis_angle_to_matrix(np.random.default_rng(avatar).normal(size=(17, 3)) * 0.15)
-    truth = F._State(np.asarray(person["weights"], np.float64), rot, np.zeros(3))
-    V = F._pose_model(rig, truth, F._subset(rig, np.arange(model.n_body_vertices))).v
-    scan = F._make_scan(V, vertex_normals(V, rig.faces), np.eye(3), np.zeros(3), 500, np.random.default_rng(0))
-    start = F._State(np.zeros(len(rig.U)), rot.copy(), np.zeros(3))
+    truth = F_rig._State(np.asarray(person["weights"], np.float64), rot, np.zeros(3))
+    V = F_rig._pose_model(rig, truth, F_rig._subset(rig, np.arange(model.n_body_vertices))).v
+    scan = F_prepare._make_scan(V, vertex_normals(V, rig.faces), np.eye(3), np.zeros(3), 500, np.random.default_rng(0))
+    start = F_rig._State(np.zeros(len(rig.U)), rot.copy(), np.zeros(3))
 
     def stature(s):
         return model.measure(model.vertices(s.beta), person["gender"])["height_cm"]
@@ -1421,12 +1429,12 @@ def test_the_initial_stature_follows_the_scans_height(model, rig, avatar):
     target = stature(truth)
     from dataclasses import replace
 
-    got = F._stature_from_extent(rig, scan, start, replace(F.DEFAULT_PARAMS, init_stature_max=0.2))
+    got = F_initialise._stature_from_extent(rig, scan, start, replace(F_params.DEFAULT_PARAMS, init_stature_max=0.2))
     assert got is not None and np.array_equal(got.rot, start.rot)
-    assert F._stature_from_extent(rig, scan, start, F.DEFAULT_PARAMS) is None
+    assert F_initialise._stature_from_extent(rig, scan, start, F_params.DEFAULT_PARAMS) is None
     assert abs(stature(start) - target) > 10.0
     assert abs(stature(got) - target) < abs(stature(start) - target) / 3
-    half = F._make_scan(V[V[:, 1] < np.median(V[:, 1])], vertex_normals(V, rig.faces)[V[:, 1] < np.median(V[:, 1])],
+    half = F_prepare._make_scan(V[V[:, 1] < np.median(V[:, 1])], vertex_normals(V, rig.faces)[V[:, 1] < np.median(V[:, 1])],
                         np.eye(3), np.zeros(3), 500, np.random.default_rng(0))
-    assert F._stature_from_extent(rig, half, start, replace(F.DEFAULT_PARAMS, init_stature_max=0.2)) is None
+    assert F_initialise._stature_from_extent(rig, half, start, replace(F_params.DEFAULT_PARAMS, init_stature_max=0.2)) is None
 

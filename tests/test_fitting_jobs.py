@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from tests.bench import synthetic_scans as S
-from service.model.body import BONES, BodyModel
+from service.model.body.model import BONES, BodyModel
 from service.settings import Settings
 from service.storage.queue import JOB_RETRIES
 from service.storage.supervise import EmbeddedWorker, child_pids
@@ -223,10 +223,10 @@ def test_a_hand_missing_from_the_scan_is_left_to_the_prior_and_said(server: Serv
     """Issue 12: a bare scan whose left hand is missing (a hole, as a scanner leaves): the fit
     holds that hand at its rest posture (``FitParams.unseen_prior``) and the customer says so,
     ``unseen: ["hand_l"]``; the rest of the body is measured as usual."""
-    from service.model import fitting as F
-
+    from service.model.fitting import fit as F
+    from service.model.fitting import rig as F_rig
     _, _, scan = scans["cloud"]
-    rig = F._rig(model)
+    rig = F_rig._rig(model)
     hand = np.argmax(rig.W, axis=1) == BONES.index("hand_l")
     centre = scan.true_posed[: len(rig.mean)][hand].mean(axis=0)
     cut = S.keep_points(scan, np.linalg.norm(S._model_points(scan) - centre, axis=1) > 0.12)
@@ -318,7 +318,7 @@ def test_a_dense_scanner_mesh_is_fitted(tmp_path: Path, model: BodyModel) -> Non
 
     import trimesh
 
-    from service.model.mesh_io import KEPT_SCAN_POINTS
+    from service.model.formats.mesh_io import KEPT_SCAN_POINTS
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 3)[2]
@@ -435,7 +435,7 @@ def _check_scan_pose(server: Server, cid: str, scan: S.SyntheticScan, model: Bod
     """GET avatar.glb?pose=scan: the body as fitted, on the uploaded scan, in the scan's frame
     in glTF conventions (metres, the scan's up axis as +Y): the scan's points (in the file's
     unit and axes, turned to metres and +Y up here) lie on the returned body surface."""
-    from service.model.frames import rotation_to_y
+    from service.model.formats.frames import rotation_to_y
     from tests.bench.fitting import BodySurface
 
     r = server.client.get(f"/v1/customers/{cid}/avatar.glb?pose=scan")

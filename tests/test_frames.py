@@ -1,12 +1,12 @@
-"""Units and axes of uploads (service/model/frames.py)."""
+"""Units and axes of uploads (service/model/formats/frames.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.model import frames as Fr
-from service.model.lbs import axis_angle_to_matrix
+from service.model.formats import frames as Fr
+from service.model.body.lbs import axis_angle_to_matrix
 
 
 def _person():

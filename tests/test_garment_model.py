@@ -6,9 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.model import avatar_io, demo_garments as D, garment as G, mhclo, lbs, tryon as T
+from service.model.formats import avatar_io
+from service.model.garments import demo_garments as D
+from service.model.garments import garment as G
+from service.model.formats import mhclo
+from service.model.body import lbs
+from service.model.garments import tryon as T
 
-from service.model.geometry import vertex_faces, vertex_normals
+from service.model.geometry.mesh import vertex_faces, vertex_normals
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -44,8 +49,8 @@ def test_push_out_leaves_no_vertex_inside(model):
     from scipy.spatial import cKDTree
 
     from tests.bench.tryon import penetration_depths
-    from service.model.geometry import vertex_faces
-    from service.model.body import BONES
+    from service.model.geometry.mesh import vertex_faces
+    from service.model.body.model import BONES
 
     body = T.customer_body(model, np.zeros(model.n_components))
     nb = model.n_body_vertices
@@ -126,7 +131,7 @@ def test_heavy_crotch_keeps_the_bottoms_outside(model):
     number); without the crease anchors, 9 are."""
     from scipy.spatial import cKDTree
 
-    from service.model import shape as S
+    from service.model.body import shape as S
     from tests.bench.common import makehuman_garments
     from tests.bench.tryon import penetrations
 
@@ -249,7 +254,7 @@ def test_projection_of_uploaded_avatars(model):
 def test_winding_numbers_tell_inside_from_outside():
     import trimesh
 
-    from service.model.geometry import winding_numbers
+    from service.model.geometry.mesh import winding_numbers
 
     box = trimesh.creation.box(extents=(1, 1, 1))
     pts = np.array([[0, 0, 0], [0.49, 0.49, 0.49], [0.51, 0, 0], [2, 2, 2], [0.6, 0.6, 0.0]])

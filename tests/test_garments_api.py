@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.model import gltf
-from service.model.body import BONES, BodyModel
-from service.model.catalogue import load_catalogue
-from service.model.demo_garments import make_demo_garments
-from service.model.gltf import read_glb
-from service.model.tryon import example_set, example_vertices
+from service.model.formats import gltf
+from service.model.body.model import BONES, BodyModel
+from service.model.garments.catalogue import load_catalogue
+from service.model.garments.demo_garments import make_demo_garments
+from service.model.formats.gltf_read import read_glb
+from service.model.garments.tryon import example_set, example_vertices
 from tests.conftest import valid_glb
 from tests.harness import GLB, RETAILERS, Server, assert_422, run_server
 

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.application.scenes import obj_text
-from service.model.gltf import read_glb
+from service.model.formats.gltf_read import read_glb
 from service.settings import Settings
 from tests import draped_data as D
 from tests.harness import RETAILERS, assert_422, redis_db, redis_url
@@ -128,7 +128,7 @@ def _textured_obj(model) -> tuple[bytes, np.ndarray]:
 
 
 def _texture() -> bytes:
-    from service.model.catalogue import DEFAULT_CATALOGUE_DIR
+    from service.model.garments.catalogue import DEFAULT_CATALOGUE_DIR
 
     return (DEFAULT_CATALOGUE_DIR / "textures" / "womens-tshirt.jpg").read_bytes()
 
@@ -227,8 +227,8 @@ def test_bad_textures_get_422(client: TestClient, model) -> None:
 
 
 def test_draped_glb_keeps_embedded_texture(client: TestClient, model, validate_glb) -> None:
-    from service.model.catalogue import Material, Texture
-    from service.model.gltf import mesh_to_glb
+    from service.model.garments.catalogue import Material, Texture
+    from service.model.formats.gltf import mesh_to_glb
 
     draped = D.on_mean(model)
     G, faces = draped.reference, D.binding(model)[1]

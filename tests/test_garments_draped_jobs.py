@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.model.body import BodyModel
-from service.model.gltf import read_glb
+from service.model.body.model import BodyModel
+from service.model.formats.gltf_read import read_glb
 from service.storage.supervise import child_pids
 from tests import draped_data as D
 from tests.conftest import valid_glb

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.gltf import MeshTemplate, basis_to_glb, mesh_to_glb, read_glb, scene_to_glb, vertex_normals
+from service.model.formats.gltf import MeshTemplate, basis_to_glb, mesh_to_glb, scene_to_glb, vertex_normals
+from service.model.formats.gltf_read import read_glb
 from tests.conftest import format_issues
 
 
@@ -156,7 +157,7 @@ def _garment(around: int = 100, high: int = 100, n_basis: int = 16) -> tuple[np.
 
 
 def _skin_step(glb: bytes) -> float:
-    from service.model.gltf import _parse_glb, _read_float  # noqa: PLC0415
+    from service.model.formats.gltf_read import _parse_glb, _read_float  # noqa: PLC0415
 
     doc, blob = _parse_glb(glb)
     ibm = _read_float(doc, blob, doc["skins"][0]["inverseBindMatrices"])
@@ -392,7 +393,7 @@ def test_compressed_sizes_10k_vertices_16_targets(validate_glb: Callable[[bytes]
 
 def _textures() -> tuple[Any, Any]:
     """Two real encoded images from the compiled catalogue: a JPEG colour map and a JPEG normal map."""
-    from service.model.catalogue import DEFAULT_CATALOGUE_DIR, Texture
+    from service.model.garments.catalogue import DEFAULT_CATALOGUE_DIR, Texture
 
     root = DEFAULT_CATALOGUE_DIR / "textures"
     return (Texture("cloth.jpg", "image/jpeg", (root / "white-tshirt.jpg").read_bytes()),
@@ -400,7 +401,7 @@ def _textures() -> tuple[Any, Any]:
 
 
 def _material(color: Any, normal: Any, alpha_mode: str = "OPAQUE", cutoff: float | None = None) -> Any:
-    from service.model.catalogue import Material
+    from service.model.garments.catalogue import Material
 
     return Material((0.9, 0.8, 0.7, 1.0), color, normal, alpha_mode, cutoff, True, 0.1, 0.7)
 
@@ -464,7 +465,7 @@ def test_textured_scene_round_trip(compression: str | None, validate_glb: Callab
 def test_tangents_follow_uv_directions() -> None:
     """On a flat grid (normal +Z) with u along +x and image-up (v' = 1 - v) along +y the tangent
     is +x with w = +1; mirroring u flips the tangent to -x and the handedness to -1."""
-    from service.model.gltf import vertex_tangents
+    from service.model.formats.gltf_buffers import vertex_tangents
 
     x, y = np.meshgrid(np.linspace(0, 1, 5), np.linspace(0, 1, 4))
     v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
@@ -497,7 +498,7 @@ def test_textured_basis_and_mesh(compression: str | None, validate_glb: Callable
 
 
 def test_textured_bad_inputs() -> None:
-    from service.model.catalogue import Texture
+    from service.model.garments.catalogue import Texture
 
     color, _ = _textures()
     g, faces, _ = _garment(10, 5, 1)

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 
 from service.api.middleware import BackPressureMiddleware, allowed_methods
 from service.app import create_app
-from service.model.mesh_io import ScanError, declared_size, read_mesh_file
+from service.model.formats.mesh_io import ScanError, declared_size, read_mesh_file
 from service.settings import Settings
 from tests.bench.common import shared_data_dir
 from tests.harness import RETAILERS, assert_422, own_redis, redis_db, redis_url

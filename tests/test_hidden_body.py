@@ -10,23 +10,23 @@ import pytest
 import trimesh
 
 from service.application import scenes
-from service.model import correctives as C
-from service.model import poses as P
-from service.model import shape as S
-from service.model import tryon as T
-from service.model.body import BONES
-from service.model.catalogue import load_catalogue
-from service.model.geometry import vertex_normals
-from service.model.gltf import read_glb
-from service.model.layering import (
+from service.model.garments import correctives as C
+from service.model.body import poses as P
+from service.model.body import shape as S
+from service.model.garments import tryon as T
+from service.model.body.model import BONES
+from service.model.garments.catalogue import load_catalogue
+from service.model.geometry.mesh import vertex_normals
+from service.model.formats.gltf_read import read_glb
+from service.model.garments.layering import (
     HIDE_CONE_COS,
     HIDE_GAP,
     HIDE_INSIDE,
     HIDE_RIM_MARGIN,
     covered_body,
 )
-from service.model.lbs import main_bone, skin
-from service.model.look import visible_body_faces
+from service.model.body.lbs import main_bone, skin
+from service.model.garments.look import visible_body_faces
 from service.records import Garment
 
 
@@ -243,7 +243,7 @@ def test_avatar_template_with_fewer_faces_gives_the_same_bytes(model, compressio
     """The avatar's template for a face subset (``MeshTemplate.with_faces`` of the whole body's,
     sharing its skin views) writes the same GLB bytes as a template built from scratch and as
     the plain arrays (the reference path), and keeps only the new indices."""
-    from service.model import gltf
+    from service.model.formats import gltf
 
     nb = model.n_body_vertices
     faces = visible_body_faces(model.body_faces, np.arange(0, nb, 3), nb)

@@ -1,4 +1,4 @@
-"""Landmarks for the fit's initialisation (service/model/landmarks.py, issue 12): the scan's
+"""Landmarks for the fit's initialisation (service/model/fitting/landmarks.py, issue 12): the scan's
 extremities against the true posed effectors (fingertips, toe tips, head top) of synthetic
 posed bodies, with holes and a cut head; their assignment by geodesics from the anchors; the
 limb aiming of fitting.py; a whole fit from a wrong ICP minimum (slow); the crotch and the
@@ -8,8 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.model import fitting as F
-from service.model import landmarks as LM
+from service.model.body.lbs import axis_angle_to_matrix
+from service.model.fitting import fit as F
+from service.model.fitting import checks as F_checks
+from service.model.fitting import initialise as F_initialise
+from service.model.fitting import params as F_params
+from service.model.fitting import rig as F_rig
+from service.model.fitting import landmarks as LM
 from tests.bench import synthetic_scans as SS
 
 N_SUB = 2000
@@ -18,7 +23,7 @@ FOUND_CM = 8.0  # a tip this close to the true effector counts as found
 
 @pytest.fixture(scope="module")
 def rig(model):
-    return F._rig(model)
+    return F_rig._rig(model)
 
 
 def _scan(model, seed: int, max_pose_deg: float = 30.0):
@@ -30,7 +35,7 @@ def _scan(model, seed: int, max_pose_deg: float = 30.0):
 
 def _true_effectors(model, rig, scan) -> np.ndarray:
     """(5, 3) the template's effector vertices (LABELS order) on the true posed body, model frame."""
-    return scan.true_posed[F._effector_subset(rig).idx]
+    return scan.true_posed[F_initialise._effector_subset(rig).idx]
 
 
 def _tips(scan) -> LM.Extremities:
@@ -95,16 +100,16 @@ def test_assignment_by_geodesics_and_the_swaps():
 
 
 def test_aiming_puts_the_effectors_on_reachable_targets(model, rig):
-    s0 = F._State(np.zeros(len(rig.U)), np.tile(np.eye(3), (17, 1, 1)), np.zeros(3))
-    eff = F._effector_subset(rig)
-    truth = F._State(np.zeros(len(rig.U)), np.tile(np.eye(3), (17, 1, 1)), np.zeros(3))
+    s0 = F_rig._State(np.zeros(len(rig.U)), np.tile(np.eye(3), (17, 1, 1)), np.zeros(3))
+    eff = F_initialise._effector_subset(rig)
+    truth = F_rig._State(np.zeros(len(rig.U)), np.tile(np.eye(3), (17, 1, 1)), np.zeros(3))
     rng = np.random.default_rng(4)
     for b in (5, 6, 8, 9, 11, 12, 14, 15):
-        truth.rot[b] = F.axis_angle_to_matrix(rng.normal(size=3) * 0.4)
-    target = F._pose_model(rig, truth, eff).v
+        truth.rot[b] = axis_angle_to_matrix(rng.normal(size=3) * 0.4)
+    target = F_rig._pose_model(rig, truth, eff).v
     targets = {label: target[k] for k, label in enumerate(LM.LABELS) if label != "head"}
-    before = np.linalg.norm(F._pose_model(rig, s0, eff).v - target, axis=1)[1:]
-    after = np.linalg.norm(F._pose_model(rig, F._aim_limbs(rig, s0, targets, eff), eff).v - target, axis=1)[1:]
+    before = np.linalg.norm(F_rig._pose_model(rig, s0, eff).v - target, axis=1)[1:]
+    after = np.linalg.norm(F_rig._pose_model(rig, F_initialise._aim_limbs(rig, s0, targets, eff), eff).v - target, axis=1)[1:]
     # two sweeps of coordinate descent: within a few cm (the coarse ICP does the rest)
     assert after.max() < 0.05 and after.max() < 0.15 * before.max(), (before, after)
 
@@ -130,7 +135,7 @@ def test_landmarks_free_a_limb_from_a_wrong_minimum(model):
         # without the landmarks the wrong minimum is refused (part of the scan not explained):
         # that fit is measured with the person check off
         fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=True,
-                         params=F.FitParams(landmark_init=lm, person_check=lm, area_weighted=False,
+                         params=F_params.FitParams(landmark_init=lm, person_check=lm, area_weighted=False,
                                             exclusive_hops=None))
         err[lm] = BF.evaluate(model, scan, fit, surface)["p2s_mm"]
     assert err[True] < 15.0 and err[True] < 0.5 * err[False], err
@@ -155,9 +160,9 @@ def test_landmarks_pick_the_facing_of_a_turned_bent_body(model):
     scan = SS.make_scan(model, np.random.default_rng([BF.SEED, 1]), person["weights"], person["gender"],
                         clothed=False, point_cloud=False, n_points=BF.N_POINTS, noise_mm=BF.NOISE_MM,
                         max_pose_deg=45)
-    with pytest.raises(F.FitError, match="outside the population"):
+    with pytest.raises(F_checks.FitError, match="outside the population"):
         F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
-                   params=F.FitParams(landmark_candidates=1, finger_scale=None))
+                   params=F_params.FitParams(landmark_candidates=1, finger_scale=None))
     fit = F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False)
     row = BF.evaluate(model, scan, fit, surface)
     assert row["p2s_mm"] < 2.0 and abs(row["measurements"]["arm_length_cm"]) < 2.0, row
@@ -177,9 +182,9 @@ def _perineum(model) -> int:
 
 def _posed_frame(model, rig, scan):
     """(joints (17, 3), global rotations (17, 3, 3)) of the true pose, model frame."""
-    s = F._State(np.asarray(scan.weights, np.float64), F.axis_angle_to_matrix(scan.rotvecs),
+    s = F_rig._State(np.asarray(scan.weights, np.float64), axis_angle_to_matrix(scan.rotvecs),
                  np.asarray(scan.translation, np.float64))
-    p = F._pose_model(rig, s, F._subset(rig, np.array([0])))
+    p = F_rig._pose_model(rig, s, F_rig._subset(rig, np.array([0])))
     q = np.einsum("jab,jb->ja", p.G[:, :3, :3], p.joints) + p.G[:, :3, 3]
     return q, p.G[:, :3, :3]
 

@@ -1,7 +1,7 @@
 """The outfit layering's fast path (issue 11, outfit.glb latency) gives the reference's results:
 closest points on a mesh with candidate faces pruned by a distance bound
 (``geometry.PRUNE_CANDIDATES``) and in compiled code (``geometry.COMPILED``: the numba kernels
-of ``service.model.kernels``, also the winding numbers), and ``layering.layer_outfit`` with its per-outer and
+of ``service.model.geometry.kernels``, also the winding numbers), and ``layering.layer_outfit`` with its per-outer and
 per-topology reuse and near-only rim checks against the plain per-pair passes. Tolerance:
 1e-9 m on vertices, 1e-6 on skin weights (measured: bitwise equal)."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model import geometry as Gm
-from service.model import layering as LY
-from service.model.skin_weights import uniform_laplacian
+from service.model.geometry import mesh as Gm
+from service.model.garments import layering as LY
+from service.model.garments.skin_weights import uniform_laplacian
 from tests.test_skinning import cylinder
 
 POSITION_TOLERANCE = 1e-9  # metres
@@ -50,7 +50,7 @@ def test_pruned_closest_points_equal_the_reference(monkeypatch: pytest.MonkeyPat
 def test_compiled_closest_points_equal_numpy_on_the_body(monkeypatch: pytest.MonkeyPatch) -> None:
     """On the body mesh (25k faces), points near and on the skin and far from it: the compiled
     kernel picks the same faces, ties included, and the same closest points, bit for bit."""
-    from service.model.body import load_body_model
+    from service.model.body.model import load_body_model
 
     model = load_body_model()
     nb = model.n_body_vertices

@@ -1,12 +1,12 @@
-"""Linear blend skinning over the 17 bones (service/model/lbs.py) against a slow per-vertex
+"""Linear blend skinning over the 17 bones (service/model/body/lbs.py) against a slow per-vertex
 reference, and the body model's one forward pass (``BodyModel.forward``)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from service.model import lbs as sk
-from service.model.body import BONES
+from service.model.body import lbs as sk
+from service.model.body.model import BONES
 
 
 def slow_pose(vertices, joints, parents, rotvecs, idx, w):

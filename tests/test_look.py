@@ -13,12 +13,12 @@ from service.app import create_app
 from service.application import look as looks
 from service.application import scenes
 from service.application.errors import Invalid
-from service.model.body import load_body_model
-from service.model.geometry import closest_points_on_mesh
-from service.model.gltf import read_glb
-from service.model.look import HEAD_BONE, merge_meshes, transfer_skin_weights, visible_body_faces
-from service.model.shape import avatar_from_measurements
-from service.model.tryon import customer_body
+from service.model.body.model import load_body_model
+from service.model.geometry.mesh import closest_points_on_mesh
+from service.model.formats.gltf_read import read_glb
+from service.model.garments.look import HEAD_BONE, merge_meshes, transfer_skin_weights, visible_body_faces
+from service.model.body.shape import avatar_from_measurements
+from service.model.garments.tryon import customer_body
 from service.settings import Settings
 from tests.conftest import format_issues
 from tests.harness import GLB, assert_422, redis_db, redis_url
@@ -114,8 +114,8 @@ def test_underwear_keeps_out_of_a_heavy_crotch(model) -> None:
     1 mm inside him (exact closest triangle and winding number, as ``tryon bench tryon``)."""
     from scipy.spatial import cKDTree
 
-    from service.model.geometry import vertex_faces
-    from service.model.tryon import surface_body
+    from service.model.geometry.mesh import vertex_faces
+    from service.model.garments.tryon import surface_body
     from tests.bench.tryon import penetrations
 
     a = avatar_from_measurements(model, {
@@ -271,10 +271,10 @@ def test_routes(client: TestClient, validate_glb) -> None:
 
 def test_outfit_keeps_the_base_layer_under_the_clothes(client: TestClient) -> None:
     """A heavy body in a blouse: the look's underwear is the outfit's innermost layer, pushed
-    inside the top where the top covers it (service.model.layering), so no bra shows through;
+    inside the top where the top covers it (service.model.garments.layering), so no bra shows through;
     measured with the layering figure (share of body vertices covered by both where the inner
     one is outside the outer one)."""
-    from service.model.layering import inner_outside_share
+    from service.model.garments.layering import inner_outside_share
 
     r = client.post("/v1/customers", json={"measurements": {"gender": "female", "height_cm": 165, "weight_kg": 105}})
     c = r.json()
@@ -309,7 +309,7 @@ def test_nothing_inside_a_heavy_crotch_over_http(client: TestClient, model) -> N
     triangle and winding number against the GLB's own body vertices, as ``tryon bench tryon``)."""
     from scipy.spatial import cKDTree
 
-    from service.model.geometry import vertex_faces, vertex_normals
+    from service.model.geometry.mesh import vertex_faces, vertex_normals
     from tests.bench.tryon import penetrations
 
     c = client.post("/v1/customers", json={"measurements": HEAVY_MAN}).json()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.model import measurements as M
+from service.model.body import measurements as M
 
 
 

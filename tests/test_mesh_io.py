@@ -1,4 +1,4 @@
-"""service.model.mesh_io: scans of any topology (OBJ, PLY, STL, GLB, glTF, XYZ) -> arrays.
+"""service.model.formats.mesh_io: scans of any topology (OBJ, PLY, STL, GLB, glTF, XYZ) -> arrays.
 
 Real files are written with trimesh's exporters (and by hand for XYZ and PLY point clouds) and
 read back; every failure must be a ScanError with a reason.
@@ -15,8 +15,8 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from service.model.geometry import cluster_vertices, closest_points_on_mesh, neighbour_mean, simplify
-from service.model.mesh_io import (
+from service.model.geometry.mesh import cluster_vertices, closest_points_on_mesh, neighbour_mean, simplify
+from service.model.formats.mesh_io import (
     KEPT_SCAN_POINTS,
     MAX_SCAN_POINTS,
     MIN_SCAN_POINTS,
@@ -253,9 +253,9 @@ def test_xyz_without_normals_and_with_colours(tmp_path):
 
 
 def test_the_services_own_glbs(tmp_path):
-    """Avatars/try-ons written by service.model.gltf: float32 (skinned or not) and quantized
+    """Avatars/try-ons written by service.model.formats.gltf: float32 (skinned or not) and quantized
     unskinned read back; compression trimesh cannot undo is refused with a reason."""
-    from service.model import gltf
+    from service.model.formats import gltf
 
     m = body()
     skin = {"joints": np.array([[0.1, 0.5, 0.0], [0.1, 1.2, 0.0]]), "parents": np.array([-1, 0]),

@@ -1,4 +1,4 @@
-"""The non-rigid toolkit (service/model/nonrigid.py): the prefactored Eq. 2 solve and factored
+"""The non-rigid toolkit (service/model/geometry/solvers.py): the prefactored Eq. 2 solve and factored
 systems against dense references on both sparse back ends, Gauss-Newton normal equations
 against explicit rows, correspondences against a brute-force search."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.model import nonrigid as N
+from service.model.geometry import solvers as N
 
 BACKENDS = ["cholmod", "superlu"]
 

@@ -1,4 +1,4 @@
-"""The OBJ reader (service.model.obj_io) against a slow, obvious line-by-line reference, on tiny
+"""The OBJ reader (service.model.formats.obj_io) against a slow, obvious line-by-line reference, on tiny
 files cut into many slices, on the MakeHuman catalogue's OBJs and on a 45 MB scan (memory)."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.model.obj_io import ObjError, read_obj
+from service.model.formats.obj_io import ObjError, read_obj
 from tests.test_faults import _person_tube, _text
 
 MH_CLOTHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "makehuman_clothes"

@@ -11,14 +11,14 @@ import pytest
 from scipy.spatial import cKDTree
 
 from service.application import parallel, scenes
-from service.model import correctives as C
-from service.model import lbs as L
-from service.model import poses as P
-from service.model import shape as S
-from service.model import tryon as T
-from service.model.catalogue import load_catalogue
-from service.model.geometry import vertex_faces
-from service.model.gltf import read_glb
+from service.model.garments import correctives as C
+from service.model.body import lbs as L
+from service.model.body import poses as P
+from service.model.body import shape as S
+from service.model.garments import tryon as T
+from service.model.garments.catalogue import load_catalogue
+from service.model.geometry.mesh import vertex_faces
+from service.model.formats.gltf_read import read_glb
 from service.records import Garment
 from service.storage.cache import VersionedLRU
 from tests.bench.tryon import INSIDE_DEPTH, penetration_depths
@@ -158,9 +158,9 @@ def test_outfit_correctives_keep_the_layer_order(model, setup) -> None:
     targets at 1 (as outfit.glb makes them), the blouse is outside the jacket over no more of
     the rest pose's doubly covered body than without them (``layering.posed_outside``), and
     without following the jacket (each garment corrected alone) it would be outside more."""
-    from service.model import layering as LY
-    from service.model.body import BONES
-    from service.model.geometry import vertex_normals
+    from service.model.garments import layering as LY
+    from service.model.body.model import BONES
+    from service.model.geometry.mesh import vertex_normals
 
     bases, body, poses = setup
     nb = model.n_body_vertices
@@ -248,8 +248,8 @@ def exact_pokes(pv: np.ndarray, faces: np.ndarray, posed: C.PosedBody) -> int:
     """Body vertices (no hands) poking through a posed garment (M, 3) / (F, 3), every one tested
     (no prefilter, unlike ``C.body_pokes``): the closest garment point is within 2 cm, within 45
     degrees of the vertex normal, on a triangle with no rim vertex, and behind the vertex."""
-    from service.model.geometry import closest_points_on_mesh
-    from service.model.layering import boundary_vertices
+    from service.model.geometry.mesh import closest_points_on_mesh
+    from service.model.garments.layering import boundary_vertices
 
     F = np.asarray(faces, np.int64)
     X, N = posed.vertices[posed.ids], posed.normals[posed.ids]
@@ -283,7 +283,7 @@ def test_limit_strain_shortens_only_the_overstretched_edges(model) -> None:
     times longer across the strip's length ends with every edge within ``STRAIN_LIMIT`` of its
     rest length, the strain spread over the neighbours; an edge already within the limit in a
     part of the strip that nothing pulls does not move."""
-    from service.model.geometry import mesh_edges
+    from service.model.geometry.mesh import mesh_edges
 
     xs, ys = np.meshgrid(np.arange(7) * 0.01, np.arange(3) * 0.01)
     rest = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1) + [1.5, 0.0, 0.0]  # 1.5 m off the body
@@ -310,7 +310,7 @@ def test_strain_limiting_keeps_the_cropped_tee_from_tearing_open(model, monkeypa
     stretched its edges beside the armpits and under the bust 2.3-2.9 times (p99.9; 8 examples) with the
     correctives' steps 1-3. With step 4 (``limit_strain``) the p99.9 is within 1.5 (the goal),
     and hardly more of the tee is inside the posed body than without it."""
-    from service.model.geometry import mesh_edges
+    from service.model.geometry.mesh import mesh_edges
 
     b, body, v, rest = on_the_heavy_woman(model, "cropped-tee")
     poses = P.adapted_poses(model, body.vertices)
@@ -356,8 +356,8 @@ def test_body_tucks_pull_skin_showing_through_the_cloth_under_it() -> None:
     and skin farther out than ``TUCK_MAX_DEPTH`` (a limb through the cloth) are left."""
     import dataclasses
 
-    from service.model import garment as G
-    from service.model.geometry import vertex_normals
+    from service.model.garments import garment as G
+    from service.model.geometry.mesh import vertex_normals
 
     def grid(n, size, z):
         x = np.linspace(-size, size, n)
@@ -398,7 +398,7 @@ def drawn_pokes(model, body, glb: dict, mesh: dict, pose: np.ndarray, name: str,
     (:func:`exact_pokes`)."""
     import dataclasses
 
-    from service.model.geometry import vertex_normals
+    from service.model.geometry.mesh import vertex_normals
 
     av = glb["meshes"][0]
     shown = np.zeros(model.n_body_vertices, bool)

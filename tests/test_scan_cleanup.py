@@ -1,4 +1,4 @@
-"""Cleaning real scanner output before the body fit (service/model/scan_cleanup.py, issue 12):
+"""Cleaning real scanner output before the body fit (service/model/fitting/scan_cleanup.py, issue 12):
 the floor is found and dropped while the feet stay, isolated clusters go while parts of the body
 split off by a hole stay, correspondences over holes are rejected; one whole fit of a scan with
 floor points and a cut head top (slow)."""
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.model import scan_cleanup as SC
-from service.model.body import BONES
-from service.model.fitting import _rig
+from service.model.fitting import scan_cleanup as SC
+from service.model.body.model import BONES
+from service.model.fitting.rig import _rig
 from tests.bench import synthetic_scans as SS
 from tests.bench.fitting import v2v_mm
 
@@ -189,7 +189,8 @@ def test_fit_scan_with_floor_and_cut_head(model):
     """An unclothed re-meshed scan in mm with Z up, the top 4 cm of the head cut off and a
     scanner's noisy tilted floor under it: the floor is dropped, the body and its stature are
     recovered (the head top from the model), as well as without the cleaning or better."""
-    from service.model import fitting as F
+    from service.model.fitting import fit as F
+    from service.model.fitting import params as F_params
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 1)[0]
@@ -210,7 +211,8 @@ def test_fit_scan_with_floor_and_cut_head(model):
 def test_fit_scan_on_a_room_floor(model):
     """A point cloud in centimetres standing on a 3.2 m square of the room's floor (wider than a
     person): the fit tells the unit after dropping the floor and recovers the body."""
-    from service.model import fitting as F
+    from service.model.fitting import fit as F
+    from service.model.fitting import params as F_params
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 2)[1]
@@ -293,7 +295,7 @@ def test_room_floor_wider_than_a_person_is_found_before_the_unit(model):
     """A scan in centimetres with Z up whose floor (a 3.2 m square of the room) is wider than any
     person is tall: the extent alone cannot tell the unit; ``clean_wide_scan`` finds the floor
     (the least principal axis is its normal), drops it and tells the unit from what is left."""
-    from service.model.frames import UnitError, detect_unit
+    from service.model.formats.frames import UnitError, detect_unit
 
     P, scan = _body_points(model)
     rng = np.random.default_rng(3)
@@ -365,7 +367,8 @@ def test_a_flat_cap_over_the_head_does_not_shorten_the_body(model):
     -0.07 cm, 0.53 mm."""
     from dataclasses import replace
 
-    from service.model import fitting as F
+    from service.model.fitting import fit as F
+    from service.model.fitting import params as F_params
     from tests.bench import fitting as BF
 
     scan, person = _bench_scan(model, 9, 20, ("holes", "capped_head", "scanner_floor"))
@@ -377,5 +380,5 @@ def test_a_flat_cap_over_the_head_does_not_shorten_the_body(model):
     assert fit.stats["points"]["flat_cap"] >= 0.9 * cap_points, (fit.stats["points"], cap_points)
     assert abs(row["stature_err_cm"]) < 0.4 and row["p2s_mm"] < 0.8, row
     before = BF.evaluate(model, scan, F.fit_body(model, scan.points, scan.normals, scan.faces, clothed=False,
-                                                 params=replace(F.FitParams(), flat_cap=False)), surface)
+                                                 params=replace(F_params.FitParams(), flat_cap=False)), surface)
     assert before["stature_err_cm"] < -0.8 and before["p2s_mm"] > 1.0, before

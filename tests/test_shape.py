@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from tests.bench.common import read_ansur
-from service.model import measurements as M
-from service.model import shape as S
-from service.model.nonrigid import prior_gauss_newton_step
+from service.model.body import measurements as M
+from service.model.body import shape as S
+from service.model.geometry.solvers import prior_gauss_newton_step
 
 
 

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.model import demo_garments as D
-from service.model import layering as LY
-from service.model import lbs as L
-from service.model import poses as P
-from service.model import shape as S
-from service.model import skin_weights as SW
-from service.model import tryon as T
-from service.model.body import BONES
-from service.model.geometry import closest_point_on_triangles, barycentric, mesh_edges, vertex_normals
+from service.model.garments import demo_garments as D
+from service.model.garments import layering as LY
+from service.model.body import lbs as L
+from service.model.body import poses as P
+from service.model.body import shape as S
+from service.model.garments import skin_weights as SW
+from service.model.garments import tryon as T
+from service.model.body.model import BONES
+from service.model.geometry.mesh import closest_point_on_triangles, barycentric, mesh_edges, vertex_normals
 
 SHOW_THROUGH_TORN = 0.03  # share of the body under the skirt showing through: the slit of issue 11
 SHOW_THROUGH_CLOSED = 0.015
@@ -284,7 +284,7 @@ def test_a_loose_jackets_front_does_not_follow_the_arms(model) -> None:
 def _catalogue_basis_without(model, garment_id: str, switch: str | tuple[str, ...]):
     """A catalogue garment's basis built with the ``tryon`` skinning switch ``switch`` (or each
     of several) off, and with them as they are: (old, new)."""
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
 
     ex = T.example_set(model)
     EX = T.example_vertices(model, ex)
@@ -350,7 +350,7 @@ def test_cropped_tee_armpits_stretch_less_in_hands_on_hips(model, cropped_tee) -
     1.3 % to 6.6 %)."""
     from scipy.spatial import cKDTree
 
-    from service.model.geometry import vertex_faces
+    from service.model.geometry.mesh import vertex_faces
     from tests.bench.tryon import INSIDE_DEPTH, penetration_depths
 
     X = S.avatar_from_measurements(model, FIVE_BODIES["165/105 woman"]).vertices
@@ -396,7 +396,7 @@ def test_stale_skin_weights_are_recomputed(model, pencil_skirt) -> None:
 def test_stale_garment_served_with_current_weights(client: TestClient, model, pencil_skirt) -> None:
     """Through the API: a stored garment whose basis has version-1 weights is refreshed when it
     is first tried on (files and record ETag rewritten once), and its try-on carries the new weights."""
-    from service.model.gltf import read_glb
+    from service.model.formats.gltf_read import read_glb
 
     ctx = client.app.state.context
     old, new = pencil_skirt
@@ -476,7 +476,7 @@ def test_the_estimated_arm_inside_share_follows_the_exhaustive_one(model) -> Non
     body with the left arm swung down and across into the torso by 0-100 degrees and the
     forearm bent into the hip: within 0.05 of it (measured within 0.01), 0 when the arm is out,
     and growing while the arm goes in (at 100 degrees it comes out through the other side)."""
-    from service.model.lbs import matrix_to_axis_angle
+    from service.model.body.lbs import matrix_to_axis_angle
 
     X = S.avatar_from_measurements(model, FIVE_BODIES["165/105 woman"]).vertices
     pts = P.arm_points(model, X, "l")
@@ -584,7 +584,7 @@ def test_the_layering_figure_leaves_out_a_hand_resting_on_the_clothes() -> None:
 def shirt_and_jacket(model):
     """The catalogue's striped shirt (layer 2) and casual jacket (layer 3) as clothing bases with
     their records, inner first."""
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
     from service.records import Garment
 
     ex = T.example_set(model)
@@ -610,7 +610,7 @@ def test_outfit_keeps_the_shirt_inside_the_jacket(model, shirt_and_jacket) -> No
     ``layering.rim_violations``) and skinning the shirt like the jacket where covered
     (``layering.covered_skin``)."""
     from service.application import scenes
-    from service.model.gltf import read_glb
+    from service.model.formats.gltf_read import read_glb
     from tests.bench.common import heldout_avatars
 
     nb = model.n_body_vertices

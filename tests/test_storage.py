@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from service.application.context import Context
-from service.model.body import BodyModel
-from service.model.catalogue import load_catalogue
+from service.model.body.model import BodyModel
+from service.model.garments.catalogue import load_catalogue
 from service.records import SCHEMA_VERSION, Customer
 from service.settings import Settings
 from service.storage import redis as R
@@ -252,7 +252,7 @@ def test_scan_pose_records(ctx: Context, model: BodyModel) -> None:
     scan in cm with Z up the body is exactly the fitted posed body taken back through the
     stored frame to metres with the file's Z as +Y (a slow obvious reference)."""
     from service.application.errors import Conflict, Invalid
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     rng = np.random.default_rng(3)
     rot = rng.normal(size=(17, 3)) * 0.2

@@ -13,11 +13,11 @@ from scipy.spatial import cKDTree
 from tests.bench.common import HELDOUT_AVATARS, shared_data_dir
 from tests.bench.tryon import penetration_depths
 from tests.bench.fitting import BodySurface
-from service.model import fitting as F
-from service.model.body import BONES
-from service.model import measurements as M
+from service.model.fitting import rig as F_rig
+from service.model.body.model import BONES
+from service.model.body import measurements as M
 from tests.bench import synthetic_scans as SS
-from service.model.geometry import vertex_faces, vertex_normals
+from service.model.geometry.mesh import vertex_faces, vertex_normals
 
 CLOTHES = shared_data_dir() / "makehuman_clothes"
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not CLOTHES.is_dir(), reason=f"no MakeHuman garments at {CLOTHES}")]
@@ -133,7 +133,7 @@ def test_point_clouds_have_unit_outward_normals(model, scans):
     assert s.points.shape == s.normals.shape == (5000, 3)
     np.testing.assert_allclose(np.linalg.norm(s.normals, axis=1), 1.0, atol=1e-9)
     # skin points: normals agree with the true body's vertex normals
-    from service.model.geometry import vertex_normals
+    from service.model.geometry.mesh import vertex_normals
 
     nb = model.n_body_vertices
     B = s.true_posed[:nb]
@@ -213,7 +213,7 @@ def test_anatomical_random_pose_redraws_only_the_bones_outside_the_joint_limits(
     """``random_pose(anatomical=True)``: every bone inside the fitter's joint limits, within the
     angle bound; the bones that were inside, the root and the caller's next draws are the same
     as without (the redraws come from a spawned child generator)."""
-    from service.model.fitting import limit_violation
+    from service.model.fitting.rig import limit_violation
 
     redrawn = 0
     for seed in range(40):
@@ -297,7 +297,7 @@ def test_relaxed_hands_curl_the_fingers_towards_the_palms(model, person):
     plain = SS.make_scan(model, np.random.default_rng(5), w, g, **kw)
     relaxed = SS.make_scan(model, np.random.default_rng(5), w, g, finger_curl_deg=70.0, **kw)
     X, Y = plain.true_rest, relaxed.true_rest
-    bone = np.argmax(F._rig(model).W, axis=1)
+    bone = np.argmax(F_rig._rig(model).W, axis=1)
     nb = model.n_body_vertices
     moved = np.linalg.norm(Y[:nb] - X[:nb], axis=1) > 1e-9
     assert moved.any() and np.isin(bone[moved], [BONES.index("hand_l"), BONES.index("hand_r")]).all()

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from service.application import scenes
-from service.model import demo_garments as D
-from service.model import tryon as T
-from service.model.body import BONES
-from service.model.catalogue import load_catalogue
-from service.model.gltf import read_glb
+from service.model.garments import demo_garments as D
+from service.model.garments import tryon as T
+from service.model.body.model import BONES
+from service.model.garments.catalogue import load_catalogue
+from service.model.formats.gltf_read import read_glb
 from service.records import Garment
 from tests.conftest import format_issues
 

@@ -1,4 +1,4 @@
-"""The body-aware warping graph (service/model/warping.py; editing paper Sec. 5.1, Eqs. 5-7):
+"""The body-aware warping graph (service/model/nonrigid/warping.py; editing paper Sec. 5.1, Eqs. 5-7):
 the factored, R-eliminated solve against a dense least-squares reference of the energy on tiny
 graphs (both sparse back ends), exact reproduction of the identity, rigid motions and uniform
 scaling, connectivity, node counts and the Poisson-disk property of the samples."""
@@ -11,7 +11,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from service.model import warping as W
+from service.model.nonrigid import warping as W
 
 BACKENDS = ["cholmod", "superlu"]
 

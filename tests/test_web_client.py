@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.model.mesh_io import read_mesh_file
+from service.model.formats.mesh_io import read_mesh_file
 from service.settings import Settings
 from tests.bench import synthetic_scans as S
 from tests.bench.common import heldout_people

@@ -423,7 +423,7 @@ const hook = {
 window.__tryon = hook;
 
 // ---- poses: rotate bones by name so that each segment points in a target direction --------
-// The presets live in poses.json (shared with the service: service/model/poses.py): world
+// The presets live in poses.json (shared with the service: service/model/body/poses.py): world
 // directions (Y up, the body faces +Z, the character's left = +X) of segments bone -> child.
 // For a saved customer the service adapts them to the body (GET /v1/customers/{id}/poses: more
 // shoulder abduction so arms stay out of the torso); those local rotations (axis-angle, rest

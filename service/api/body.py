@@ -11,7 +11,7 @@ from service.api.deps import BodyModelDep, Compression, Hair, RateLimited, Under
 from service.api.schemas import AttributeOut, AvatarRequest, AvatarResponse, BodyModelResponse, LooksResponse
 from service.application import avatars, scenes
 from service.application import look as looks
-from service.model.body import BONES
+from service.model.body.model import BONES
 
 router = APIRouter(tags=["body"])
 

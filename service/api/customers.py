@@ -21,7 +21,7 @@ from service.application import poses as _poses
 from service.application.errors import Conflict, Invalid, NotFound
 from service.application.uploads import (KNOWN_FIELD_DOC, KNOWN_FIELDS, SCAN_FORMATS, parse_bool, parse_gender,
                                          parse_known_measurements)
-from service.model.mesh_io import KEPT_SCAN_POINTS, MAX_SCAN_POINTS
+from service.model.formats.mesh_io import KEPT_SCAN_POINTS, MAX_SCAN_POINTS
 from service.records import Customer
 
 router = APIRouter(tags=["customers"])

@@ -20,7 +20,7 @@ from service.application.editing import EditingService
 from service.application.garments import GarmentService
 from service.application.jobs import JobService
 from service.application.tryon import TryOnService
-from service.model.body import BodyModel, load_body_model
+from service.model.body.model import BodyModel, load_body_model
 from service.settings import Settings, get_settings
 
 

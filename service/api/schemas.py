@@ -10,9 +10,9 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from service.model.body import model_path
-from service.model.measurements import ATTRIBUTES
-from service.model.mesh_io import KEPT_SCAN_POINTS
+from service.model.body.model import model_path
+from service.model.body.measurements import ATTRIBUTES
+from service.model.formats.mesh_io import KEPT_SCAN_POINTS
 
 
 def _measurement_value(value: Any) -> float | str:

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from service.model.body import BodyModel
-from service.model.shape import AvatarFit, MeasurementError, avatar_from_measurements
+from service.model.body.model import BodyModel
+from service.model.body.shape import AvatarFit, MeasurementError, avatar_from_measurements
 
 from . import scenes
 from .errors import Invalid

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import redis
 
-from service.model.body import BodyModel, load_body_model
+from service.model.body.model import BodyModel, load_body_model
 from service.settings import Settings, get_settings
 from service.storage import redis as R
 from service.storage.bases import BasisStore

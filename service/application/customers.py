@@ -9,15 +9,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.model import gltf
-from service.model.body import BONES, BodyModel
-from service.model.frames import rotation_to_y
-from service.model.geometry import vertex_normals
-from service.model.fitting import FitError, FitResult, fit_body
-from service.model.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
-from service.model.scan_cleanup import kept_faces
-from service.model.shape import MeasurementError, avatar_from_measurements, estimate_gender
-from service.model.tryon import CustomerBody, customer_body
+from service.model.formats import gltf
+from service.model.body.model import BONES, BodyModel
+from service.model.formats.frames import rotation_to_y
+from service.model.geometry.mesh import vertex_normals
+from service.model.fitting.checks import FitError
+from service.model.fitting.fit import FitResult, fit_body
+from service.model.formats.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
+from service.model.fitting.scan_cleanup import kept_faces
+from service.model.body.shape import MeasurementError, avatar_from_measurements, estimate_gender
+from service.model.garments.tryon import CustomerBody, customer_body
 from service.records import Customer, FitStats, JobRef, ScanInfo
 from service.storage.cache import VersionedLRU
 from service.storage.records import new_id

@@ -4,7 +4,7 @@ fitted) -> the edited avatar.
 
 * A customer fitted from an uploaded clothed *mesh*: the scan itself is edited, clothes and all,
   through the body-aware warping graph between the fitted body and the scan
-  (``service.model.editing.ClothedAvatarEditor``), built once per process per customer from the
+  (``service.model.nonrigid.editing.ClothedAvatarEditor``), built once per process per customer from the
   mesh the fitting job stored (``storage.meshes``) and cached; an edit is then one
   back-substitution and two sparse products.
 * Any other customer (measurements, a template-topology avatar, a point cloud): the avatar's body
@@ -22,11 +22,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.model import gltf
-from service.model.body import BONES
-from service.model.editing import ClothedAvatarEditor
-from service.model.geometry import vertex_normals
-from service.model.shape import MeasurementError, avatar_from_measurements, validate_measurements
+from service.model.formats import gltf
+from service.model.body.model import BONES
+from service.model.nonrigid.editing import ClothedAvatarEditor
+from service.model.geometry.mesh import vertex_normals
+from service.model.body.shape import MeasurementError, avatar_from_measurements, validate_measurements
 from service.records import Customer
 from service.storage.cache import VersionedLRU
 

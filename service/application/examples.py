@@ -1,4 +1,4 @@
-"""The example avatars of the body model (``service.model.tryon.example_set``): their listing
+"""The example avatars of the body model (``service.model.garments.tryon.example_set``): their listing
 order, vertices and k-d trees of their body surfaces, built once per process."""
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import threading
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model.body import BodyModel
-from service.model.tryon import example_set, example_vertices
+from service.model.body.model import BodyModel
+from service.model.garments.tryon import example_set, example_vertices
 
 
 class Examples:

@@ -10,12 +10,13 @@ import numpy as np
 
 from typing import Any
 
-from service.model.autofit import fit_to_examples
-from service.model.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
-from service.model.fitting import FitError, fit_body
-from service.model.mesh_io import scan_type
-from service.model.frames import unit_against
-from service.model.tryon import GarmentBasis, build_garment_basis, refresh_skinning
+from service.model.garments.autofit import fit_to_examples
+from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
+from service.model.fitting.checks import FitError
+from service.model.fitting.fit import fit_body
+from service.model.formats.mesh_io import scan_type
+from service.model.formats.frames import unit_against
+from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
 from service.storage.records import new_id
 
@@ -425,7 +426,7 @@ class GarmentService:
 
     def ensure_demo(self) -> list[str]:
         """Build and store the demo catalogue (the compiled MakeHuman garments, see
-        ``service.model.catalogue``) where missing or built for another body model, through the
+        ``service.model.garments.catalogue``) where missing or built for another body model, through the
         path a retailer's ``.mhclo`` upload takes (fitted to every example avatar by its
         binding, checked, basis built), keyed by catalogue item id, with its UVs, material,
         category, gender and layer (idempotent; one process builds, the others wait on the

@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from service.model.body import BodyModel
-from service.model.catalogue import Catalogue, CatalogueItem, Material, Skin, load_catalogue
-from service.model.gltf import MeshTemplate
-from service.model.look import PreparedItem, merge_meshes, prepare_item, visible_body_faces
-from service.model.tryon import surface_body
+from service.model.body.model import BodyModel
+from service.model.garments.catalogue import Catalogue, CatalogueItem, Material, Skin, load_catalogue
+from service.model.formats.gltf import MeshTemplate
+from service.model.garments.look import PreparedItem, merge_meshes, prepare_item, visible_body_faces
+from service.model.garments.tryon import surface_body
 
 from service.storage.cache import VersionedLRU
 
@@ -141,7 +141,7 @@ def _group_template(model: BodyModel, items: tuple[CatalogueItem, ...], textured
 
 
 def material_fields(material: Material) -> dict[str, Any]:
-    """The scene-mesh fields of a catalogue material (``service.model.gltf`` mesh dict)."""
+    """The scene-mesh fields of a catalogue material (``service.model.formats.gltf`` mesh dict)."""
     return {"color": tuple(material.base_color_factor), "double_sided": material.double_sided,
             "material": material}
 
@@ -194,7 +194,7 @@ def item_meshes(model: BodyModel, vertices: np.ndarray, body_normals: np.ndarray
     hair (if any) and underwear (the base layer's items as one mesh, if any), each skinned and
     named; the avatar's own mesh is ``scenes.avatar_mesh``. Cached per process by (avatar
     vertices' digest, look): a customer's avatar and outfits fit the look once. Each carries
-    its static arrays also as a ``template`` (:class:`service.model.gltf.MeshTemplate`, made
+    its static arrays also as a ``template`` (:class:`service.model.formats.gltf.MeshTemplate`, made
     with the cache entry); ``template=False`` leaves it out (the reference path)."""
     X = np.ascontiguousarray(vertices, np.float32)
     key = hashlib.sha1(X.tobytes()).hexdigest() + "|" + look.key + f"|{id(model)}"

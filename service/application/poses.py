@@ -1,6 +1,6 @@
 """The page's pose presets adapted to a customer's body (``GET /v1/customers/{id}/poses``).
 
-The adaptation (``service.model.poses.adapted_poses``: more shoulder abduction until no arm
+The adaptation (``service.model.body.poses.adapted_poses``: more shoulder abduction until no arm
 vertex is inside the torso or thighs) takes ~0.5 s of CPU per body, so its result is computed
 once per body for the whole service: kept in the store (Redis, ``<prefix>poses:<digest>`` of the
 body model, the weights, the presets and ``ADAPTATION_VERSION``, for ``POSES_TTL_S``), computed
@@ -21,8 +21,8 @@ import redis
 
 from service.application.auth import Credentials
 from service.application.customers import CustomerService
-from service.model.body import BONES
-from service.model.poses import ADAPTATION_VERSION, adapted_poses, presets
+from service.model.body.model import BONES
+from service.model.body.poses import ADAPTATION_VERSION, adapted_poses, presets
 from service.storage.redis import lock
 
 log = logging.getLogger(__name__)

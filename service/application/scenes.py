@@ -11,11 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from service.model import correctives, gltf, lbs
-from service.model.body import BONES, BodyModel
-from service.model.geometry import vertex_normals
-from service.model.layering import layer_outfit
-from service.model.tryon import CustomerBody, GarmentBasis, try_on
+from service.model.garments import correctives
+from service.model.formats import gltf
+from service.model.body import lbs
+from service.model.body.model import BONES, BodyModel
+from service.model.geometry.mesh import vertex_normals
+from service.model.garments.layering import layer_outfit
+from service.model.garments.tryon import CustomerBody, GarmentBasis, try_on
 from service.records import Garment
 from service.storage.cache import VersionedLRU
 
@@ -223,7 +225,7 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \
         + [(v, basis.faces) for v, (_, basis) in zip(worn, garments)]
     skins: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(garments)
-    if len(layers) > 1:  # inner layers pushed back inside the outer ones (service.model.layering),
+    if len(layers) > 1:  # inner layers pushed back inside the outer ones (service.model.garments.layering),
         nb = model.n_body_vertices  # garments on their welded vertices, before any split at UV seams;
         # each inner layer skinned like the layer over it where covered, so it stays inside when posed
         layer_skins = ([(under["vertex_joints"], under["vertex_weights"])] if under is not None else []) \

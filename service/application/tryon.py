@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from service.model.tryon import GarmentBasis
+from service.model.garments.tryon import GarmentBasis
 from service.records import Garment
 from service.storage.records import fetch
 

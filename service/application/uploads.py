@@ -1,6 +1,6 @@
 """The upload gateway: every uploaded file (avatar meshes, scans, point clouds, garment meshes,
-MakeHuman garments) is read here, with the one hardened reader (``service.model.mesh_io``) and
-the one unit/axis detector (``service.model.frames``), and refused with :class:`Invalid`
+MakeHuman garments) is read here, with the one hardened reader (``service.model.formats.mesh_io``) and
+the one unit/axis detector (``service.model.formats.frames``), and refused with :class:`Invalid`
 (a 422 naming the field and why) before anything is stored or queued."""
 from __future__ import annotations
 
@@ -11,15 +11,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import mesh_io
-from service.model.avatar_io import AvatarMeshError, Projection, project_mesh
-from service.model.body import BodyModel
-from service.model.frames import UNITS, UnitError, detect_unit, rotation_to_y
-from service.model.measurements import ATTRIBUTES
-from service.model.mesh_io import Scan, ScanError
-from service.model import gltf
-from service.model.catalogue import RenderLayout, Texture, render_layout
-from service.model.mhclo import Binding, MhcloError, parse_mhclo, parse_obj
+from service.model.formats import mesh_io
+from service.model.formats.avatar_io import AvatarMeshError, Projection, project_mesh
+from service.model.body.model import BodyModel
+from service.model.formats.frames import UNITS, UnitError, detect_unit, rotation_to_y
+from service.model.body.measurements import ATTRIBUTES
+from service.model.formats.mesh_io import Scan, ScanError
+from service.model.formats import gltf_read
+from service.model.garments.catalogue import RenderLayout, Texture, render_layout
+from service.model.formats.mhclo import Binding, MhcloError, parse_mhclo, parse_obj
 
 from .errors import Invalid
 
@@ -151,7 +151,7 @@ def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | No
     when its indices are ``faces`` (as read by the mesh reader); else None. A broken embedded
     image is a 422 (field ``garment``)."""
     try:
-        out = gltf.read_glb(data)
+        out = gltf_read.read_glb(data)
     except Exception:
         return None
     doc = out["json"]
@@ -171,7 +171,7 @@ def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | No
     except (KeyError, IndexError, TypeError):
         img = None
     if img is not None and "bufferView" in img:
-        raw = gltf._view_bytes(doc, gltf._parse_glb(data)[1], img["bufferView"])
+        raw = gltf_read._view_bytes(doc, gltf_read._parse_glb(data)[1], img["bufferView"])
         texture = read_texture(raw, img.get("name") or "texture", field="garment")
     n = len(uv)
     return RenderLayout(np.arange(n, dtype=np.int64), uv, np.asarray(faces, np.int64)), texture
@@ -280,7 +280,7 @@ def parse_known_measurements(model, form: dict[str, object]) -> dict[str, float]
     """A scan upload's optional measurements of the person (form fields named after the body
     model's attributes but gender: cm, kg), checked as the measurements of a new customer are
     (``shape.validate_measurements``). Fields not given are left out."""
-    from service.model.shape import MeasurementError, validate_measurements
+    from service.model.body.shape import MeasurementError, validate_measurements
 
     raw: dict[str, object] = {}
     units = {a.name: a.unit for a in model.attributes}

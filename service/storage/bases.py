@@ -8,7 +8,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from service.model.tryon import GarmentBasis
+from service.model.garments.tryon import GarmentBasis
 from service.storage.cache import VersionedLRU
 
 

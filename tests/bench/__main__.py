@@ -9,7 +9,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import sys
+import time
+from pathlib import Path
+
+from tests.bench.report import SAVE_DIR, save_result
 
 # suite -> (module, run function, format function, description)
 SUITES: dict[str, tuple[str, str, str, str]] = {
@@ -38,12 +43,28 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
 }
 
 
+def _without_save(argv: list[str], saved_to: str) -> list[str]:
+    """The command's arguments less ``--save [DIR]`` (the command as the report shows it)."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] == "--save":
+            i += 2 if i + 1 < len(argv) and argv[i + 1] == saved_to else 1
+            continue
+        if not argv[i].startswith("--save="):
+            out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="tryon bench", description=__doc__,
                                  epilog="suites:\n" + "\n".join(f"  {k:<10}{v[3]}" for k, v in SUITES.items()),
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", choices=sorted(SUITES))
     ap.add_argument("--json", action="store_true", help="print JSON for machines")
+    ap.add_argument("--save", nargs="?", const=str(SAVE_DIR), default=None, metavar="DIR",
+                    help="also write the result with its date, machine and command to DIR/<suite>.json "
+                         "(default DIR: docs/bench; `tryon bench-report` makes docs/benchmarks.md from them)")
     ap.add_argument("--limit", type=int, default=0, help="held-out subjects/avatars to use (0 = the suite's default)")
     ap.add_argument("--repeats", type=int, default=50, help="repetitions per timing")
     ap.add_argument("--no-kill", action="store_true", help="fitting: skip the jobs-under-worker-kills part")
@@ -80,7 +101,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")
         extra = {"only": args.only}
+    started = time.time()
+    load_before = os.getloadavg()
     res = getattr(mod, run_name)(args.limit, args.repeats, **extra)
+    if args.save is not None:
+        path = save_result(Path(args.save), args.suite, res, "tryon bench " + " ".join(_without_save(
+            list(sys.argv[1:] if argv is None else argv), args.save)), started, load_before)
+        print(f"saved {path}", file=sys.stderr)
     print(json.dumps(res, indent=2) if args.json else getattr(mod, fmt_name)(res))
     return 0
 

@@ -1,5 +1,5 @@
 """``tryon bench autofit``: garments from one draped mesh, fitted to every example avatar by the
-body-aware warping graph (issue 10; ``service/model/autofit.py``).
+body-aware warping graph (issue 10; ``service/model/garments/autofit.py``).
 
 Reference: each MakeHuman CC0 garment fitted to an avatar through its own ``.mhclo`` binding,
 then pushed out of the body exactly as a try-on is (``garment.push_out``, 3 mm).
@@ -30,12 +30,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import autofit as AF
-from service.model import garment as Gm
-from service.model import tryon as T
-from service.model.body import load_body_model
-from service.model.geometry import vertex_faces, vertex_normals, winding_numbers
-from service.model.nonrigid import edge_incidence
+from service.model.garments import autofit as AF
+from service.model.garments import garment as Gm
+from service.model.garments import tryon as T
+from service.model.body.model import load_body_model
+from service.model.geometry.mesh import vertex_faces, vertex_normals, winding_numbers
+from service.model.geometry.solvers import edge_incidence
 from tests.bench.common import heldout_avatars, makehuman_garments, read_ansur
 from tests.bench.synthetic_scans import remesh
 from tests.bench.tryon import bench_garments, penetration_depths
@@ -68,7 +68,7 @@ def _foreign_avatar(model, X: np.ndarray, rng: np.random.Generator):
 
 def _foreign_source(model) -> np.ndarray:
     """The avatar (V, 3) of the first held-out ANSUR II subject whose measurements are in range."""
-    from service.model.shape import avatar_from_measurements
+    from service.model.body.shape import avatar_from_measurements
 
     specs = {a.name: a for a in model.attributes}
     for subject in read_ansur(heldout=True):
@@ -79,7 +79,7 @@ def _foreign_source(model) -> np.ndarray:
 
 
 def run(limit: int = 0, repeats: int = 1, garments: list[str] | None = None) -> dict:
-    from service.model.fitting import fit_body
+    from service.model.fitting.fit import fit_body
 
     model = load_body_model()
     nb = model.n_body_vertices

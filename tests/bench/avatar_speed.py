@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 
-from service.model import measurements as M
-from service.model import shape as S
-from service.model.body import load_body_model
+from service.model.body import measurements as M
+from service.model.body import shape as S
+from service.model.body.model import load_body_model
 from tests.bench.common import read_ansur
 
 INPUTS = {"all 12": None, "gender + height + weight": ("gender", "height_cm", "weight_kg")}

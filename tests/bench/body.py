@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.model import measurements as M
-from service.model import shape as S
-from service.model.body import load_body_model
+from service.model.body import measurements as M
+from service.model.body import shape as S
+from service.model.body.model import load_body_model
 from tests.bench.common import heldout_avatars, median_ms, read_ansur
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.model import measurements as M
-from service.model import mhclo
+from service.model.body import measurements as M
+from service.model.formats import mhclo
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 HELDOUT_AVATARS = DATA_DIR / "heldout_avatars.npz"

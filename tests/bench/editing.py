@@ -1,5 +1,5 @@
 """``tryon bench editing``: reshaping and re-posing a clothed avatar through the body-aware
-warping graph (issue 13; ``service/model/editing.py``), by the editing paper's protocol (Sec. 6).
+warping graph (issue 13; ``service/model/nonrigid/editing.py``), by the editing paper's protocol (Sec. 6).
 
 Forward error: synthetic clothed avatars with known parameters (held-out avatars, a moderate
 random pose, a MakeHuman suit of their gender fitted by its ``.mhclo`` binding, pushed out and
@@ -28,12 +28,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import editing as E
-from service.model import lbs
-from service.model import measurements as M
-from service.model.body import BONES, load_body_model
-from service.model.geometry import vertex_normals
-from service.model.warping import WarpParams
+from service.model.nonrigid import editing as E
+from service.model.body import lbs
+from service.model.body import measurements as M
+from service.model.body.model import BONES, load_body_model
+from service.model.geometry.mesh import vertex_normals
+from service.model.nonrigid.warping import WarpParams
 from tests.bench.common import heldout_people
 from tests.bench.synthetic_scans import available_garments, dress, make_scan, random_pose
 

@@ -1,6 +1,6 @@
 """``tryon bench fitting [--limit N] [--json] [--no-kill]``: parametric body fitting of scans.
 
-1. Accuracy and time of ``service.model.fitting.fit_body`` on synthetic scans with a known body
+1. Accuracy and time of ``service.model.fitting.fit.fit_body`` on synthetic scans with a known body
    (``tests/bench/synthetic_scans.py``): N held-out avatars (default 12, alternately male and
    female; ``--limit`` sets N), each in a random pose (up to 45 degrees per bone, any yaw),
    scanned under three conditions -- clothed mesh, unclothed mesh, clothed point cloud -- with
@@ -84,9 +84,9 @@ import httpx
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import measurements as M
-from service.model.body import BONES, load_body_model
-from service.model.geometry import closest_point_on_triangles, vertex_faces
+from service.model.body import measurements as M
+from service.model.body.model import BONES, load_body_model
+from service.model.geometry.mesh import closest_point_on_triangles, vertex_faces
 from tests.bench import synthetic_scans as SS
 from tests.bench.common import heldout_people, shared_data_dir
 from tests.harness import RETAILERS, run_server, start_worker, stop_process
@@ -237,7 +237,7 @@ def BEFORE_PARAMS(kind: str = "refine_damping"):
     ``FitParams(compiled=False)``) or ``coarse_each_up`` (only the screen's best facings through
     the initialisation's coarse stage, whatever their up-axis sign,
     ``FitParams(coarse_each_up=False)``)."""
-    from service.model.fitting import FitParams
+    from service.model.fitting.params import FitParams
 
     kinds = _before_kinds()
     if kind not in kinds:
@@ -251,7 +251,7 @@ def before_kinds() -> tuple[str, ...]:
 
 
 def _before_kinds() -> dict[str, dict]:
-    from service.model.fitting import FitParams
+    from service.model.fitting.params import FitParams
 
     return {
         "wrong_fit": {"area_weighted": False, "clothed_posture_anchor": 0.0, "alg1_posture_anchor": 0.0},
@@ -331,7 +331,7 @@ def v2v_mm(model, scan, fit) -> float:
 @functools.lru_cache(maxsize=2)
 def head_vertices(model) -> np.ndarray:
     """(n_body,) bool: the body vertices the head bone moves most."""
-    from service.model.fitting import _rig
+    from service.model.fitting.rig import _rig
 
     return np.argmax(_rig(model).W, axis=1) == BONES.index("head")
 
@@ -339,7 +339,7 @@ def head_vertices(model) -> np.ndarray:
 @functools.lru_cache(maxsize=2)
 def hand_vertices(model) -> np.ndarray:
     """(n_body,) bool: the body vertices a hand bone moves most."""
-    from service.model.fitting import _rig
+    from service.model.fitting.rig import _rig
 
     return np.isin(np.argmax(_rig(model).W, axis=1), [BONES.index("hand_l"), BONES.index("hand_r")])
 
@@ -424,7 +424,7 @@ def parse_fit_params(text: str | None) -> dict:
     import ast
     from dataclasses import fields
 
-    from service.model.fitting import FitParams
+    from service.model.fitting.params import FitParams
 
     known = {f.name for f in fields(FitParams)}
     out = {}
@@ -444,7 +444,7 @@ def with_overrides(params, overrides: dict):
     "before" kind's own change wins)."""
     from dataclasses import replace
 
-    from service.model.fitting import FitParams
+    from service.model.fitting.params import FitParams
 
     default = FitParams()
     return replace(params, **{k: v for k, v in overrides.items() if getattr(params, k) == getattr(default, k)})
@@ -457,7 +457,7 @@ def as_uploaded(model, scan, fmt: str):
     as the queue does (``mesh_io.scan_to_npz_bytes``: float32 offsets). Returns the
     ``mesh_io.Scan``; raises ``ValueError`` when the upload is refused or read as an avatar."""
     from service.application.uploads import read_body_upload
-    from service.model.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
+    from service.model.formats.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
 
     up = read_body_upload(model, SS.scan_file_bytes(scan, fmt), f"scan.{fmt}")
     if not isinstance(up, Scan):
@@ -474,7 +474,8 @@ def bench_fitting_accuracy(limit: int = 0, progress=None, max_pose_deg: float = 
     ``via_file``: each scan is fitted as the service reads it back from an upload in that format
     (:func:`as_uploaded`; 'ply', 'obj', 'glb', 'stl' or 'xyz'), not from the generated arrays;
     a refused upload counts as a failure."""
-    from service.model.fitting import FitParams, fit_body
+    from service.model.fitting.params import FitParams
+    from service.model.fitting.fit import fit_body
 
     overrides = dict(fit_params or {})
     params = FitParams(**overrides)
@@ -610,8 +611,10 @@ def bench_person_check(progress=None) -> dict:
     fitted as clothed with the person check off (before) and on (after), and as bare with it on
     (after_bare): rejected or not, with the reason; CesiumMan (fitted stature or the refusal); single-view front scans of bare
     held-out people (flagged ``partial`` or refused)."""
-    from service.model.fitting import FitError, FitParams, fit_body
-    from service.model.mesh_io import read_scan
+    from service.model.fitting.checks import FitError
+    from service.model.fitting.params import FitParams
+    from service.model.fitting.fit import fit_body
+    from service.model.formats.mesh_io import read_scan
 
     model = load_body_model()
     rng = np.random.default_rng([SEED, 99])

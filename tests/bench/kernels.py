@@ -1,4 +1,4 @@
-"""``tryon bench kernels``: the compiled geometry kernels (``service.model.kernels``, numba)
+"""``tryon bench kernels``: the compiled geometry kernels (``service.model.geometry.kernels``, numba)
 against the numpy paths they replace, interleaved in one run (``geometry.COMPILED`` switched per
 call, the order alternating), on held-out customers:
 
@@ -38,12 +38,12 @@ def run(limit: int = 0, repeats: int = 0) -> dict:
     """``limit``: customers (default 8)."""
     from service.application import look as looks
     from service.application import scenes
-    from service.model import geometry as G
-    from service.model import kernels
-    from service.model import poses as P
-    from service.model import tryon as T
-    from service.model.body import load_body_model
-    from service.model.catalogue import load_catalogue
+    from service.model.geometry import mesh as G
+    from service.model.geometry import kernels
+    from service.model.body import poses as P
+    from service.model.garments import tryon as T
+    from service.model.body.model import load_body_model
+    from service.model.garments.catalogue import load_catalogue
     from service.records import Garment
     from service.storage.cache import VersionedLRU
     from tests.bench.tryon import customers

@@ -27,9 +27,9 @@ def _median_ms(fn, repeats: int) -> float:
 def run(limit: int = 0, repeats: int = 30) -> dict:
     from service.application import look as looks
     from service.application import scenes
-    from service.model.body import load_body_model
-    from service.model.shape import avatar_from_measurements
-    from service.model.tryon import customer_body
+    from service.model.body.model import load_body_model
+    from service.model.body.shape import avatar_from_measurements
+    from service.model.garments.tryon import customer_body
 
     model = load_body_model()
     rows = {}

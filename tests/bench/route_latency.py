@@ -19,11 +19,11 @@ import time
 import numpy as np
 
 from service.application import scenes
-from service.model import demo_garments as D
-from service.model import shape as S
-from service.model import tryon as T
-from service.model.body import load_body_model
-from service.model.catalogue import load_catalogue
+from service.model.garments import demo_garments as D
+from service.model.body import shape as S
+from service.model.garments import tryon as T
+from service.model.body.model import load_body_model
+from service.model.garments.catalogue import load_catalogue
 from service.records import Garment
 from tests.bench.common import read_ansur
 from tests.bench.tryon import skirt_layout

@@ -65,10 +65,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import garment as G_
-from service.model import lbs, mhclo
+from service.model.garments import garment as G_
+from service.model.body import lbs
+from service.model.formats import mhclo
 from tests.bench.common import shared_data_dir
-from service.model.geometry import cluster_vertices, vertex_normals
+from service.model.geometry.mesh import cluster_vertices, vertex_normals
 
 UNIT_SCALE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}  # file units per metre
 UPS = ("+y", "+z")
@@ -134,7 +135,7 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: boo
     noise), is the same as without."""
     from scipy.spatial.transform import Rotation
 
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     n = len(BONES)
     axes = _random_axes(rng, n)
@@ -146,7 +147,7 @@ def random_pose(rng: np.random.Generator, max_deg: float = 45.0, anatomical: boo
     root = Rotation.from_rotvec([0.0, yaw, 0.0]) * Rotation.from_rotvec(tilt * np.array([np.cos(a), 0.0, np.sin(a)]))
     rv[0] = root.as_rotvec()
     if anatomical:
-        from service.model.fitting import joint_limits
+        from service.model.fitting.rig import joint_limits
 
         lo, hi = joint_limits()
         redraw = rng.spawn(1)[0]
@@ -191,7 +192,7 @@ def separate_legs(model, vertices: np.ndarray, rotvecs: np.ndarray, rng: np.rand
     rest body ``vertices`` (V, 3) posed so pass through each other (:func:`leg_gap` under
     ``LEG_CLEARANCE_M``): a random pose within each bone's limits can still cross the legs
     through one another, which nobody can stand in."""
-    from service.model.fitting import joint_limits
+    from service.model.fitting.rig import joint_limits
 
     lo, hi = joint_limits()
     rv = np.array(rotvecs, np.float64)
@@ -246,12 +247,12 @@ def _garment_path(clothes_dir: Path, stem: str) -> Path:
 
 def _garment_source(clothes_dir: Path, name: str, n_base: int) -> tuple[mhclo.Binding, np.ndarray]:
     """(binding, faces) of a garment: a ``.mhclo`` stem under ``clothes_dir``, else an item id of
-    the compiled catalogue (``service.model.catalogue``: e.g. ``pencil-skirt``, the lower part
+    the compiled catalogue (``service.model.garments.catalogue``: e.g. ``pencil-skirt``, the lower part
     of a MakeHuman suit, or ``hair-bob02``)."""
     hits = sorted(Path(clothes_dir).glob(f"*/{name}.mhclo")) if Path(clothes_dir).is_dir() else []
     if hits:
         return _load_garment(str(hits[0]), n_base)
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
 
     items = load_catalogue().items
     if name not in items:
@@ -485,7 +486,7 @@ def curl_fingers(model, X: np.ndarray, degrees: float) -> np.ndarray:
     times its share of the way from the knuckles to the fingertips (the thumb's tip with them).
     The hand's axis and knuckles are found here, not taken from the fitting's ``finger_region``:
     the truth does not lean on the method it tests."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     X = np.array(X, np.float64)
     W = np.zeros((len(X), len(BONES)))
@@ -765,7 +766,7 @@ def front_only(scan: SyntheticScan, min_cos: float = 0.1) -> SyntheticScan:
     (self-occlusion ignored). The truth is the scan's."""
     from dataclasses import replace
 
-    from service.model.lbs import axis_angle_to_matrix
+    from service.model.body.lbs import axis_angle_to_matrix
 
     if scan.faces is not None or scan.normals is None:
         raise ValueError("front_only needs a point cloud with normals")
@@ -886,7 +887,7 @@ DARK_HAIR_M = 0.015
 
 def _head_vertices(model, n: int) -> np.ndarray:
     """(n,) bool: the model's first ``n`` vertices that the head bone moves most."""
-    from service.model.body import BONES
+    from service.model.body.model import BONES
 
     W = np.zeros((n, len(BONES)))
     np.add.at(W, (np.repeat(np.arange(n), 4), model.lbs_indices[:n].ravel()), model.lbs_weights[:n].ravel())
@@ -900,8 +901,8 @@ def without_hair_returns(scan: SyntheticScan) -> SyntheticScan:
     crown's or the back of the head's vertices in the true posed body is dropped."""
     from scipy.spatial import cKDTree
 
-    from service.model.body import load_body_model
-    from service.model.geometry import vertex_normals
+    from service.model.body.model import load_body_model
+    from service.model.geometry.mesh import vertex_normals
 
     model = load_body_model()
     n = model.n_body_vertices
@@ -924,7 +925,7 @@ def without_head(scan: SyntheticScan) -> SyntheticScan:
     dropped (the eyes' and eyebrows' too); the neck stays."""
     from scipy.spatial import cKDTree
 
-    from service.model.body import load_body_model
+    from service.model.body.model import load_body_model
 
     head = _head_vertices(load_body_model(), len(scan.true_posed))  # the body and its helpers (eyes, eyebrows)
     d, _ = cKDTree(scan.true_posed[head]).query(_model_points(scan))
@@ -952,7 +953,7 @@ def with_long_hair(scan: SyntheticScan) -> SyntheticScan:
     above it, plus LONG_HAIR_THICK_M. Its points are not body points."""
     from scipy.spatial import cKDTree
 
-    from service.model.body import BONES, load_body_model
+    from service.model.body.model import BONES, load_body_model
 
     J = scan.true_joints
     up = np.array([0.0, 1.0, 0.0])

@@ -9,12 +9,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.model import demo_garments as D
-from service.model import gltf
-from service.model import shape as S
-from service.model import tryon as T
-from service.model.body import load_body_model
-from service.model.geometry import closest_point_on_triangles, vertex_faces, winding_numbers
+from service.model.garments import demo_garments as D
+from service.model.formats import gltf
+from service.model.body import shape as S
+from service.model.garments import tryon as T
+from service.model.body.model import load_body_model
+from service.model.geometry.mesh import closest_point_on_triangles, vertex_faces, winding_numbers
 from tests.bench.common import heldout_avatars, makehuman_garments, median_ms, read_ansur
 from tests.harness import run_server
 
@@ -210,7 +210,7 @@ def bench_latency(model, ex, EX, skirt, repeats: int) -> dict:
     import dataclasses
 
     from service.application import scenes
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
     from service.records import Garment
 
     fit, faces = skirt
@@ -269,7 +269,7 @@ def bench_outfit_latency(model, ex, EX, bodies, repeats: int) -> dict:
     and thread CPU ms, bare (no look) and with the look."""
     from service.application import look as looks
     from service.application import scenes
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
     from service.records import Garment
 
     cat = load_catalogue()
@@ -322,7 +322,7 @@ def format_latency(r: dict) -> str:
 def skirt_layout(rings: int = 64, angles: int = 160):
     """A render layout of the demo skirt grid (``D.skirt_faces``): u around (a seam where the
     rings close: one extra uv column), v down the rings."""
-    from service.model.catalogue import render_layout
+    from service.model.garments.catalogue import render_layout
 
     r, a = np.meshgrid(np.arange(rings - 1), np.arange(angles), indexing="ij")
     t0 = (r * (angles + 1) + a).reshape(-1)
@@ -340,7 +340,7 @@ def bench_textures(model, basis, bodies, repeats: int) -> dict:
     import dataclasses
 
     from service.application import scenes
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
     from service.records import Garment
 
     cat = load_catalogue()
@@ -564,7 +564,7 @@ def covered_points(body: np.ndarray, body_faces: np.ndarray, garment: np.ndarray
     ``COVER_DISTANCE`` and over the vertex (offset within 45 degrees of the body normal). Returns
     (body vertex ids (K,), garment face (K,), barycentric (K, 3)): fixed garment points to follow
     through a pose."""
-    from service.model.geometry import closest_points_on_mesh, vertex_normals
+    from service.model.geometry.mesh import closest_points_on_mesh, vertex_normals
 
     n = vertex_normals(body, body_faces).astype(np.float64)
     face, q, bary = closest_points_on_mesh(body, np.asarray(garment, np.float64), np.asarray(faces))
@@ -591,7 +591,7 @@ def show_through(covered: tuple, garment: np.ndarray, faces: np.ndarray, body: n
 def catalogue_bases(model, ex, EX) -> dict:
     """The MakeHuman catalogue's garments (fit_to each example avatar) and the demo shells as
     clothing bases: {name: (basis, category, layer)}."""
-    from service.model.catalogue import load_catalogue
+    from service.model.garments.catalogue import load_catalogue
 
     out = {}
     for n, g in D.make_demo_garments(model).items():
@@ -618,14 +618,14 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correc
     (:func:`show_through`), worst body. ``reference``: bases of the same garments built another
     way (e.g. the previous skin weights), measured alongside ("ref_*" keys). ``correctives``: the
     garments posed with their pose-corrective morph target at influence 1
-    (``service.model.correctives``, as ``?pose_correctives=1`` serves them; the "ref_*" keys
+    (``service.model.garments.correctives``, as ``?pose_correctives=1`` serves them; the "ref_*" keys
     without), and the time to compute them. ``ref_switch``: the reference ("ref_*", the same
     bases) posed with its corrective targets too, computed with that switch of
-    ``service.model.correctives`` off (e.g. ``"STRAIN_LIMITING"``)."""
-    from service.model import correctives as C
-    from service.model import lbs as L
-    from service.model import poses as P
-    from service.model.geometry import closest_points_on_mesh, mesh_edges
+    ``service.model.garments.correctives`` off (e.g. ``"STRAIN_LIMITING"``)."""
+    from service.model.garments import correctives as C
+    from service.model.body import lbs as L
+    from service.model.body import poses as P
+    from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges
 
     nb = model.n_body_vertices
     Fb = model.body_faces
@@ -687,7 +687,7 @@ def bench_pose_stretch(model, bases: dict, reference: dict | None = None, correc
                             P.edge_stretch(fits[k], pv, b.faces), STRETCH_PERCENTILE)))
                     if pname == "walking" and k in covered:
                         if pn is None:
-                            from service.model.geometry import vertex_normals
+                            from service.model.geometry.mesh import vertex_normals
                             pn = vertex_normals(pb, Fb).astype(np.float64)
                         st = 100 * show_through(covered[k], pv, bb.faces, pb, pn)
                         per[k][pre + "show_through_pct"] = max(per[k][pre + "show_through_pct"], st)
@@ -742,7 +742,7 @@ LAYER_PAIRS = [(b, t) for t in ("womens-tshirt", "pinstripe-blouse", "cropped-te
 
 def bench_layering(model, bases: dict, people: int, posed_people: int = 3, correctives: bool = False) -> dict:
     """Share of the body covered by two garments where the inner one is outside the outer one,
-    before and after ``service.model.layering.layer_outfit`` as ``outfit.glb`` runs it (the
+    before and after ``service.model.garments.layering.layer_outfit`` as ``outfit.glb`` runs it (the
     inner garment pushed inside and skinned like the outer one where covered), on top/bottom
     pairs and jacket over shirt, on held-out people; rest pose, and the page poses on the first
     ``posed_people``: "posed" re-matches closest points on the posed body, a garment covering
@@ -753,12 +753,12 @@ def bench_layering(model, bases: dict, people: int, posed_people: int = 3, corre
     pose-corrective targets at influence 1 (inner rank 0, outer rank 1, the inner one following
     the outer one where covered, as ``outfit.glb`` makes them): rows "posed_correctives" and "posed_fixed_correctives", before = layered without
     them (the "after" of "posed" / "posed_fixed"), after = with them."""
-    from service.model import correctives as C
-    from service.model import layering as LY
-    from service.model import lbs as L
-    from service.model import poses as P
-    from service.model.body import BONES
-    from service.model.geometry import vertex_normals
+    from service.model.garments import correctives as C
+    from service.model.garments import layering as LY
+    from service.model.body import lbs as L
+    from service.model.body import poses as P
+    from service.model.body.model import BONES
+    from service.model.geometry.mesh import vertex_normals
 
     nb = model.n_body_vertices
     H = heldout_avatars(model)[:people]
@@ -883,9 +883,9 @@ def correctives_latency(repeats: int = 20, garments: tuple[str, ...] = ("pinstri
     without the correctives' step 4, ``C.STRAIN_LIMITING``: its cost); the poses' adaptation
     (cached per customer by the service) apart. Median wall ms, and the GLB bytes."""
     from service.application import scenes
-    from service.model import correctives as C
-    from service.model import poses as P
-    from service.model.catalogue import load_catalogue
+    from service.model.garments import correctives as C
+    from service.model.body import poses as P
+    from service.model.garments.catalogue import load_catalogue
     from service.records import Garment
     from service.storage.cache import VersionedLRU
 

@@ -30,9 +30,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
-from service.model.body import BONES
-from service.model.geometry import closest_points_on_mesh, mesh_edges, vertex_faces, vertex_normals
-from service.model.mhclo import DM, Binding
+from service.model.body.model import BONES
+from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges, vertex_faces, vertex_normals
+from service.model.formats.mhclo import DM, Binding
 
 B = {b: i for i, b in enumerate(BONES)}
 # The suits' reference pairs (x, y, z): hm08 vertices whose distances scale the offsets.

@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from service.model import measurements as M
-from service.model.body import BONES, BONE_PARENTS
-from service.model.geometry import mesh_edges, vertex_normals
+from service.model.body import measurements as M
+from service.model.body.model import BONES, BONE_PARENTS
+from service.model.geometry.mesh import mesh_edges, vertex_normals
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared" / "data"

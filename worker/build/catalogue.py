@@ -10,12 +10,12 @@ Compiles MakeHuman's CC0 garments (``../shared/data/makehuman_clothes``) and ava
 * ``arrays.npz`` -- per item ``<id>/binding_indices`` (M, 3), ``binding_weights`` (M, 3)
   float32, ``binding_offsets`` (M, 3) float32 (decimetres), ``binding_scales`` (3, 3) float64
   (vertex a, vertex b, reference distance dm for x, y, z), ``faces`` (F, 3) (the OBJ's quads
-  fanned exactly as ``service.model.mhclo.parse_obj`` does), ``face_uv`` (F, 3) (the corners'
+  fanned exactly as ``service.model.formats.mhclo.parse_obj`` does), ``face_uv`` (F, 3) (the corners'
   ``vt`` indices) and ``uv`` (T, 2) float32 (the item's ``vt`` table, OBJ convention: origin
   bottom-left, remapped into the item's cropped texture), ``hidden`` (H,) (body vertices under
   the garment, from the ``.mhclo``'s ``delete_verts``); and ``skin/body_uv`` +
   ``skin/body_face_uv`` (the hm08 body's UVs for ``model.body_faces``). Index arrays are stored
-  as uint16 (all fit; ``service.model.catalogue`` widens them);
+  as uint16 (all fit; ``service.model.garments.catalogue`` widens them);
 * ``textures/`` -- each item's textures, cropped to its UV islands, background filled with
   island colours (no seams under mip-mapping), at most ``MAX_TEXTURE`` px: JPEG, or PNG where
   alpha matters (hair, eyebrows);
@@ -47,10 +47,10 @@ from PIL import Image, ImageDraw
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from service.model.body import BONES, load_body_model
-from service.model.garment import laplacian_smoother, push_out
-from service.model.geometry import vertex_normals
-from service.model.mhclo import DM, Binding, parse_mhclo, parse_obj
+from service.model.body.model import BONES, load_body_model
+from service.model.garments.garment import laplacian_smoother, push_out
+from service.model.geometry.mesh import vertex_normals
+from service.model.formats.mhclo import DM, Binding, parse_mhclo, parse_obj
 from worker.build import base_layer as BL
 
 REPO = Path(__file__).resolve().parents[2]
@@ -178,7 +178,7 @@ DEFAULTS = {  # what a fresh avatar wears and looks like, per gender
     "male": {"skin": "skin-neutral", "eyes": "eyes-brown", "eyebrows": "eyebrows", "hair": "hair-short02",
              "base_layer": ["base-trunks"]},
 }
-# How the service should fit each kind to a customer (see service/model/catalogue.py).
+# How the service should fit each kind to a customer (see service/model/garments/catalogue.py).
 # clearance: None = the try-on's own rule (grows with the layer); else metres.
 FIT = {
     "garment": {"push_out": True, "skinning": "transfer", "clearance": None},
@@ -532,7 +532,7 @@ def build_garment(spec: GarmentSpec, model, shared: Path) -> Built:
 def push_out_of_mean(binding: Binding, faces: np.ndarray, model, clearance: float) -> tuple[Binding, dict]:
     """The binding with its offsets rewritten so that, on the mean avatar, no vertex is closer
     than ``clearance`` to the body (pushed out along the body normal, displacement smoothed:
-    ``service.model.garment.push_out``, as a try-on does)."""
+    ``service.model.garments.garment.push_out``, as a try-on does)."""
     X = model.mean.astype(np.float64)
     nb = model.n_body_vertices
     P = binding.fit(X)

@@ -32,14 +32,14 @@ under the same CC0 1.0 dedication. No attribution is required; it is given above
 PROCESS = """\
 ## What the build did (`tryon build-catalogue`, `worker/build/catalogue.py`)
 
-- **Bindings**: each `.mhclo` is parsed by `service.model.mhclo.parse_mhclo` (the upload path's
+- **Bindings**: each `.mhclo` is parsed by `service.model.formats.mhclo.parse_mhclo` (the upload path's
   parser): per garment vertex 3 hm08 vertex indices, 3 weights and an offset (decimetres), and the
   `x_scale`/`y_scale`/`z_scale` reference pairs. Stored as float32 (weights, offsets) / int32.
-- **Faces and UVs**: the `.obj` is parsed by `service.model.mhclo.parse_obj`: quads fanned
+- **Faces and UVs**: the `.obj` is parsed by `service.model.formats.mhclo.parse_obj`: quads fanned
   (`[0,1,2], [0,2,3]`, the same triangles the upload path makes), and per triangle corner the `vt`
   index (`face_uv`) into the item's `vt` table (`uv`, OBJ convention: origin bottom-left; glTF wants
   `v' = 1 - v`). A vertex on a UV seam has several `vt`: split vertices by (vertex, vt) corner
-  pairs for rendering (`service.model.catalogue.render_layout`).
+  pairs for rendering (`service.model.garments.catalogue.render_layout`).
 - **Suits split into items**: a MakeHuman suit is one mesh of several connected parts. An item keeps
   the parts whose centroid, fitted to the mean avatar, lies above (`upper`: tops, jackets) or below
   (`lower`: trousers, skirt) the pelvis joint, or all of them (`all`); the vertex count of each item
@@ -62,7 +62,7 @@ PROCESS = """\
   (PNG); the 'brown' iris, which reads red on screen, has the hue of its saturated texels turned
   to brown (~25 degrees, saturation x0.8). Hair and eyebrows, authored on other MakeHuman bodies,
   cut into the mean avatar's head (bob02's fringe up to 5 cm into the forehead): they are pushed
-  out of the mean avatar (hair 2 mm, eyebrows 0.8 mm clearance, `service.model.garment.push_out`)
+  out of the mean avatar (hair 2 mm, eyebrows 0.8 mm clearance, `service.model.garments.garment.push_out`)
   and their binding offsets rewritten (`source.pushed_out_of_mean` in `catalogue.json`). bob02's
   ash-blonde texture is tinted to a mid brown by its base colour factor (`texture_mean_linear`
   lets a page compute other tints: factor = tint / mean, linear).

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.model.geometry import vertex_normals
+from service.model.geometry.mesh import vertex_normals
 
 HERE = Path(__file__).resolve().parent
 
@@ -70,7 +70,7 @@ def dress(model, catalogue, vertices: np.ndarray, item_ids: list[str], *, gender
     (``_over``: a stand-in for the service's layering), textures as a GLB would carry them."""
     from scipy.spatial import cKDTree
 
-    from service.model import garment as G
+    from service.model.garments import garment as G
 
     look = catalogue.look(gender)
     X = np.asarray(vertices, np.float64)
@@ -116,7 +116,7 @@ def _over(P: np.ndarray, worn: list, outer) -> np.ndarray:
     nearest vertex). Hair counts as under a hat; eyes and eyebrows never."""
     from scipy.spatial import cKDTree
 
-    from service.model import garment as G
+    from service.model.garments import garment as G
 
     P = np.asarray(P, np.float64)
     for it, Q in worn:
@@ -148,8 +148,8 @@ def item_mesh(it, P: np.ndarray) -> dict:
 def example_avatars(model) -> dict[str, np.ndarray]:
     """The mean avatar, the heaviest of the example avatars, and two of the issue's stress
     bodies from measurements: a heavy woman (165 cm, 105 kg) and a tall man (200 cm, 95 kg)."""
-    from service.model.shape import avatar_from_measurements
-    from service.model.tryon import example_set, example_vertices
+    from service.model.body.shape import avatar_from_measurements
+    from service.model.garments.tryon import example_set, example_vertices
 
     E = example_vertices(model, example_set(model))
     ms = [model.measure(e, "female") for e in E]
@@ -179,8 +179,8 @@ OUTFITS = [  # (scene name, avatar, gender, items, skin, hair)
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from service.model.body import load_body_model
-    from service.model.catalogue import read_catalogue, DEFAULT_CATALOGUE_DIR
+    from service.model.body.model import load_body_model
+    from service.model.garments.catalogue import read_catalogue, DEFAULT_CATALOGUE_DIR
 
     ap = argparse.ArgumentParser(prog="python -m worker.build.preview",
                                  description="Render avatars wearing catalogue items to PNG.")

@@ -1,0 +1,434 @@
+"""Garment bases on disk and the try-on itself (pure numpy; no web or queue imports).
+
+``GarmentBasis`` holds everything a try-on needs for one garment: the mean garment g (M, 3),
+the clothing basis B (N, M, 3), faces (F, 3), the push-out binding (M, k) to body vertices,
+skinning transferred from the body (M, 4) + (M, 4), a colour and a layer; optionally its look:
+a render layout (the mesh split at its UV seams: render_vertex (R,) index into the M welded
+vertices, render_uv (R, 2) glTF convention, render_faces (F, 3) into the R render vertices) and
+a material (:class:`service.model.garments.catalogue.Material`, textures stored as files beside the
+arrays). It is stored as plain ``.npy`` files in one directory and memory-mapped by every API
+process; bases saved before the look existed load without it.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.model.garments import garment as G
+from service.model.garments import skin_weights as SW
+from service.model.body.model import BONES
+from service.model.garments.catalogue import Material, RenderLayout, Texture
+from service.model.geometry.mesh import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
+from service.model.formats.gltf import MeshTemplate
+from service.model.formats.gltf_buffers import vertex_tangents
+from service.model.garments.layering import covered_body
+from service.model.body.poses import preset_transforms
+from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
+
+# Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
+# with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
+EXAMPLES = {"n": 32, "c": 0.5}
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "render_vertex", "render_uv",
+          "render_faces")
+# normal basis and render layout: bases saved before they existed load without them
+OPTIONAL = ("gn", "Bn", "render_vertex", "render_uv", "render_faces")
+MATERIAL_FILE = "material.json"
+TEXTURE_EXT = {"image/png": ".png", "image/jpeg": ".jpg"}
+
+
+# the release step of skin_weights.release_stretched (edges the page's presets stretch): off.
+# It lowered the 99.9th-percentile pose stretch (worst 5.3 -> 2.3) but let sleeves lag the arms
+# and the arms show through them (pinstripe blouse: 0.8 % -> 2.5 % of its vertices > 3 mm inside
+# the posed body, median over 6 people x 3 poses; seen in the page's screenshots)
+SKIN_RELEASE_IN_POSES = False
+# step 4 of skin_weights (the legs' share ramped left/right below the crotch, skirts only): the
+# pencil skirt's front opened over the forward thigh in the page's walking step without it
+SKIN_LEG_RAMP = True
+# step 1's release on the limb side of steep inpainted edges (skin_weights.release_limb_side):
+# the tops' armpit seams stretched up to 5.3x in the page's poses without it
+SKIN_LIMB_SIDE = True
+# inpainting screened toward the closest-point matches (skin_weights.SCREENING): a loose jacket's
+# front took the sleeves' arm weight without it, and its hem rose with the arms
+SKIN_SCREENING = True
+# the version of the skin weights a basis carries (meta "skinning"; absent: 1): bases built by an
+# older version get their weights recomputed (:func:`refresh_skinning`) when next served.
+# 2: step 4, the legs' ramp; 3: the limb side of steep inpainted edges released (armpits);
+# 4: the inpainting screened toward the closest-point matches (loose tops' fronts)
+SKINNING_VERSION = 4
+
+def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
+    n = min(n or EXAMPLES["n"], model.n_components)
+    return G.ExampleSet(n=n, c=float(c or EXAMPLES["c"]), sigma=np.sqrt(model.variances[:n]))
+
+
+def example_vertices(model, examples: G.ExampleSet) -> np.ndarray:
+    """(1 + 2N, V, 3) float32 example avatars in listing order."""
+    W = np.zeros((1 + 2 * examples.n, model.n_components))
+    W[:, : examples.n] = examples.weights()
+    return model.vertices(W)
+
+
+@dataclass
+class GarmentBasis:
+    g: np.ndarray
+    B: np.ndarray
+    faces: np.ndarray
+    binding: np.ndarray
+    skin_idx: np.ndarray
+    skin_w: np.ndarray
+    gn: np.ndarray | None = None  # (M, 3) normals of the mean garment
+    Bn: np.ndarray | None = None  # (N, M, 3) their basis (central differences, like B)
+    render_vertex: np.ndarray | None = None  # (R,) int32 welded vertex of each render vertex
+    render_uv: np.ndarray | None = None  # (R, 2) float32, glTF convention (origin top-left)
+    render_faces: np.ndarray | None = None  # (F, 3) int32 into the render vertices
+    material: Material | None = None
+    meta: dict = field(default_factory=dict)
+    _smoother: object = None
+    _incidence: object = None
+    _render_skin: object = None
+    _render_tangents: object = None
+    # per n_joints; init=False: dataclasses.replace (a new layout or material) starts empty
+    _templates: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _hidden: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # per body model
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.g.shape[0])
+
+    def smoother(self):
+        if self._smoother is None:
+            self._smoother = G.laplacian_smoother(np.asarray(self.faces), self.n_vertices)
+        return self._smoother
+
+    def normals(self, vertices: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Unit vertex normals (M, 3) float32 of the garment. With the customer's ``weights``
+        and a normal basis: synthesized like the positions (gn + w Bn, renormalised; 3MN
+        multiply-adds) instead of recomputed from the mesh."""
+        if weights is not None and self.gn is not None:
+            n = G.synthesize(np.asarray(self.gn), np.asarray(self.Bn), weights)
+            return n / np.sqrt(row_dot(n, n))[:, None]
+        if self._incidence is None:
+            self._incidence = face_incidence(np.asarray(self.faces), self.n_vertices)
+        return vertex_normals(vertices, self.faces, self._incidence)
+
+    # -- the look: render layout and material ----------------------------------------------------
+    @property
+    def has_layout(self) -> bool:
+        return self.render_vertex is not None
+
+    def render_skin(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, 4) joints and (R, 4) weights of the render vertices (gathered once per basis)."""
+        if self._render_skin is None:
+            idx = np.asarray(self.render_vertex)
+            self._render_skin = (np.asarray(self.skin_idx)[idx], np.asarray(self.skin_w)[idx])
+        return self._render_skin  # type: ignore[return-value]
+
+    def render_tangents(self, normals: np.ndarray) -> np.ndarray | None:
+        """TANGENT (R, 4) for a normal-mapped material: the mean garment's UV tangents (computed
+        once per basis) made orthogonal to this try-on's render normals (R, 3) (one
+        Gram-Schmidt step, w kept); None without a normal texture."""
+        if self.material is None or self.material.normal_texture is None or not self.has_layout:
+            return None
+        if self._render_tangents is None:
+            idx = np.asarray(self.render_vertex)
+            g = np.asarray(self.g)[idx]
+            t0 = vertex_tangents(g, np.asarray(self.render_faces), np.asarray(self.render_uv),
+                                 vertex_normals(g, np.asarray(self.render_faces)))
+            self._render_tangents = (np.ascontiguousarray(t0[:, :3]), np.ascontiguousarray(t0[:, 3]))
+        t0, w = self._render_tangents  # type: ignore[misc]
+        n = np.asarray(normals, np.float32)
+        t = t0 - n * row_dot(n, t0)[:, None]
+        out = np.empty((len(w), 4), np.float32)
+        out[:, :3] = t / np.maximum(np.sqrt(row_dot(t, t)), 1e-12)[:, None]
+        out[:, 3] = w
+        return out
+
+    def mesh_template(self, n_joints: int) -> MeshTemplate:
+        """The static part of this garment's try-on GLB mesh for a skeleton of ``n_joints``:
+        faces, skinning and, with a render layout, its faces, UVs and gathered skinning, checked,
+        cleaned and encoded once per basis (and compression mode) instead of per request."""
+        hit = self._templates.get(n_joints)
+        if hit is None:
+            if self.has_layout:
+                j, w = self.render_skin()
+                hit = MeshTemplate(np.asarray(self.render_faces), len(self.render_vertex), uv=np.asarray(self.render_uv),
+                                   vertex_joints=j, vertex_weights=w, n_joints=n_joints)
+            else:
+                hit = MeshTemplate(np.asarray(self.faces), self.n_vertices, vertex_joints=np.asarray(self.skin_idx),
+                                   vertex_weights=np.asarray(self.skin_w), n_joints=n_joints)
+            self._templates[n_joints] = hit
+        return hit
+
+    def hidden_body(self, model) -> np.ndarray:
+        """The body vertices (H,) int64 this garment hides (``layering.covered_body`` of the mean
+        garment on ``model``'s mean body), once per basis and body model; none for a material that
+        is not opaque (lace, sheer cloth: the skin shows through). Read-only."""
+        hit = self._hidden.get(id(model))
+        if hit is not None and hit[0] is model:
+            return hit[1]
+        if self.material is not None and self.material.alpha_mode != "OPAQUE":
+            hidden = np.zeros(0, np.int64)
+        else:
+            nb = model.n_body_vertices
+            X = np.asarray(model.mean[:nb], np.float64)
+            hidden = covered_body(X, vertex_normals(X, model.body_faces), np.asarray(self.g), np.asarray(self.faces))
+        hidden.setflags(write=False)
+        self._hidden[id(model)] = (model, hidden)
+        return hidden
+
+    def save(self, directory: Path) -> None:
+        """Write atomically: a temporary sibling directory renamed into place."""
+        directory = Path(directory)
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=directory.parent))
+        try:
+            for k in ARRAYS:
+                if getattr(self, k) is not None:
+                    np.save(tmp / f"{k}.npy", np.ascontiguousarray(getattr(self, k)))
+            if self.material is not None:
+                save_material(self.material, tmp)
+            (tmp / "meta.json").write_text(json.dumps(self.meta, sort_keys=True))
+            if directory.exists():
+                shutil.rmtree(directory)
+            os.replace(tmp, directory)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+    @classmethod
+    def load(cls, directory: Path, mmap: bool = True) -> "GarmentBasis":
+        directory = Path(directory)
+        arrs = {k: np.load(directory / f"{k}.npy", mmap_mode="r" if mmap else None) for k in ARRAYS
+                if k not in OPTIONAL or (directory / f"{k}.npy").exists()}
+        meta = json.loads((directory / "meta.json").read_text())
+        material = load_material(directory) if (directory / MATERIAL_FILE).exists() else None
+        return cls(**arrs, material=material, meta=meta)
+
+    def etag(self) -> str:
+        return self.meta.get("etag", "")
+
+
+def save_material(material: Material, directory: Path) -> None:
+    """``material.json`` plus its textures as ``base_color.jpg|png`` / ``normal.jpg|png``."""
+    doc: dict = {"base_color_factor": [float(c) for c in material.base_color_factor],
+                 "alpha_mode": material.alpha_mode, "alpha_cutoff": material.alpha_cutoff,
+                 "double_sided": bool(material.double_sided), "metallic": float(material.metallic),
+                 "roughness": float(material.roughness)}
+    for key, tex in (("base_color", material.base_color_texture), ("normal", material.normal_texture)):
+        if tex is not None:
+            fname = key + TEXTURE_EXT[tex.mime]
+            (Path(directory) / fname).write_bytes(tex.data)
+            doc[f"{key}_texture"] = {"file": fname, "name": tex.name, "mime": tex.mime}
+    (Path(directory) / MATERIAL_FILE).write_text(json.dumps(doc, sort_keys=True))
+
+
+def load_material(directory: Path) -> Material:
+    doc = json.loads((Path(directory) / MATERIAL_FILE).read_text())
+
+    def tex(key: str) -> Texture | None:
+        t = doc.get(f"{key}_texture")
+        return None if t is None else Texture(t["name"], t["mime"], (Path(directory) / t["file"]).read_bytes())
+
+    return Material(tuple(float(c) for c in doc["base_color_factor"]), tex("base_color"), tex("normal"),  # type: ignore[arg-type]
+                    doc["alpha_mode"], doc.get("alpha_cutoff"), bool(doc["double_sided"]), float(doc["metallic"]),
+                    float(doc["roughness"]))
+
+
+def material_digest(material: Material | None) -> bytes:
+    """Bytes that change with anything a viewer sees of ``material`` (for the basis etag)."""
+    if material is None:
+        return b""
+    h = hashlib.sha256(json.dumps([list(material.base_color_factor), material.alpha_mode, material.alpha_cutoff,
+                                   material.double_sided, material.metallic, material.roughness]).encode())
+    for tex in (material.base_color_texture, material.normal_texture):
+        h.update(b"-" if tex is None else tex.mime.encode() + hashlib.sha256(tex.data).digest())
+    return h.digest()
+
+
+def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.ExampleSet,
+                        meta: dict | None = None, layout: RenderLayout | None = None,
+                        material: Material | None = None) -> GarmentBasis:
+    """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order);
+    layout: optional render layout over the M vertices (UVs), material: optional look."""
+    g, B = G.build_basis(fits, examples)
+    inc = face_incidence(np.asarray(faces), fits.shape[1])
+    gn, Bn = G.build_basis(np.stack([vertex_normals(f, faces, inc) for f in fits]), examples)
+    nb = model.n_body_vertices
+    binding = G.bind_to_body(g, model.mean[:nb])
+    skin_idx, skin_w = garment_skin_weights(model, g, faces, fits)
+    meta = dict(meta or {})
+    meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
+                 "examples_c": examples.c, "skinning": SKINNING_VERSION})
+    look: dict = {}
+    if layout is not None:
+        look = {"render_vertex": np.asarray(layout.vertex, np.int32), "render_uv": np.asarray(layout.uv, np.float32),
+                "render_faces": np.asarray(layout.faces, np.int32)}
+        if look["render_vertex"].min() < 0 or look["render_vertex"].max() >= g.shape[0]:
+            raise ValueError("the render layout refers to a vertex out of range")
+    basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
+                         skin_idx=skin_idx, skin_w=skin_w,
+                         gn=gn, Bn=Bn, meta=meta)
+    basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
+    basis.material = material
+    meta["etag"] = basis_digest(basis)
+    return basis
+
+
+def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skin weights (M, 4) int + (M, 4) float of a garment g (M, 3) on the mean avatar
+    (``skin_weights.transfer_skin_weights``), tested in the page's poses on the mean body
+    with each edge at its shortest over the example fits (1 + 2N, M, 3) (a heavy body squeezes
+    the armpit and crotch)."""
+    nb = model.n_body_vertices
+    body0 = model.mean[:nb]
+    e = mesh_edges(faces)
+    shortest = np.linalg.norm(fits[:, e[:, 0]] - fits[:, e[:, 1]], axis=2).min(axis=0)
+    return transfer_skin_weights(g, faces, body0, model.body_faces, model.lbs_indices[:nb],
+                                 model.lbs_weights[:nb], len(model.bone_parents),
+                                 test_transforms=preset_transforms(model, model.mean)
+                                 if SKIN_RELEASE_IN_POSES else None,
+                                 rest_lengths=shortest,
+                                 legs=leg_frame(body0, model.joints(model.mean), list(BONES))
+                                 if SKIN_LEG_RAMP else None,
+                                 parents=model.bone_parents if SKIN_LIMB_SIDE else None,
+                                 screening=SW.SCREENING if SKIN_SCREENING else 0.0)
+
+
+def basis_digest(basis: GarmentBasis) -> str:
+    """The content digest of a basis (its ETag): geometry, skinning, render layout, material."""
+    h = hashlib.sha256()
+    for a in (basis.g, basis.B, basis.faces, basis.skin_idx, basis.skin_w,
+              *(x for x in (basis.render_vertex, basis.render_uv, basis.render_faces) if x is not None)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(material_digest(basis.material))
+    return h.hexdigest()[:32]
+
+
+def refresh_skinning(model, basis: GarmentBasis) -> GarmentBasis | None:
+    """A basis whose skin weights an older ``SKINNING_VERSION`` made, with weights made by this
+    one (and a new ETag); None when they are current. The example fits are the basis's own
+    central differences undone: g +- c sigma_i B_i (exact for the mean, the shortest-edge test
+    needs no more)."""
+    if int(basis.meta.get("skinning", 1)) >= SKINNING_VERSION:
+        return None
+    g, B = np.asarray(basis.g, np.float64), np.asarray(basis.B, np.float64)
+    step = (float(basis.meta.get("examples_c", EXAMPLES["c"])) * np.sqrt(model.variances[: len(B)]))[:, None, None]
+    fits = np.concatenate([g[None], np.stack([g + step * B, g - step * B], 1).reshape(-1, *g.shape)])
+    skin_idx, skin_w = garment_skin_weights(model, g, np.asarray(basis.faces), fits)
+    meta = {**basis.meta, "skinning": SKINNING_VERSION}
+    out = GarmentBasis(g=np.asarray(basis.g), B=np.asarray(basis.B), faces=np.asarray(basis.faces),
+                       binding=np.asarray(basis.binding), skin_idx=skin_idx, skin_w=skin_w,
+                       gn=np.asarray(basis.gn), Bn=np.asarray(basis.Bn), meta=meta)
+    out.render_vertex, out.render_uv, out.render_faces = basis.render_vertex, basis.render_uv, basis.render_faces
+    out.material = basis.material
+    meta["etag"] = basis_digest(out)
+    return out
+
+
+@dataclass
+class CustomerBody:
+    """What a try-on needs of a customer's body, computed once per customer (and, lazily,
+    once per garment: the exact nearest body vertex of each synthesized garment vertex)."""
+
+    weights: np.ndarray | None  # (K,); None: a body for push-outs only (tryon.surface_body)
+    vertices: np.ndarray  # (V, 3) float32
+    normals: np.ndarray  # (n_body, 3) float32
+    faces: np.ndarray | None = None  # (F, 3) the body's triangles; None: no crease anchors
+    _tree: object = None
+    _vert_faces: np.ndarray | None = None
+    _face_bounds: tuple | None = None  # geometry.face_bounds of the body, once per customer
+    _bindings: dict = field(default_factory=dict)
+    _posed: dict = field(default_factory=dict)  # pose set digest -> posed bodies (application.scenes)
+
+    def binding(self, basis: "GarmentBasis", garment: np.ndarray) -> np.ndarray:
+        """(M, 1) nearest body vertex of each garment vertex on this body (cached per garment)."""
+        return self.push_binding(basis, garment)[0]
+
+    def push_binding(self, basis: "GarmentBasis", garment: np.ndarray) -> tuple[np.ndarray, tuple | None]:
+        """The push-out's binding of a garment on this body, cached per garment: (M, 1) nearest
+        body vertex of each garment vertex and the crease anchors (:func:`crease_anchors`;
+        None without ``faces``)."""
+        key = basis.etag() or id(basis)
+        hit = self._bindings.get(key)
+        if hit is None:
+            if self.faces is None:
+                hit = (self.nearest(garment, 1).astype(np.int32)[:, None], None)
+            else:
+                nn = self.nearest(garment, G.CREASE_K)
+                hit = (nn[:, :1].astype(np.int32), self.crease_anchors(garment, nn))
+            if len(self._bindings) >= MAX_BINDINGS_PER_BODY:
+                self._bindings.pop(next(iter(self._bindings)))
+            self._bindings[key] = hit
+        return hit
+
+    def nearest(self, points: np.ndarray, k: int) -> np.ndarray:
+        """(P,) with k = 1, else (P, k): the nearest body vertices of points (P, 3), nearest
+        first (the body's k-d tree made on first use and kept)."""
+        return self._kdtree().query(points, k=k)[1]
+
+    def _kdtree(self) -> cKDTree:
+        if self._tree is None:  # unbalanced: ~2x faster to build, no slower to query here
+            self._tree = cKDTree(self.vertices[: len(self.normals)], balanced_tree=False, compact_nodes=False)
+        return self._tree
+
+    def crease_anchors(self, garment: np.ndarray, nearest: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``garment.crease_anchors`` of garment (M, 3) on this body (needs ``faces``), nearest
+        (M, k) body vertex ids of each garment vertex on it, nearest first; the k-d tree and the
+        triangles' bounds are made on first need and kept."""
+        nb = len(self.normals)
+        idx = G.in_crease(nearest, self.normals)
+        if len(idx):
+            self._kdtree()
+            if self._vert_faces is None:
+                self._vert_faces = vertex_faces(self.faces, nb)
+            if self._face_bounds is None:
+                self._face_bounds = face_bounds(np.asarray(self.vertices[:nb], np.float64), self.faces)
+        return G.crease_anchors(garment, idx, nearest, self.vertices[:nb], self.normals, self.faces, self._tree,
+                                self._vert_faces, self._face_bounds)
+
+
+MAX_BINDINGS_PER_BODY = 32
+
+
+@functools.lru_cache(maxsize=4)
+def _topology(model) -> tuple[np.ndarray, np.ndarray]:
+    """The body model's triangles (F, 3) int64 and ``geometry.vertex_faces`` of them, once per
+    model (every customer shares them)."""
+    F = np.asarray(model.body_faces, np.int64)
+    return F, vertex_faces(F, model.n_body_vertices)
+
+
+def customer_body(model, weights: np.ndarray) -> CustomerBody:
+    X = model.vertices(weights)
+    nb = model.n_body_vertices
+    n = vertex_normals(X[:nb], model.body_faces).astype(np.float32)
+    return surface_body(model, X, n, np.asarray(weights, np.float64))
+
+
+def surface_body(model, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None) -> CustomerBody:
+    """A body of the model's topology for push-outs: vertices (V, 3), body normals (Vb, 3);
+    ``weights`` (K,) when known (a try-on needs them, the look does not)."""
+    F, vf = _topology(model)
+    return CustomerBody(weights, vertices, normals, F, _vert_faces=vf)
+
+
+def try_on(basis: GarmentBasis, body: CustomerBody, layer: int = 0) -> tuple[np.ndarray, int]:
+    """The fitted garment (M, 3) float32 for a customer and how many vertices were pushed out.
+
+    Synthesis g + w B (3MN multiply-adds), then push-out of the customer's body with a
+    clearance growing with the layer (outer garments over inner ones). The first try-on of a
+    garment on a body also finds each garment vertex's nearest body vertex (a k-d tree query,
+    cached on the body)."""
+    v = G.synthesize(np.asarray(basis.g), np.asarray(basis.B), body.weights)
+    clearance = G.CLEARANCE + layer * G.LAYER_GAP
+    nearest, anchors = body.push_binding(basis, v)
+    return G.push_out(v, body.vertices, body.normals, nearest, basis.smoother(), clearance, anchors)

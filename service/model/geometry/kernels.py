@@ -1,0 +1,294 @@
+"""Compiled inner loops (numba) of the geometry helpers that every try-on, outfit, pose
+adaptation and fit spends most of its time in. Each geometry kernel computes exactly what its
+numpy reference in ``service.model.geometry.mesh`` computes (the same float operations in the same
+order, so the same results bit for bit; the tests compare them), one query point at a time with
+no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_rows`) compute
+what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with
+numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them).
+``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is set): callers
+then use the numpy path.
+
+numba is imported and the kernels compiled on a process's first use (:func:`_compiled`), not
+at import: they cost ~105 MB of memory per process (numba ~54 MB, LLVM and the loaded code
+~51 MB), which a process that never needs them (one that only reads uploads, a CLI) does not
+pay. Compiled once per machine into numba's on-disk cache (next to this file, or
+``NUMBA_CACHE_DIR``; the Docker image compiles them at build time, :func:`warm`), then loaded in
+~0.2 s."""
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+AVAILABLE = not os.environ.get("TRYON_NO_KERNELS") and importlib.util.find_spec("numba") is not None
+PRUNE_SLACK = 1e-9  # the same slack as geometry's pruning (rounding of the bound itself)
+PRUNE_SLACK_SQ = 1e-18
+JIT_OPTIONS = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+_compiled_kernels: SimpleNamespace | None = None
+_load_lock = threading.Lock()
+
+
+def _compiled() -> SimpleNamespace:
+    """The compiled kernels (numba dispatchers), made on the first call in the process."""
+    global _compiled_kernels
+    if _compiled_kernels is None:
+        with _load_lock:
+            if _compiled_kernels is None:
+                import numba
+
+                jit = numba.njit(**JIT_OPTIONS)
+                # the helper first: the kernels that call it resolve it from this module's
+                # globals when they are compiled
+                globals()["_closest_on_triangle"] = jit(_closest_on_triangle)
+                _compiled_kernels = SimpleNamespace(closest_faces=jit(_closest_faces), face_bounds=jit(_face_bounds),
+                                                    winding_numbers=jit(_winding_numbers),
+                                                    pose_jacobian_into=jit(_pose_jacobian_into),
+                                                    pair_rows=jit(_pair_rows))
+    return _compiled_kernels
+
+
+def closest_faces(p, V, F, nn, vert_faces, c, n, r):
+    """Compiled :func:`_closest_faces`."""
+    return _compiled().closest_faces(p, V, F, nn, vert_faces, c, n, r)
+
+
+def face_bounds(V, F):
+    """Compiled :func:`_face_bounds`."""
+    return _compiled().face_bounds(V, F)
+
+
+def winding_numbers(p, V, F):
+    """Compiled :func:`_winding_numbers`."""
+    return _compiled().winding_numbers(p, V, F)
+
+
+def pose_jacobian_into(rest, G, W, sel, q, J):
+    """Compiled :func:`_pose_jacobian_into`."""
+    return _compiled().pose_jacobian_into(rest, G, W, sel, q, J)
+
+
+def pair_rows(J, vi, nn):
+    """Compiled :func:`_pair_rows`."""
+    return _compiled().pair_rows(J, vi, nn)
+
+
+def _closest_on_triangle(px, py, pz, V, F, f):
+    """Ericson's closest point on triangle f (Real-Time Collision Detection 5.1.5), as
+    ``geometry.closest_point_on_triangles`` evaluates it (its region order, its arithmetic)."""
+    i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
+    a0, a1, a2 = V[i0, 0], V[i0, 1], V[i0, 2]
+    b0, b1, b2 = V[i1, 0], V[i1, 1], V[i1, 2]
+    c0, c1, c2 = V[i2, 0], V[i2, 1], V[i2, 2]
+    ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
+    ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
+    ap0, ap1, ap2 = px - a0, py - a1, pz - a2
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    bp0, bp1, bp2 = px - b0, py - b1, pz - b2
+    d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
+    d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+    cp0, cp1, cp2 = px - c0, py - c1, pz - c2
+    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
+    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    if d1 <= 0 and d2 <= 0:  # vertex a
+        return a0 + ab0 * 0.0 + ac0 * 0.0, a1 + ab1 * 0.0 + ac1 * 0.0, a2 + ab2 * 0.0 + ac2 * 0.0
+    if d3 >= 0 and d4 <= d3:  # vertex b
+        return b0, b1, b2
+    if d6 >= 0 and d5 <= d6:  # vertex c
+        return c0, c1, c2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:  # edge ab
+        v = d1 / (d1 - d3)
+        return a0 + ab0 * v + ac0 * 0.0, a1 + ab1 * v + ac1 * 0.0, a2 + ab2 * v + ac2 * 0.0
+    if vb <= 0 and d2 >= 0 and d6 <= 0:  # edge ac
+        w = d2 / (d2 - d6)
+        return a0 + ab0 * 0.0 + ac0 * w, a1 + ab1 * 0.0 + ac1 * w, a2 + ab2 * 0.0 + ac2 * w
+    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:  # edge bc
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return b0 + (c0 - b0) * t, b1 + (c1 - b1) * t, b2 + (c2 - b2) * t
+    den = 1.0 / (va + vb + vc)  # inside
+    v = vb * den
+    w = vc * den
+    return a0 + ab0 * v + ac0 * w, a1 + ab1 * v + ac1 * w, a2 + ab2 * v + ac2 * w
+
+
+def _closest_faces(p, V, F, nn, vert_faces, c, n, r):
+    """The nearest of each point's candidate faces and the closest point on it: points p (P, 3)
+    float64, mesh V (V, 3) float64 and F (F, 3) int64; the candidates are the faces around each
+    point's nearest vertices nn (P, k) int64, ``vert_faces`` (V, valence) int64 (-1 padded), in
+    the order of ``vert_faces[nn].reshape(P, -1)``, whose first appearance wins ties (a face
+    appears around up to 3 of the vertices); the faces' bounding disks
+    (``geometry.face_bounds``: c (F, 3), n (F, 3), r (F,)). A candidate whose distance lower
+    bound (``geometry.face_distance_bounds``) exceeds the best distance so far cannot win and
+    is skipped. Returns (face (P,) int64, closest points (P, 3) float64); a row with no
+    candidate gets face 0 (as the numpy path's padding)."""
+    P, k = nn.shape
+    C = vert_faces.shape[1]
+    face = np.empty(P, np.int64)
+    q = np.empty((P, 3))
+    for i in range(P):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        best = np.inf
+        bf = -1
+        bx = by = bz = 0.0
+        for m in range(k * C):
+            f = vert_faces[nn[i, m // C], m % C]
+            if f < 0:
+                continue
+            ux, uy, uz = px - c[f, 0], py - c[f, 1], pz - c[f, 2]
+            pd = ux * n[f, 0] + uy * n[f, 1] + uz * n[f, 2]
+            pd2 = pd * pd
+            ip = ux * ux + uy * uy + uz * uz - pd2
+            e = (np.sqrt(ip) if ip > 0.0 else 0.0) - r[f]
+            lb = pd2 + (e * e if e > 0.0 else 0.0)
+            if lb > best * (1 + PRUNE_SLACK) + PRUNE_SLACK_SQ:
+                continue
+            x, y, z = _closest_on_triangle(px, py, pz, V, F, f)
+            dx, dy, dz = x - px, y - py, z - pz
+            d = dx * dx + dy * dy + dz * dz
+            if d < best:  # strict: of equally near faces, the first in raw wins
+                best, bf, bx, by, bz = d, f, x, y, z
+        if bf < 0:
+            bf = 0
+            bx, by, bz = _closest_on_triangle(px, py, pz, V, F, 0)
+        face[i] = bf
+        q[i, 0], q[i, 1], q[i, 2] = bx, by, bz
+    return face, q
+
+
+def _face_bounds(V, F):
+    """Each triangle's bounding disk, as ``geometry.face_bounds``: centroids (F, 3), unit
+    normals (F, 3) (0 when degenerate), radii (F,) (the largest vertex distance from the
+    centroid). Only ever a pruning bound (``closest_faces`` skips a face whose bound exceeds
+    the best distance, with a relative slack of 1e-9): rounding differences from the numpy
+    path cannot change which face wins."""
+    nf = F.shape[0]
+    c = np.empty((nf, 3))
+    n = np.empty((nf, 3))
+    r = np.empty(nf)
+    for f in range(nf):
+        i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
+        rr = 0.0
+        for k in range(3):
+            c[f, k] = (V[i0, k] + V[i1, k] + V[i2, k]) / 3.0
+        for i in (i0, i1, i2):
+            dx, dy, dz = V[i, 0] - c[f, 0], V[i, 1] - c[f, 1], V[i, 2] - c[f, 2]
+            rr = max(rr, dx * dx + dy * dy + dz * dz)
+        r[f] = np.sqrt(rr)
+        e0, e1, e2 = V[i1, 0] - V[i0, 0], V[i1, 1] - V[i0, 1], V[i1, 2] - V[i0, 2]
+        g0, g1, g2 = V[i2, 0] - V[i0, 0], V[i2, 1] - V[i0, 1], V[i2, 2] - V[i0, 2]
+        x, y, z = e1 * g2 - e2 * g1, e2 * g0 - e0 * g2, e0 * g1 - e1 * g0
+        ln = max(np.sqrt(x * x + y * y + z * z), 1e-300)
+        n[f, 0], n[f, 1], n[f, 2] = x / ln, y / ln, z / ln
+    return c, n, r
+
+
+def _winding_numbers(p, V, F):
+    """Generalised winding numbers (P,) of points p (P, 3) float64 with respect to the closed
+    triangle mesh V (V, 3) float64, F (F, 3) int64: the solid angles of Van Oosterom and
+    Strackee summed over the faces, / 4 pi, as ``geometry.winding_numbers`` (its per-face
+    terms; the sum over faces in order, where numpy's is pairwise: equal to ~1e-15)."""
+    P = p.shape[0]
+    out = np.empty(P)
+    for i in range(P):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        total = 0.0
+        for f in range(F.shape[0]):
+            i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
+            a0, a1, a2 = V[i0, 0] - px, V[i0, 1] - py, V[i0, 2] - pz
+            b0, b1, b2 = V[i1, 0] - px, V[i1, 1] - py, V[i1, 2] - pz
+            c0, c1, c2 = V[i2, 0] - px, V[i2, 1] - py, V[i2, 2] - pz
+            la = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            lb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            lc = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            num = a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
+            den = (la * lb * lc + (a0 * b0 + a1 * b1 + a2 * b2) * lc + (b0 * c0 + b1 * c1 + b2 * c2) * la
+                   + (c0 * a0 + c1 * a1 + c2 * a2) * lb)
+            total += np.arctan2(num, den)
+        out[i] = total / (2 * np.pi)
+    return out
+
+
+def _pose_jacobian_into(rest, G, W, sel, q, J):
+    """The pose columns of ``fitting._pose_jacobian``, written into J (m, 3, >= 3 + 3 nb)
+    float64: columns 0-2 the translation (the identity), then per selected bone b the
+    cross-product matrix -[arm_b]x of arm_b(i) = S_b(i) - W_b(i) q_b, with S_b(i) = sum over
+    the joints j of b's subtree of w_ij G_j(x_i) and W_b(i) the sum of those w_ij. rest (m, 3)
+    the rest vertices x_i, G (J, 4, 4) the global transforms, W (m, J) the skin weights,
+    sel (nb, J) 1 where joint j is in selected bone b's subtree, q (nb, 3) the selected bones'
+    posed joints. Each vertex visits only its non-zero weights; the other columns of J are
+    left as they are."""
+    m = rest.shape[0]
+    nj = W.shape[1]
+    nb = sel.shape[0]
+    S = np.empty((nb, 3))
+    sw = np.empty(nb)
+    for i in range(m):
+        x0, x1, x2 = rest[i, 0], rest[i, 1], rest[i, 2]
+        S[:] = 0.0
+        sw[:] = 0.0
+        for j in range(nj):
+            w = W[i, j]
+            if w == 0.0:
+                continue
+            g0 = x0 * G[j, 0, 0] + x1 * G[j, 0, 1] + x2 * G[j, 0, 2] + G[j, 0, 3]
+            g1 = x0 * G[j, 1, 0] + x1 * G[j, 1, 1] + x2 * G[j, 1, 2] + G[j, 1, 3]
+            g2 = x0 * G[j, 2, 0] + x1 * G[j, 2, 1] + x2 * G[j, 2, 2] + G[j, 2, 3]
+            for b in range(nb):
+                if sel[b, j] != 0.0:
+                    S[b, 0] += w * g0
+                    S[b, 1] += w * g1
+                    S[b, 2] += w * g2
+                    sw[b] += w
+        for a in range(3):
+            for c in range(3):
+                J[i, a, c] = 1.0 if a == c else 0.0
+        for b in range(nb):
+            a0 = S[b, 0] - sw[b] * q[b, 0]
+            a1 = S[b, 1] - sw[b] * q[b, 1]
+            a2 = S[b, 2] - sw[b] * q[b, 2]
+            c = 3 + 3 * b
+            J[i, 0, c], J[i, 0, c + 1], J[i, 0, c + 2] = 0.0, a2, -a1
+            J[i, 1, c], J[i, 1, c + 1], J[i, 1, c + 2] = -a2, 0.0, a0
+            J[i, 2, c], J[i, 2, c + 1], J[i, 2, c + 2] = a1, -a0, 0.0
+
+
+def _pair_rows(J, vi, nn):
+    """The point-to-plane rows n_k^T J_{vi_k} (k, P) of ``nonrigid.point_to_plane_normal_equations``:
+    J (m, 3, P) float64, vi (k,) int64, nn (k, 3) float64; no gathered copy of J."""
+    k = vi.shape[0]
+    P = J.shape[2]
+    rows = np.empty((k, P))
+    for t in range(k):
+        v = vi[t]
+        n0, n1, n2 = nn[t, 0], nn[t, 1], nn[t, 2]
+        for c in range(P):
+            rows[t, c] = n0 * J[v, 0, c] + n1 * J[v, 1, c] + n2 * J[v, 2, c]
+    return rows
+
+
+def warm() -> None:
+    """Compile (or load from the on-disk cache) every kernel for the argument types the
+    service passes: the Docker build runs it, so that no process of the image compiles them
+    (a process loads them on first use)."""
+    if not AVAILABLE:
+        return
+    V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    F = np.array([[0, 1, 2]], np.int64)
+    c = V.mean(axis=0, keepdims=True)
+    closest_faces(np.zeros((1, 3)), V, F, np.zeros((1, 1), np.int64), np.zeros((3, 1), np.int64), c,
+                  np.array([[0.0, 0.0, 1.0]]), np.ones(1))
+    winding_numbers(np.zeros((1, 3)), V, F)
+    face_bounds(V, F)
+    J = np.zeros((1, 3, 6))
+    pose_jacobian_into(np.zeros((1, 3)), np.tile(np.eye(4), (2, 1, 1)), np.ones((1, 2)), np.ones((1, 2)),
+                       np.zeros((1, 3)), J)
+    pair_rows(J, np.zeros(1, np.int64), np.ones((1, 3)))

@@ -1,0 +1,88 @@
+"""The benchmarks' goals, as named data per suite (read by ``tryon bench-report``).
+
+Each goal names one figure of a suite's ``--json`` output by its path (keys joined with ``/``),
+the comparison that meets it, the target with its unit, and where the goal comes from. Figures
+without a goal are still reported (the report lists every number of a saved result). Where a
+suite reports a request's thread CPU time beside its wall time, the goal is on the CPU time: on
+an idle machine the two agree, and the development machines are shared.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Goal:
+    """``figure``: what is measured, for people; ``path``: its place in the suite's JSON
+    (``a/b/c``); ``op``: ``"<="`` or ``">="``; ``target`` in ``unit``; ``scale``: multiplies the
+    JSON value into ``unit`` (e.g. 100 for a share -> %); ``source``: why this target."""
+
+    figure: str
+    path: str
+    op: str
+    target: float
+    unit: str
+    scale: float = 1.0
+    source: str = ""
+
+    def met(self, value: float) -> bool:
+        v = value * self.scale
+        return v <= self.target if self.op == "<=" else v >= self.target
+
+
+# suite -> its goals. A suite absent here has no goal yet (its figures are reported alone).
+GOALS: dict[str, tuple[Goal, ...]] = {
+    "avatar": (
+        Goal("all 12 entered: within ISO 20685-1 on every attribute (fast path)",
+             "inputs/all 12/fast_within_iso_all_attributes", ">=", 95.0, "%", 100.0,
+             "ISO 20685-1 tolerances; the body bench's goal"),
+        Goal("measurements -> avatar, all 12 entered, fast path, median CPU time",
+             "inputs/all 12/median_ms/fast/cpu", "<=", 50.0, "ms", 1.0, "the page's interactive budget"),
+        Goal("gender + height + weight -> avatar, fast path, median CPU time",
+             "inputs/gender + height + weight/median_ms/fast/cpu", "<=", 50.0, "ms", 1.0,
+             "the page's interactive budget"),
+        Goal("fast path - reference, worst measurement, share of the ISO tolerance",
+             "inputs/all 12/fast_minus_reference/max_over_iso_tolerance", "<=", 0.1, "x tolerance", 1.0,
+             "the fast path must not change answers"),
+        Goal("measuring an avatar, median", "measure_avatar_median_ms", "<=", 5.0, "ms"),
+    ),
+    "body": (
+        Goal("PCA reconstruction of held-out avatars, mean", "pca_reconstruction_mm/mean", "<=", 0.5, "mm"),
+        Goal("PCA reconstruction of held-out avatars, max", "pca_reconstruction_mm/max", "<=", 5.0, "mm"),
+        Goal("all 12 entered: within ISO 20685-1 on every attribute", "all12/within_iso_all_attributes",
+             ">=", 95.0, "%", 100.0, "ISO 20685-1 tolerances"),
+        Goal("gender + height + weight: estimates' MAE / linear regression's, mean ratio",
+             "estimation_from_gender_height_weight/mean_ratio", "<=", 1.0, "x",
+             source="no worse than a plain linear regression"),
+        Goal("measurements -> avatar, all 12, median", "timing_ms/measurements_to_avatar_all12", "<=", 50.0, "ms"),
+        Goal("measuring an avatar, median", "timing_ms/measure_avatar", "<=", 5.0, "ms"),
+    ),
+    "look": (
+        Goal("avatar.glb: latency the look adds, median over bodies", "median_added_ms", "<=", 10.0, "ms",
+             1.0, "issue 11: the look must not slow the avatar noticeably"),
+    ),
+    "tryon": (
+        Goal("in-process try-on, 10,240-vertex skirt, synthesis + push-out + GLB, median CPU time",
+             "modes/skirt-10k/plain/template_cpu_ms", "<=", 2.0, "ms", source="a try-on costs milliseconds"),
+        Goal("the same, textured", "modes/skirt-10k-textured/plain/template_cpu_ms", "<=", 2.0, "ms"),
+    ),
+    "editing": (
+        Goal("forward error of an edit, L2 / bounding-box diagonal, mean", "forward_error/all/mean", "<=", 0.001, "",
+             source="the editing paper reports 0.002"),
+        Goal("forward error of an edit, max", "forward_error/all/max", "<=", 0.005, "", source="the paper: 0.01"),
+        Goal("update of a clothed scan, in process, median", "update/median_ms", "<=", 10.0, "ms",
+             source="the paper: 31 ms"),
+        Goal("update of a clothed scan, in process, p99", "update/p99_ms", "<=", 20.0, "ms"),
+        Goal("HTTP edit round trip, median", "http/http_edit_ms/median", "<=", 60.0, "ms"),
+        Goal("WebSocket frames per second while a slider sends 60/s", "http/websocket/frames_per_s", ">=", 30.0,
+             "frames/s"),
+    ),
+    "load": (
+        Goal("mixed traffic at 80 req/s, p99", "p99_ms", "<=", 100.0, "ms"),
+        Goal("mixed traffic, errors", "errors", "<=", 0.0, "requests"),
+        Goal("server memory growth after warm-up", "memory_growth_after_warmup", "<=", 10.0, "%", 100.0),
+    ),
+    "kernels": (
+        Goal("compiled closest points vs numpy, speed-up", "rows/closest_points/speedup", ">=", 1.0, "x"),
+    ),
+}
