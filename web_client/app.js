@@ -872,7 +872,7 @@ function syncSliders() {
 }
 
 document.querySelectorAll('input[name=units]').forEach((r) => r.addEventListener('change', () => {
-  state.units = r.value; syncForm(); syncSliders();
+  state.units = r.value; syncForm(); syncSliders(); frame(); // the ruler's height label too
 }));
 $('#measurements').addEventListener('submit', (e) => { e.preventDefault(); if (state.scan) sendScanEdit(); else refresh(); });
 
