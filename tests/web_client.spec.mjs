@@ -266,6 +266,12 @@ try {
     await page.click('#fitmap button[data-fitmap="off"]');
     await waitLoad(page, n);
     rec.fitmap.off = { coloured: await page.evaluate(() => window.__tryon.vertexColourMeshes()), legend: await page.isVisible('#fitmap-legend') };
+    if (fit && fit.recommended !== other) { // back to the recommended size for the rest of the test
+      n = await loadsNow(page);
+      await page.click(`#fits .garment-fit[data-garment="${g.id}"] .size-picker button[data-size="${fit.recommended}"]`);
+      await waitLoad(page, n);
+      rec.pressedAfterReset = (await pickerOf(g.id)).pressed;
+    }
     out.sizes.sized = rec;
     await wear(page, outfits[0].map((x) => x.id));
   }
