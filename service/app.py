@@ -18,7 +18,9 @@ from service.api.middleware import (
     BackPressureMiddleware,
     BodySizeLimitMiddleware,
     MethodsMiddleware,
+    TrustedProxyMiddleware,
 )
+from service.api.logs import install_redaction
 from service.api.schemas import attribute_ranges, document_measurements
 from service.application.context import Context
 from service.model.body import shape
@@ -90,16 +92,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
-    # outermost last: CORS (preflights, headers on every answer), methods (OPTIONS, 405's
-    # Allow), the body limit (413), back-pressure (503), then the routes
-    app.add_middleware(BackPressureMiddleware, max_inflight=settings.max_inflight, max_uploads=settings.max_uploads)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_upload_bytes)
+    # outermost last: trusted proxies, CORS (preflights, headers on every answer), methods
+    # (OPTIONS, 405's Allow), the body limit (413), back-pressure (503) and body deadlines
+    # (408), then the routes
+    body_limits = {"body_timeout": settings.body_timeout, "body_min_rate": settings.body_min_rate}
+    app.add_middleware(BackPressureMiddleware, max_inflight=settings.max_inflight, max_uploads=settings.max_uploads,
+                       **body_limits)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_upload_bytes, **body_limits)
     app.add_middleware(MethodsMiddleware)
     origins = settings.cors_origin_list()
     if origins:
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=CORS_HEADERS, expose_headers=CORS_EXPOSED, max_age=600)
+    # outermost: the client's address from trusted proxies only (rate limits and caps count by it)
+    app.add_middleware(TrustedProxyMiddleware, proxies=settings.trusted_proxy_list())
     errors.install(app)
+    install_redaction()
     for module in (health, body, examples, customers, garments, tryon, jobs):
         app.include_router(module.router)
     three = next((c for c in (REPO_ROOT / "node_modules" / "three", Path.cwd() / "node_modules" / "three")

@@ -123,7 +123,9 @@ def _serve(host: str, port: int, log_level: str, workers: int | None = None) -> 
                 os.environ[var] = SERVER_ONLY_ENV[var]
                 os.environ[SERVER_SET_ENV] = ",".join(filter(None, [os.environ.get(SERVER_SET_ENV), var]))
     try:
-        uvicorn.run("service.app:create_app", factory=True, host=host, port=port, log_level=log_level, workers=n)
+        # forwarded headers are the app's to trust (TRYON_TRUSTED_PROXIES), never uvicorn's defaults
+        uvicorn.run("service.app:create_app", factory=True, host=host, port=port, log_level=log_level, workers=n,
+                    proxy_headers=False)
     finally:
         if embedded is not None:
             embedded.release()

@@ -17,7 +17,9 @@ class Settings(BaseSettings):
     ``TRYON_BODY_MODEL``, ``TRYON_MAX_UPLOAD_BYTES``, ``TRYON_RETAILER_KEYS``,
     ``TRYON_EMBEDDED_WORKER``, ``TRYON_FIT_TIMEOUT``, ``TRYON_GARMENT_TIMEOUT``, ``TRYON_CORS_ORIGINS``,
     ``TRYON_RATE_LIMIT_CLIENT``, ``TRYON_RATE_LIMIT_RETAILER``, ``TRYON_MAX_INFLIGHT``,
-    ``TRYON_MAX_UPLOADS``, ``TRYON_DEMO_ITEMS``, ``TRYON_POSE_WORKERS``. Fields may also be passed
+    ``TRYON_MAX_UPLOADS``, ``TRYON_DEMO_ITEMS``, ``TRYON_POSE_WORKERS``, ``TRYON_TRUSTED_PROXIES``,
+    ``TRYON_BODY_TIMEOUT``, ``TRYON_BODY_MIN_RATE``, ``TRYON_MAX_QUEUED_CLIENT``,
+    ``TRYON_MAX_QUEUED_RETAILER``, ``TRYON_MAX_EXPENSIVE_CLIENT``, ``TRYON_MEMORY_BUDGET_MB``. Fields may also be passed
     by name (``Settings(data_dir=...)``).
     """
 
@@ -122,6 +124,60 @@ class Settings(BaseSettings):
         description="File uploads (multipart requests) one server process reads and parses at once "
         "(a 45 MB OBJ scan takes ~150 MB and ~2 s of CPU to read); more get 503 with Retry-After.",
     )
+
+    trusted_proxies: str = Field(
+        default="",
+        validation_alias="TRYON_TRUSTED_PROXIES",
+        description="Proxies whose X-Forwarded-For names the client (for per-client limits): comma-separated "
+        "IP addresses, networks (10.0.0.0/8) or host names (resolved every 30 s). Empty: none; the client is "
+        "the socket's address and forwarded headers are ignored.",
+    )
+    body_timeout: float = Field(
+        default=5.0,
+        validation_alias="TRYON_BODY_TIMEOUT",
+        gt=0,
+        description="Seconds a request body may go without progress (and the grace before TRYON_BODY_MIN_RATE "
+        "applies); then 408 and the connection is closed.",
+    )
+    body_min_rate: int = Field(
+        default=8192,
+        validation_alias="TRYON_BODY_MIN_RATE",
+        ge=0,
+        description="Bytes per second a request body must average after TRYON_BODY_TIMEOUT seconds (slower: "
+        "408); 0: no minimum.",
+    )
+    max_queued_client: int = Field(
+        default=3,
+        validation_alias="TRYON_MAX_QUEUED_CLIENT",
+        ge=1,
+        description="Jobs (scan fits, garment builds) one client (IP address) may have queued or running at "
+        "once; more get 429 with Retry-After.",
+    )
+    max_queued_retailer: int = Field(
+        default=50,
+        validation_alias="TRYON_MAX_QUEUED_RETAILER",
+        ge=1,
+        description="The same per retailer API key (requests with a valid X-API-Key count here instead).",
+    )
+    max_expensive_client: int = Field(
+        default=4,
+        validation_alias="TRYON_MAX_EXPENSIVE_CLIENT",
+        ge=1,
+        description="Expensive requests (uploads, new customers and avatars, try-on and outfit GLBs, edits) "
+        "one client (or retailer key) may have in progress at once in one server process; more get 429.",
+    )
+    memory_budget_mb: int = Field(
+        default=1024,
+        validation_alias="TRYON_MEMORY_BUDGET_MB",
+        ge=64,
+        description="MiB of arrays one server process may decode from uploads at once (estimated from each "
+        "file's declared sizes before it is parsed): a file needing more is refused (413), one that would "
+        "go past it while others are parsed gets 503 with Retry-After.",
+    )
+
+    def trusted_proxy_list(self) -> list[str]:
+        """``TRYON_TRUSTED_PROXIES`` as a list."""
+        return [p.strip() for p in self.trusted_proxies.split(",") if p.strip()]
 
     def cors_origin_list(self) -> list[str]:
         """``TRYON_CORS_ORIGINS`` as a list (trailing slashes dropped)."""

@@ -137,6 +137,9 @@ def _assert_textured_glb(glb_bytes: bytes, texture: bytes, validate_glb) -> dict
     """Validator-clean, the uploaded texture embedded once, and one double-sided mesh with UVs
     in [0, 1] whose base-colour texture is that image (an outfit also carries the avatar's look,
     with images of its own)."""
+    from service.application.uploads import read_texture
+
+    texture = read_texture(texture, "t").data  # as stored: decoded and re-encoded
     report = validate_glb(glb_bytes)
     assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]
     glb = read_glb(glb_bytes)

@@ -1,10 +1,9 @@
-"""The import graph of ``service/`` (every module parsed with ``ast``, nothing imported): the
-model's domain packages import downward only (no cycle between them, and no cycle between the
-modules of ``service.model`` and ``service.storage``), and the model imports nothing from the
-web, application or storage layers. See docs/layout.md for the layers.
-
-The application layer's one ``Context`` makes its modules one cycle today; it is left for the
-next step (docs/layout.md), so its modules are not checked for cycles yet.
+"""The import graph of ``service/`` (every module parsed with ``ast``, nothing imported; imports
+under ``if TYPE_CHECKING:`` count too, being a cycle of the code if not of the run): no cycle
+between any of its modules, the model's domain packages import downward only, the layers import
+downward only (api -> application -> model and storage; storage imports no application or
+api; the model no api, application or storage), and no module outside ``service/storage/``
+imports ``redis``. See docs/architecture.md for the layers.
 """
 from __future__ import annotations
 
@@ -15,7 +14,14 @@ import pytest
 
 SERVICE = Path(__file__).resolve().parents[1] / "service"
 MODEL_MAY_NOT_IMPORT = ("service.api", "service.application", "service.storage")
-ACYCLIC_LAYERS = ("service.model", "service.storage")
+# what each layer may not import (the layers below it are allowed)
+MAY_NOT_IMPORT = {
+    "service.model": MODEL_MAY_NOT_IMPORT,
+    "service.storage": ("service.api", "service.application"),
+    "service.application": ("service.api",),
+}
+ACYCLIC_LAYERS = ("service.model", "service.storage", "service.application", "service.api")
+REDIS_LAYER = "service.storage"
 
 
 def module_names(root: Path = SERVICE) -> dict[str, Path]:
@@ -38,9 +44,12 @@ def _type_checking_only(node: ast.AST, parents: dict[ast.AST, ast.AST]) -> bool:
     return False
 
 
-def imports_of(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+def imports_of(name: str, path: Path, modules: dict[str, Path], type_checking: bool = True,
+               external: bool = False) -> set[str]:
     """The ``service`` modules that module ``name`` imports (at module level or in functions;
-    ``from pkg import mod`` counts as an import of ``pkg.mod``), resolving relative imports."""
+    ``from pkg import mod`` counts as an import of ``pkg.mod``), resolving relative imports;
+    ``type_checking``: those under ``if TYPE_CHECKING:`` too. ``external``: the top-level names
+    of the other packages it imports instead (``redis``, ``numpy``, ...)."""
     tree = ast.parse(path.read_text(), str(path))
     parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
     is_package = path.name == "__init__.py"
@@ -57,7 +66,11 @@ def imports_of(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
             targets = [f"{module}.{a.name}" if f"{module}.{a.name}" in modules else module for a in node.names]
         else:
             continue
-        if _type_checking_only(node, parents):
+        if not type_checking and _type_checking_only(node, parents):
+            continue
+        if external:
+            if not (isinstance(node, ast.ImportFrom) and node.level):
+                out.update(t.split(".")[0] for t in targets if not t.startswith("service"))
             continue
         for t in targets:
             while t and t not in modules:  # ``import service.model.x.y`` names the deepest module
@@ -67,9 +80,21 @@ def imports_of(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     return out
 
 
-def import_graph(root: Path = SERVICE) -> dict[str, set[str]]:
+def import_graph(root: Path = SERVICE, external: bool = False) -> dict[str, set[str]]:
     modules = module_names(root)
-    return {name: imports_of(name, path, modules) for name, path in modules.items()}
+    return {name: imports_of(name, path, modules, external=external) for name, path in modules.items()}
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(module, import) pairs where a layer imports one above it (:data:`MAY_NOT_IMPORT`)."""
+    return sorted((n, t) for n, ts in graph.items() for layer, banned in MAY_NOT_IMPORT.items()
+                  if n == layer or n.startswith(layer + ".") for t in ts if t.startswith(banned))
+
+
+def redis_importers(external: dict[str, set[str]]) -> list[str]:
+    """The modules outside ``service.storage`` that import the ``redis`` client."""
+    return sorted(n for n, ts in external.items()
+                  if "redis" in ts and not (n == REDIS_LAYER or n.startswith(REDIS_LAYER + ".")))
 
 
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -139,6 +164,32 @@ def test_no_module_cycle(graph, layer):
     assert cycle is None, " -> ".join(cycle)
 
 
+def test_no_cycle_in_service(graph):
+    """No cycle anywhere in ``service/`` (across the layers and inside each), ``TYPE_CHECKING``
+    imports included."""
+    cycle = find_cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+
+
+def test_layers_import_downward(graph):
+    assert not layer_violations(graph)
+
+
+def test_application_services_get_their_collaborators(graph):
+    """No use case imports the composition root (``service.application.context``): each is
+    handed its collaborators; only the API's dependencies, the app factory and the worker's
+    jobs (outside ``service/``) reach the root."""
+    root = "service.application.context"
+    importers = sorted(n for n, ts in graph.items() if root in ts)
+    assert importers and set(importers) <= {"service.api.deps", "service.app"}, importers
+
+
+def test_redis_is_imported_only_by_storage():
+    external = import_graph(external=True)
+    assert "redis" in external["service.storage.redis"]  # the check sees the imports
+    assert not redis_importers(external)
+
+
 def test_model_imports_no_outer_layer(graph):
     bad = sorted((n, t) for n, ts in graph.items() if n.startswith("service.model") for t in ts
                  if t.startswith(MODEL_MAY_NOT_IMPORT))
@@ -151,3 +202,8 @@ def test_the_checks_can_fail():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
     assert model_package("service.model.body.lbs") == "service.model.body"
     assert model_package("service.storage.bases") is None
+    assert layer_violations({"service.storage.x": {"service.application.y"}, "service.api.a": {"service.model.b"}}) \
+        == [("service.storage.x", "service.application.y")]
+    assert layer_violations({"service.model.body.x": {"service.storage.y"}}) == [("service.model.body.x", "service.storage.y")]
+    assert redis_importers({"service.application.poses": {"redis", "numpy"}, "service.storage.queue": {"redis"}}) \
+        == ["service.application.poses"]

@@ -710,7 +710,7 @@ def test_adapted_poses_are_computed_once_for_every_process(client: TestClient, m
     conn.delete(key)
     other_process()
     got: list = []
-    threads = [threading.Thread(target=lambda: got.append(AP.record_poses(ctx.customers, record))) for _ in range(2)]
+    threads = [threading.Thread(target=lambda: got.append(ctx.poses.record_poses(record))) for _ in range(2)]
     for t in threads:
         t.start()
     for t in threads:

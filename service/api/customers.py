@@ -14,10 +14,10 @@ from starlette.datastructures import UploadFile
 
 from service.api import responses as R
 from service.api.deps import (Compression, CredentialsDep, CustomersDep, EditingDep, Hair, IfNoneMatchDep,
-                              OptionalRetailerDep, RateLimited, SettingsDep, Underwear, credentials_of)
+                              OptionalRetailerDep, RateLimited, SettingsDep, Underwear, credentials_of,
+                              Expensive)
 from service.api.errors import invalid
 from service.api.schemas import AvatarRequest, CustomerResponse, EditRequest
-from service.application import poses as _poses
 from service.application.errors import Conflict, Invalid, NotFound
 from service.application.uploads import (KNOWN_FIELD_DOC, KNOWN_FIELDS, SCAN_FORMATS, parse_bool, parse_gender,
                                          parse_known_measurements)
@@ -158,7 +158,7 @@ def customer_poses(cid: str, customers: CustomersDep, creds: CredentialsDep) -> 
     ``{preset: {bone: [x, y, z]}}``, local rotations of the 17 bones as axis-angle (radians;
     the bones' rest frames are the world axes: Y up, facing +Z). Each arm's abduction is
     increased until no arm vertex is inside the torso or thighs."""
-    return _poses.customer_poses(customers, cid, creds)
+    return customers.page_poses(cid, creds)
 
 
 @router.delete("/v1/customers/{cid}", status_code=204, response_class=Response,
@@ -171,7 +171,7 @@ def delete_customer(cid: str, customers: CustomersDep, creds: CredentialsDep) ->
 
 
 # -- editing (issue 13) ------------------------------------------------------------------------
-@router.post("/v1/customers/{cid}/edit", response_class=Response,
+@router.post("/v1/customers/{cid}/edit", response_class=Response, dependencies=[Expensive],
              responses={**R.CUSTOMER_GLB_RESPONSE, **R.CUSTOMER_404, **R.INVALID_KEY, **R.JSON_BODY,
                         422: {"description": "Unknown attribute or bone, or a value outside its allowed range"}})
 def edit_customer(cid: str, request: EditRequest, editing: EditingDep, creds: CredentialsDep,
@@ -184,6 +184,17 @@ def edit_customer(cid: str, request: EditRequest, editing: EditingDep, creds: Cr
 
 
 WS_ERRORS = {NotFound: 4404, Conflict: 4409}
+WS_UNSUPPORTED_DATA = 1003  # RFC 6455: a frame of a type the endpoint cannot accept
+WS_POLICY_VIOLATION = 1008
+WS_MAX_MESSAGE_CHARS = 64 * 1024  # an edit message is ~1-2 KB of JSON
+
+
+class WebSocketMisuse(Exception):
+    """A client message the editing protocol does not allow: closes with ``code``."""
+
+    def __init__(self, code: int, reason: str):
+        super().__init__(reason)
+        self.code, self.reason = code, reason
 
 
 @router.websocket("/v1/customers/{cid}/edit/ws")
@@ -217,7 +228,15 @@ async def edit_customer_ws(websocket: WebSocket, cid: str, editing: EditingDep, 
 
     async def receive() -> None:
         while True:
-            latest[:] = [await websocket.receive_text()]
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                raise WebSocketDisconnect(message.get("code", 1000))
+            text = message.get("text")
+            if text is None:  # a binary frame: this protocol has none from the client
+                raise WebSocketMisuse(WS_UNSUPPORTED_DATA, "binary frames are not accepted; send JSON text")
+            if len(text) > WS_MAX_MESSAGE_CHARS:
+                raise WebSocketMisuse(WS_POLICY_VIOLATION, f"messages are at most {WS_MAX_MESSAGE_CHARS} characters")
+            latest[:] = [text]
             wake.set()
 
     reader = asyncio.create_task(receive())
@@ -250,5 +269,7 @@ async def edit_customer_ws(websocket: WebSocket, cid: str, editing: EditingDep, 
             await websocket.send_bytes(np.ascontiguousarray(out.vertices, "<f4").tobytes())
     except WebSocketDisconnect:
         pass
+    except WebSocketMisuse as exc:  # the client broke the protocol: a close code, no trace
+        await websocket.close(code=exc.code, reason=exc.reason)
     finally:
         reader.cancel()

@@ -6,6 +6,7 @@ overridden dependency costs a thread-pool hop or a signature analysis on every r
 from __future__ import annotations
 
 import hmac
+from collections.abc import AsyncIterator
 from typing import Annotated, Literal
 
 from fastapi import Depends, HTTPException, Query, Request, WebSocket
@@ -19,6 +20,7 @@ from service.application.customers import CustomerService
 from service.application.editing import EditingService
 from service.application.garments import GarmentService
 from service.application.jobs import JobService
+from service.application.limits import Limits, Requester, current_requester
 from service.application.tryon import TryOnService
 from service.model.body.model import BodyModel, load_body_model
 from service.settings import Settings, get_settings
@@ -71,11 +73,16 @@ async def get_editing(ctx: ContextDep) -> EditingService:
     return ctx.editing
 
 
+async def get_limits(ctx: ContextDep) -> Limits:
+    return ctx.limits
+
+
 CustomersDep = Annotated[CustomerService, Depends(get_customers)]
 GarmentsDep = Annotated[GarmentService, Depends(get_garments)]
 TryOnDep = Annotated[TryOnService, Depends(get_tryon)]
 JobsDep = Annotated[JobService, Depends(get_jobs)]
 EditingDep = Annotated[EditingService, Depends(get_editing)]
+LimitsDep = Annotated[Limits, Depends(get_limits)]
 
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="Retailer API key (TRYON_RETAILER_KEYS)")
 
@@ -132,15 +139,38 @@ OptionalRetailerDep = Annotated[str | None, Depends(get_optional_retailer)]
 CredentialsDep = Annotated[Credentials, Depends(get_credentials)]
 
 
-async def rate_limited(request: Request, ctx: ContextDep, settings: SettingsDep, key: KeyDep = None) -> None:
-    """Counts an expensive request against its retailer's (valid ``X-API-Key``) or its client's
-    rate limit: 429 with ``Retry-After`` when spent (the Redis call runs off the event loop)."""
+def requester_of(request: Request, settings: Settings, key: str | None) -> Requester:
+    """Who the request counts against: its retailer (valid ``X-API-Key``) or its client address
+    (the socket's, or the one trusted proxies forwarded)."""
     retailer = retailer_of(settings, key) if key else None
-    client = request.client.host if request.client else None
-    await run_in_threadpool(ctx.limits.check, client, retailer)
+    return Requester(client=request.client.host if request.client else None, retailer=retailer)
+
+
+async def expensive(request: Request, limits: LimitsDep, settings: SettingsDep,
+                    key: KeyDep = None) -> AsyncIterator[None]:
+    """An expensive request holds one of its requester's ``TRYON_MAX_EXPENSIVE_CLIENT`` slots of
+    this process until it is answered (429 with ``Retry-After`` when all are taken)."""
+    requester = requester_of(request, settings, key)
+    current_requester.set(requester)
+    with limits.slot(requester):
+        yield
+
+
+async def rate_limited(request: Request, limits: LimitsDep, settings: SettingsDep,
+                       key: KeyDep = None) -> AsyncIterator[None]:
+    """Counts an expensive request against its retailer's (valid ``X-API-Key``) or its client's
+    rate limit: 429 with ``Retry-After`` when spent (the Redis call runs off the event loop);
+    then holds a slot as :func:`expensive` does. The use cases that queue jobs count them
+    against the same requester."""
+    requester = requester_of(request, settings, key)
+    await run_in_threadpool(limits.check, requester.client, requester.retailer)
+    current_requester.set(requester)
+    with limits.slot(requester):
+        yield
 
 
 RateLimited = Depends(rate_limited)
+Expensive = Depends(expensive)
 
 
 async def get_if_none_match(request: Request) -> list[str] | None:

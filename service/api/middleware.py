@@ -1,12 +1,18 @@
-"""ASGI middleware of the API: the request-body limit (413), back-pressure (503 + Retry-After
-when a process is saturated or reads too many uploads at once, instead of queueing for
-seconds), memory given back after large uploads, and methods: ``OPTIONS`` on any path answers
-204 with the path's ``Allow``, and a 405 carries the path's full ``Allow`` (Starlette's names
-only the first route that matched the path)."""
+"""ASGI middleware of the API: the client's address (``X-Forwarded-For`` from trusted proxies
+only), the request-body limit (413), slow or stalled bodies (408), back-pressure (503 +
+Retry-After when a process is saturated or reads too many uploads at once, instead of queueing
+for seconds; an upload takes its slot only once its body is in), memory given back after large
+uploads, and methods: ``OPTIONS`` on any path answers 204 with the path's ``Allow``, and a 405
+carries the path's full ``Allow`` (Starlette's names only the first route that matched the path)."""
 from __future__ import annotations
 
+import asyncio
 import ctypes
+import ipaddress
 import logging
+import socket
+import tempfile
+import time
 from collections.abc import Iterable
 
 from fastapi.responses import JSONResponse, Response
@@ -17,7 +23,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 log = logging.getLogger("tryon")
 
 OVERLOAD_RETRY_AFTER_S = 1
-TRIM_AFTER_BYTES = 4 * 1024 * 1024  # uploads at least this large give their memory back afterwards
+TRIM_AFTER_BYTES = 256 * 1024  # uploads at least this large give their memory back afterwards (~1 ms)
+SPOOL_MEMORY_BYTES = 1024 * 1024  # an upload's body is kept in memory up to this, then in a temporary file
+REPLAY_CHUNK_BYTES = 64 * 1024
+PROXY_RESOLVE_S = 30.0  # trusted proxies named by host name are resolved again after this
 
 
 def _header(scope: Scope, name: bytes) -> bytes | None:
@@ -52,12 +61,121 @@ async def _drain(receive: Receive) -> None:
             return
 
 
+class TrustedProxyMiddleware:
+    """The client's address (``scope["client"]``) from ``X-Forwarded-For`` when, and only when,
+    the connection comes from a trusted proxy: the right-most address not itself a trusted
+    proxy. Proxies are IP addresses, networks or host names (a compose service: resolved every
+    :data:`PROXY_RESOLVE_S`). Without trusted proxies the socket's address stands."""
+
+    def __init__(self, app: ASGIApp, proxies: list[str]) -> None:
+        self.app = app
+        self.networks = []
+        self.names = []
+        for p in proxies:
+            try:
+                self.networks.append(ipaddress.ip_network(p, strict=False))
+            except ValueError:
+                self.names.append(p)
+        self.resolved: set[str] = set()
+        self.resolved_at = -PROXY_RESOLVE_S
+
+    async def _resolve(self) -> None:
+        if not self.names or time.monotonic() - self.resolved_at < PROXY_RESOLVE_S:
+            return
+        self.resolved_at = time.monotonic()
+        found: set[str] = set()
+        loop = asyncio.get_running_loop()
+        for name in self.names:
+            try:
+                for info in await loop.getaddrinfo(name, None, type=socket.SOCK_STREAM):
+                    found.add(str(info[4][0]))
+            except OSError:
+                log.warning("trusted proxy %r does not resolve", name[:100])
+        self.resolved = found
+
+    def _trusted(self, addr: str) -> bool:
+        if addr in self.resolved:
+            return True
+        try:
+            ip = ipaddress.ip_address(addr)
+        except ValueError:
+            return False
+        return any(ip in net for net in self.networks)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] in ("http", "websocket") and (self.networks or self.names) and scope.get("client"):
+            await self._resolve()
+            peer = scope["client"][0]
+            forwarded = _header(scope, b"x-forwarded-for")
+            if forwarded and self._trusted(peer):
+                client = peer
+                for hop in reversed([h.strip() for h in forwarded.decode("latin-1").split(",")]):
+                    try:
+                        client = str(ipaddress.ip_address(hop))
+                    except ValueError:
+                        break
+                    if not self._trusted(client):
+                        break
+                scope = {**scope, "client": (client, 0)}
+        await self.app(scope, receive, send)
+
+
+class BodyTimeout(Exception):
+    """A request body that stalled, or came in slower than the minimum rate."""
+
+
+class TimedReceive:
+    """``receive`` of a request body with deadlines: each message within ``timeout`` seconds,
+    and after the first ``timeout`` seconds the body's average at least ``min_rate`` bytes/s
+    (0: no minimum); :class:`BodyTimeout` otherwise. Once the body is in, plain ``receive``."""
+
+    def __init__(self, receive: Receive, timeout: float, min_rate: int) -> None:
+        self.receive = receive
+        self.timeout = timeout
+        self.min_rate = min_rate
+        self.start = time.monotonic()
+        self.received = 0
+        self.done = False
+        self.timed_out = False
+
+    async def __call__(self) -> Message:
+        if self.done:
+            return await self.receive()
+        wait = self.timeout
+        if self.min_rate:
+            wait = min(wait, self.start + self.timeout + self.received / self.min_rate - time.monotonic())
+        try:
+            if wait <= 0:
+                raise asyncio.TimeoutError
+            message = await asyncio.wait_for(self.receive(), wait)
+        except asyncio.TimeoutError:
+            self.timed_out = True
+            raise BodyTimeout(f"request body too slow: {self.received} bytes in "
+                              f"{time.monotonic() - self.start:.1f} s") from None
+        if message["type"] == "http.request":
+            self.received += len(message.get("body", b""))
+            self.done = not message.get("more_body", False)
+        else:
+            self.done = True
+        return message
+
+
+async def _answer_timeout(scope: Scope, receive: Receive, send: Send, timed: TimedReceive) -> None:
+    log.info("request body timed out on %s %s (%d bytes in %.1f s)", scope["method"], scope["path"],
+             timed.received, time.monotonic() - timed.start)
+    response = JSONResponse({"detail": "request body too slow or stalled; send it at once"}, status_code=408,
+                            headers={"Connection": "close"})
+    await response(scope, receive, send)
+
+
 class BodySizeLimitMiddleware:
     """Answers 413 to request bodies larger than ``max_bytes`` (declared or streamed)."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, body_timeout: float = 5.0, body_min_rate: int = 0) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.body_timeout = body_timeout
+        self.body_min_rate = body_min_rate
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -70,11 +188,16 @@ class BodySizeLimitMiddleware:
                 return
             await self.app(scope, receive, send)
             return
-        # No Content-Length (chunked): buffer up to the limit, then replay.
+        # No Content-Length (chunked): buffer up to the limit (with the body deadlines), then replay.
         chunks: list[bytes] = []
         size = 0
+        timed = TimedReceive(receive, self.body_timeout, self.body_min_rate)
         while True:
-            message = await receive()
+            try:
+                message = await timed()
+            except BodyTimeout:
+                await _answer_timeout(scope, receive, send, timed)
+                return
             if message["type"] != "http.request":
                 break
             body = message.get("body", b"")
@@ -105,16 +228,26 @@ class BodySizeLimitMiddleware:
 
 class BackPressureMiddleware:
     """Per process: at most ``max_inflight`` API requests (``/v1/...``) at once and, among them,
-    at most ``max_uploads`` multipart uploads; beyond that an immediate 503 with
-    ``Retry-After`` (a rejected upload's body is read and dropped first, never kept). After a
-    large upload, freed memory is given back to the system."""
+    at most ``max_uploads`` multipart uploads being parsed; beyond that an immediate 503 with
+    ``Retry-After``. Request bodies have deadlines (:class:`TimedReceive`: 408 when stalled or too
+    slow); an upload's body is read whole (spooled to a temporary file past
+    :data:`SPOOL_MEMORY_BYTES`) before it takes an upload slot, so slow senders cannot hold the
+    slots. A client that goes away mid-body is one log line. After a large upload, freed memory
+    is given back to the system."""
 
-    def __init__(self, app: ASGIApp, max_inflight: int, max_uploads: int) -> None:
+    def __init__(self, app: ASGIApp, max_inflight: int, max_uploads: int, body_timeout: float = 5.0,
+                 body_min_rate: int = 0) -> None:
         self.app = app
         self.max_inflight = max_inflight
         self.max_uploads = max_uploads
+        self.body_timeout = body_timeout
+        self.body_min_rate = body_min_rate
         self.inflight = 0
         self.uploads = 0
+
+    def _busy(self, what: str) -> JSONResponse:
+        return JSONResponse({"detail": f"the server is busy ({what}); retry shortly"}, status_code=503,
+                            headers={"Retry-After": str(OVERLOAD_RETRY_AFTER_S)})
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or not scope["path"].startswith("/v1/"):
@@ -122,23 +255,88 @@ class BackPressureMiddleware:
             return
         upload = scope["method"] == "POST" and (_header(scope, b"content-type") or b"").lower().startswith(
             b"multipart/form-data")
-        if self.inflight >= self.max_inflight or (upload and self.uploads >= self.max_uploads):
-            what = "uploads" if upload and self.uploads >= self.max_uploads else "requests"
-            if upload:
-                await _drain(receive)
-            response = JSONResponse({"detail": f"the server is busy ({what}); retry shortly"}, status_code=503,
-                                    headers={"Retry-After": str(OVERLOAD_RETRY_AFTER_S)})
-            await response(scope, receive, send)
+        timed = TimedReceive(receive, self.body_timeout, self.body_min_rate)
+        if scope["method"] in ("GET", "HEAD", "DELETE", "OPTIONS") and not _content_length(scope):
+            timed.done = True
+        if self.inflight >= self.max_inflight:
+            await self._refuse(scope, timed, send, "requests", upload)
             return
         self.inflight += 1
-        self.uploads += upload
         try:
-            await self.app(scope, receive, send)
+            if upload:
+                await self._upload(scope, timed, send)
+            else:
+                await self._request(scope, timed, send)
         finally:
             self.inflight -= 1
-            self.uploads -= upload
-            if upload and (_content_length(scope) or TRIM_AFTER_BYTES) >= TRIM_AFTER_BYTES:
-                await run_in_threadpool(trim_memory)
+
+    async def _refuse(self, scope: Scope, timed: TimedReceive, send: Send, what: str, drain: bool) -> None:
+        if drain and not timed.done:  # read and drop the body, so that the client reads our answer
+            try:
+                await _drain(timed)
+            except BodyTimeout:
+                pass
+        await self._busy(what)(scope, timed, send)
+
+    async def _request(self, scope: Scope, timed: TimedReceive, send: Send) -> None:
+        started = False
+
+        async def guarded_send(message: Message) -> None:
+            nonlocal started
+            if timed.timed_out and not started:
+                return  # the app's answer to a body it could not read: replaced by the 408
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, timed, guarded_send)
+        except Exception:
+            if not timed.timed_out or started:
+                raise
+        if timed.timed_out and not started:
+            await _answer_timeout(scope, timed, send, timed)
+
+    async def _upload(self, scope: Scope, timed: TimedReceive, send: Send) -> None:
+        with tempfile.SpooledTemporaryFile(max_size=SPOOL_MEMORY_BYTES) as spool:
+            try:
+                while not timed.done:
+                    message = await timed()
+                    if message["type"] != "http.request":
+                        log.info("client disconnected during the upload of %s %s (%d bytes in)", scope["method"],
+                                 scope["path"], timed.received)
+                        return
+                    spool.write(message.get("body", b""))
+            except BodyTimeout:
+                await _answer_timeout(scope, timed, send, timed)
+                return
+            if self.uploads >= self.max_uploads:
+                await self._busy("uploads")(scope, timed, send)
+                return
+            size = spool.tell()
+            spool.seek(0)
+            left = size
+
+            async def replay() -> Message:
+                nonlocal left
+                if left <= 0 and left != -1:
+                    left = -1
+                    return {"type": "http.request", "body": b"", "more_body": False}
+                if left == -1:
+                    return await timed()
+                chunk = spool.read(min(REPLAY_CHUNK_BYTES, left))
+                left -= len(chunk)
+                if left <= 0:
+                    left = -1
+                    return {"type": "http.request", "body": chunk, "more_body": False}
+                return {"type": "http.request", "body": chunk, "more_body": True}
+
+            self.uploads += 1
+            try:
+                await self.app(scope, replay, send)
+            finally:
+                self.uploads -= 1
+                if size >= TRIM_AFTER_BYTES:
+                    await run_in_threadpool(trim_memory)
 
 
 CANDIDATE_METHODS = ("GET", "POST", "PUT", "PATCH", "DELETE")

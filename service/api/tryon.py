@@ -6,12 +6,14 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 
 from service.api import responses as R
-from service.api.deps import Compression, CredentialsDep, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep, Underwear
+from service.api.deps import (Compression, CredentialsDep, Expensive, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep,
+                              Underwear)
 
 router = APIRouter(tags=["try-on"])
 
 
-@router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
+@router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, dependencies=[Expensive],
+            responses=R.CUSTOMER_SCENE_RESPONSE)
 def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
                compression: Compression = None, pose_correctives: PoseCorrectives = False) -> Response:
     """The garment fitted to the customer, skinned with the customer's skeleton. ``ETag`` from
@@ -21,7 +23,8 @@ def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_no
     return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives))
 
 
-@router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, responses=R.CUSTOMER_SCENE_RESPONSE)
+@router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, dependencies=[Expensive],
+            responses=R.CUSTOMER_SCENE_RESPONSE)
 def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
                garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
                compression: Compression = None, hair: Hair = None, underwear: Underwear = True,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -18,28 +18,28 @@ from service.model.fitting.fit import FitResult, fit_body
 from service.model.formats.mesh_io import Scan, scan_from_npz_bytes, scan_to_npz_bytes
 from service.model.fitting.scan_cleanup import kept_faces
 from service.model.body.shape import MeasurementError, avatar_from_measurements, estimate_gender
-from service.model.garments.tryon import CustomerBody, customer_body
+from service.model.garments.tryon import CustomerBody
 from service.records import Customer, FitStats, JobRef, ScanInfo
-from service.storage.cache import VersionedLRU
-from service.storage.records import new_id
+from service.storage.meshes import MeshStore
+from service.storage.queue import JobQueue
+from service.storage.records import CustomerRepo, new_id
 
 from . import look as looks
 from . import scenes
-from .editing import build_editor
+from .bodies import BodyCache
+from .editors import Editors, build_editor
 from .auth import ANONYMOUS, Credentials, may_open, new_token
 from .errors import Conflict, Invalid, NotFound
 from .progress import MonotoneProgress, Progress
-from .uploads import TemplateAvatar, read_body_upload
-
-if TYPE_CHECKING:
-    from .context import Context
+from .limits import Limits
+from .poses import Poses
+from .uploads import TemplateAvatar, read_body_upload, upload_memory
 
 log = logging.getLogger("tryon.customers")
 
 FIT_JOB = "worker.jobs.fit_customer"  # the rq job, by dotted path (the service never imports worker)
 MISSING_JOB_GRACE_S = 60  # a fitting customer without its job for this long has failed
 FIT_START, FIT_SHARE = 0.02, 0.95  # a fitting job's progress: loading, then fit_body, then measuring, storing
-BODY_CACHE_SIZE = 64
 
 
 
@@ -48,31 +48,18 @@ def fit_job_id(cid: str) -> str:
     return f"fit-{cid}"
 
 
-class BodyCache:
-    """LRU of :class:`CustomerBody` per customer id, valid while its weights are unchanged."""
-
-    def __init__(self, model: BodyModel, size: int = BODY_CACHE_SIZE):
-        self.model = model
-        self._lru = VersionedLRU(size)
-
-    def get(self, cid: str, weights: list[float]) -> CustomerBody:
-        key = tuple(weights)
-        body = self._lru.get(cid, key)
-        if body is None:
-            body = customer_body(self.model, np.asarray(weights, np.float64))
-            self._lru.put(cid, key, body)
-        return body
-
-    def drop(self, cid: str) -> None:
-        self._lru.drop(cid)
-
-
 class CustomerService:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
-        self.model = ctx.model
-        self.repo = ctx.customers_repo
-        self.bodies = BodyCache(ctx.model)
+    def __init__(self, model: BodyModel, repo: CustomerRepo, queue: JobQueue, meshes: MeshStore, bodies: BodyCache,
+                 editors: Editors, poses: Poses, limits: Limits, fit_timeout: int):
+        self.model = model
+        self.repo = repo
+        self.queue = queue
+        self.meshes = meshes
+        self.bodies = bodies
+        self.editors = editors
+        self.poses = poses
+        self.limits = limits
+        self.fit_timeout = fit_timeout
 
     # -- records -----------------------------------------------------------------------------
     def _new(self, **fields: Any) -> tuple[Customer, str]:
@@ -120,8 +107,12 @@ class CustomerService:
         """An avatar mesh in the template topology -> a ready customer (``status`` ready);
         any other mesh or point cloud -> a customer being fitted by a queued job (``status``
         fitting, ``job``), with ``known`` measurements of the person (checked, API units) kept
-        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored."""
-        upload = read_body_upload(self.model, data, filename)
+        by the fit; with its token. Bad files raise :class:`Invalid` before anything is stored;
+        a requester at its cap of queued jobs gets :class:`TooManyRequests`, a file that needs
+        more memory to read than the process's budget :class:`TooLarge` (before it is parsed)."""
+        self.limits.check_jobs()
+        with self.limits.memory(upload_memory(data, filename)):
+            upload = read_body_upload(self.model, data, filename)
         if isinstance(upload, TemplateAvatar):
             if known:
                 raise Invalid(("body", next(iter(known))),
@@ -150,12 +141,13 @@ class CustomerService:
         record = record.model_copy(update={"job": JobRef(id=job_id, url=f"/v1/jobs/{job_id}")})
         self.repo.put_with_scan(record, scan_to_npz_bytes(scan))
         try:
-            self.ctx.queue.enqueue(FIT_JOB, cid, job_id=job_id, kind="fit", timeout=self.ctx.settings.fit_timeout,
+            self.queue.enqueue(FIT_JOB, cid, job_id=job_id, kind="fit", timeout=self.fit_timeout,
                                    body_model=self.model.version, description=f"fit the scan of customer {cid}",
                                    meta={"customer_id": cid, "owner": owner})
         except BaseException:
             self.repo.delete(cid)
             raise
+        self.limits.track_job(job_id)
         assert record.job is not None
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"})}), token
 
@@ -170,7 +162,7 @@ class CustomerService:
     def _with_job_outcome(self, record: Customer, show_job: bool = False) -> Customer:
         if record.job is None or (record.status != "fitting" and not show_job):
             return record
-        job = self.ctx.queue.get(record.job.id)
+        job = self.queue.get(record.job.id)
         record = record.model_copy(update={"job": record.job.model_copy(update={"status": job and job.status})})
         if record.status != "fitting":
             return record
@@ -204,6 +196,11 @@ class CustomerService:
     def body(self, record: Customer) -> CustomerBody:
         assert record.weights is not None
         return self.bodies.get(record.id, record.weights)
+
+    def page_poses(self, cid: str, creds: Credentials) -> dict[str, dict[str, list[float]]]:
+        """{preset name: {bone: [x, y, z] axis-angle radians (local rotation, rest frames = world
+        axes)}} for every bone, in ``BONES`` order (404 unknown customer, 409 not ready)."""
+        return self.poses.record_poses(self.require_ready(self.open(self.repo.get(cid), cid, creds), cid))
 
     def avatar_glb(self, cid: str, creds: Credentials, compression: str | None,
                    if_none_match: list[str] | None = None, hair: str | None = None,
@@ -263,14 +260,12 @@ class CustomerService:
         if record is None:
             raise NotFound(f"customer '{cid}' not found")
         if record.job is not None:
-            self.ctx.queue.cancel(record.job.id)
-        self.ctx.meshes.delete(cid)
-        self.ctx.editing.forget(cid)
+            self.queue.cancel(record.job.id)
+        self.meshes.delete(cid)
+        self.editors.forget(cid)
         self.bodies.drop(cid)
         if record.weights:
-            from service.application.poses import forget_poses  # it builds on this module
-
-            forget_poses(self, record)
+            self.poses.forget(record)
 
     # -- the fitting job ---------------------------------------------------------------------
     def run_fit(self, cid: str, progress: Progress) -> dict[str, Any]:
@@ -312,9 +307,9 @@ class CustomerService:
                       "faces": kept_faces(scan.faces, kept).astype(np.int32)}
             ready = ready.model_copy(update={"editable": True})
             build_editor(self.model, ready, arrays)  # fails here, in the job, rather than at the first edit
-            self.ctx.meshes.save(cid, arrays)
+            self.meshes.save(cid, arrays)
         if not self.repo.complete(ready):
-            self.ctx.meshes.delete(cid)
+            self.meshes.delete(cid)
             log.info("customer %s was deleted during its fit: result dropped", cid)
             return {"status": "deleted", "customer_id": cid}
         progress(1.0, "done")

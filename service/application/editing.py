@@ -15,29 +15,25 @@ Vertices come out in the model frame (metres, Y up, glTF's), in the upload's ver
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from service.model.formats import gltf
-from service.model.body.model import BONES
+from service.model.body.model import BONES, BodyModel
 from service.model.nonrigid.editing import ClothedAvatarEditor
 from service.model.geometry.mesh import vertex_normals
 from service.model.body.shape import MeasurementError, avatar_from_measurements, validate_measurements
 from service.records import Customer
-from service.storage.cache import VersionedLRU
 
 from .auth import Credentials
-from .errors import Conflict, Invalid
-
-if TYPE_CHECKING:
-    from .context import Context
+from .customers import CustomerService
+from .editors import Editors
+from .errors import Invalid
 
 MAX_ANGLE = math.pi  # radians: the accepted range of each bone's rotation angle
-EDITOR_CACHE_SIZE = 8  # clothed-avatar editors kept per process (each ~50-100 MB for a 12k scan)
 SCAN_COLOR = (0.78, 0.76, 0.74, 1.0)
 
 
@@ -74,42 +70,18 @@ def check_pose(pose: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
 
 
 class EditingService:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
-        self.model = ctx.model
-        self._editors = VersionedLRU(EDITOR_CACHE_SIZE)
-        self._locks: dict[str, threading.Lock] = {}
-        self._locks_guard = threading.Lock()
+    def __init__(self, model: BodyModel, customers: CustomerService, editors: Editors):
+        self.model = model
+        self.customers = customers
+        self.editors = editors
 
     # -- the editable customer ---------------------------------------------------------------
     def _customer(self, cid: str, creds: Credentials) -> Customer:
-        customers = self.ctx.customers
-        return customers.require_ready(customers.open(self.ctx.customers_repo.get(cid), cid, creds), cid)
+        customers = self.customers
+        return customers.require_ready(customers.open(customers.repo.get(cid), cid, creds), cid)
 
     def editor(self, record: Customer) -> ClothedAvatarEditor | None:
-        """The clothed-avatar editor of a customer fitted from a mesh (built on first use, then
-        cached per process); None for customers without a stored scan mesh."""
-        if not record.editable:
-            return None
-        version = (record.body_model, tuple(record.weights or ()))
-        hit = self._editors.get(record.id, version)
-        if hit is not None:
-            return hit
-        with self._locks_guard:
-            lock = self._locks.setdefault(record.id, threading.Lock())
-        with lock:  # one build per customer, whatever the number of concurrent first edits
-            hit = self._editors.get(record.id, version)
-            if hit is not None:
-                return hit
-            arrays = self.ctx.meshes.load(record.id)
-            if arrays is None:
-                raise Conflict(f"customer '{record.id}' has lost its scan mesh: delete it and upload the scan again")
-            editor = build_editor(self.model, record, arrays)
-            self._editors.put(record.id, version, editor)
-        return editor
-
-    def forget(self, cid: str) -> None:
-        self._editors.drop(cid)
+        return self.editors.editor(record)
 
     # -- edits -------------------------------------------------------------------------------
     def faces(self, cid: str, creds: Credentials) -> np.ndarray:
@@ -135,12 +107,7 @@ class EditingService:
                       "avatar")
 
     def _scan_faces(self, record: Customer) -> np.ndarray:
-        hit = self._editors.get(record.id + ":faces", record.body_model)
-        if hit is None:
-            arrays = self.ctx.meshes.load(record.id)
-            hit = np.asarray(arrays["faces"], np.int32) if arrays is not None else np.zeros((0, 3), np.int32)
-            self._editors.put(record.id + ":faces", record.body_model, hit)
-        return hit
+        return self.editors.scan_faces(record)
 
     def _edit_body(self, record: Customer, measurements: Mapping[str, Any] | None,
                    bones: dict[str, np.ndarray]) -> np.ndarray:
@@ -174,13 +141,3 @@ class EditingService:
         return gltf.scene_to_glb([{"vertices": e.vertices, "faces": e.faces,
                                    "normals": vertex_normals(e.vertices, e.faces), "color": SCAN_COLOR,
                                    "name": "avatar"}], compression=compression)
-
-
-def build_editor(model, record: Customer, arrays: dict[str, np.ndarray]) -> ClothedAvatarEditor:
-    """The editor of a fitted clothed scan from its stored mesh (deterministic)."""
-    pose = np.array([record.pose[b] for b in BONES], np.float64) if record.pose else None
-    gender = str((record.measurements or {}).get("gender") or "female")
-    return ClothedAvatarEditor(model, np.asarray(record.weights, np.float64), pose,
-                               np.asarray(record.translation or [0.0, 0.0, 0.0], np.float64),
-                               np.asarray(arrays["vertices"], np.float64), np.asarray(arrays["faces"], np.int64),
-                               gender=gender)

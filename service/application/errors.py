@@ -34,6 +34,10 @@ class Invalid(AppError):
         self.loc = loc
 
 
+class TooLarge(AppError):
+    """The input needs more memory or work than this server allows for one request (413)."""
+
+
 class TooManyRequests(AppError):
     """The caller went over its rate limit (429); ``retry_after``: seconds until it may retry."""
 

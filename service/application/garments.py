@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Callable
 
 import numpy as np
 
 from typing import Any
 
+from service.model.body.model import BodyModel
 from service.model.garments.autofit import fit_to_examples
 from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
 from service.model.fitting.checks import FitError
@@ -18,17 +19,19 @@ from service.model.formats.mesh_io import scan_type
 from service.model.formats.frames import unit_against
 from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
-from service.storage.records import new_id
+from service.settings import Settings
+from service.storage.bases import BasisStore
+from service.storage.queue import JobQueue
+from service.storage.records import GarmentRepo, new_id
 
 from . import scenes
 from .errors import Conflict, Forbidden, Invalid, NotFound
 from .examples import Examples
+from .limits import Limits
 from .progress import MonotoneProgress, Progress
 from .uploads import (DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
-                      read_garment_mesh, read_mhclo_layout, read_texture)
+                      read_garment_mesh, read_mhclo_layout, read_texture, upload_memory)
 
-if TYPE_CHECKING:
-    from .context import Context
 
 log = logging.getLogger("tryon.garments")
 
@@ -52,15 +55,19 @@ def build_job_id(gid: str) -> str:
 
 
 class GarmentService:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
-        self.model = ctx.model
-        self.repo = ctx.garments_repo
-        self.bases = ctx.bases
+    def __init__(self, settings: Settings, model: BodyModel, repo: GarmentRepo, bases: BasisStore, queue: JobQueue,
+                 limits: Limits, examples: Callable[[], Examples]):
+        self.settings = settings
+        self.model = model
+        self.repo = repo
+        self.bases = bases
+        self.queue = queue
+        self.limits = limits
+        self._examples = examples  # the example avatars, built on first use
 
     @property
     def examples(self) -> Examples:
-        return self.ctx.examples
+        return self._examples()
 
     # -- reading -----------------------------------------------------------------------------
     def list(self) -> list[Garment]:
@@ -78,7 +85,7 @@ class GarmentService:
         (retries exhausted) shows as failed."""
         if record.status != "building" or record.job is None:
             return record
-        job = self.ctx.queue.get(record.job.id)
+        job = self.queue.get(record.job.id)
         update: dict[str, Any] = {"job": record.job.model_copy(update={"status": job and job.status}),
                                   "progress": job.progress if job else 0.0}
         if job is not None and job.status == "failed":
@@ -142,6 +149,13 @@ class GarmentService:
     # -- creating ----------------------------------------------------------------------------
     def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
                            layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """:meth:`_create_from_meshes` within the process's memory budget for decoding uploads."""
+        need = sum(upload_memory(data, fname) for fname, data in files) + (upload_memory(*texture) if texture else 0)
+        with self.limits.memory(need):
+            return self._create_from_meshes(files, name=name, owner=owner, color=color, layer=layer, texture=texture)
+
+    def _create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
+                            layer: int, texture: tuple[bytes, str | None] | None = None) -> Garment:
         """A garment fitted by the retailer to every example avatar: one mesh per example, in
         the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
         OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
@@ -275,6 +289,18 @@ class GarmentService:
     def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
                       texture: tuple[bytes, str | None] | None = None) -> Garment:
+        """:meth:`_create_draped` for a requester under its cap of queued jobs, within the
+        process's memory budget for decoding uploads (both checked before anything is parsed)."""
+        self.limits.check_jobs()
+        need = upload_memory(garment, garment_name) + (upload_memory(avatar, avatar_name) if avatar else 0) \
+            + (upload_memory(*texture) if texture else 0)
+        with self.limits.memory(need):
+            return self._create_draped(garment, garment_name, on=on, avatar=avatar, avatar_name=avatar_name,
+                                       name=name, owner=owner, color=color, layer=layer, texture=texture)
+
+    def _create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
+                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
+                       texture: tuple[bytes, str | None] | None = None) -> Garment:
         """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
         retailer's own ``avatar`` of any topology): checked now (422 before any job), then
         carried to every example avatar by a queued build job (:meth:`run_build`). The garment
@@ -311,13 +337,14 @@ class GarmentService:
                          job=JobRef(id=job_id, url=f"/v1/jobs/{job_id}"))
         self.repo.publish(record, upload.to_bytes())
         try:
-            self.ctx.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
-                                   timeout=self.ctx.settings.garment_timeout, body_model=self.model.version,
+            self.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
+                                   timeout=self.settings.garment_timeout, body_model=self.model.version,
                                    description=f"fit garment {gid} to the example avatars",
                                    meta={"garment_id": gid, "owner": owner})
         except BaseException:
             self.repo.delete(gid)
             raise
+        self.limits.track_job(job_id)
         return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
                                          "progress": 0.0})
 
@@ -407,7 +434,7 @@ class GarmentService:
             raise Forbidden(f"garment '{gid}' belongs to another retailer")
         self.repo.delete(gid)
         if record.job is not None:
-            self.ctx.queue.cancel(record.job.id)
+            self.queue.cancel(record.job.id)
         self.bases.delete(gid)
 
     # -- the demo catalogue ------------------------------------------------------------------
@@ -415,7 +442,7 @@ class GarmentService:
         """The catalogue garments served as the demo catalogue (``TRYON_DEMO_ITEMS``: 'all',
         or comma-separated catalogue ids; '' none), in catalogue order."""
         items = load_catalogue().garments()
-        want = self.ctx.settings.demo_items.strip()
+        want = self.settings.demo_items.strip()
         if want == "all":
             return items
         ids = [w.strip() for w in want.split(",") if w.strip()]

@@ -17,13 +17,13 @@ import threading
 from collections import OrderedDict
 
 import numpy as np
-import redis
 
-from service.application.auth import Credentials
-from service.application.customers import CustomerService
-from service.model.body.model import BONES
+from service.model.body.model import BodyModel, BONES
 from service.model.body.poses import ADAPTATION_VERSION, adapted_poses, presets
-from service.storage.redis import lock
+from service.records import Customer
+from service.storage.poses import PoseStore
+
+from .bodies import BodyCache
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ def store_key(prefix: str, model_version: str, weights) -> str:
 
 
 def _valid(poses) -> bool:
-    """A stored pose set as :func:`record_poses` returns it: {name: {bone: [3 finite floats]}}
+    """A stored pose set as :meth:`Poses.record_poses` returns it: {name: {bone: [3 finite floats]}}
     for every bone."""
     try:
         return isinstance(poses, dict) and len(poses) > 0 and all(
@@ -56,8 +56,8 @@ def _valid(poses) -> bool:
         return False
 
 
-def _load(conn: redis.Redis, key: str):
-    raw = conn.get(key)
+def _load(store: PoseStore, key: str):
+    raw = store.get(key)
     if raw is None:
         return None
     try:
@@ -70,49 +70,50 @@ def _load(conn: redis.Redis, key: str):
     return poses
 
 
-def record_poses(customers: CustomerService, record) -> dict[str, dict[str, list[float]]]:
-    """{preset name: {bone: [x, y, z] axis-angle}} of a ready customer record: from the process
-    LRU, else the store, else computed (once across processes) and stored."""
-    key = (customers.model.version, tuple(record.weights or ()))
-    with _lock:
-        hit = _cache.get(key)
-        if hit is not None:
-            _cache.move_to_end(key)
-            return hit
-    conn = customers.repo.conn
-    skey = store_key(customers.repo.prefix, customers.model.version, record.weights or ())
-    out = _load(conn, skey)
-    if out is None:
-        # whether or not the lock came within the wait, the poses are then there or computed here
-        with lock(conn, skey + ":lock", ttl=POSES_LOCK_TTL_S, wait=POSES_LOCK_WAIT_S):
-            out = _load(conn, skey)  # computed by another process while this one waited
-            if out is None:
-                poses = adapted_poses(customers.model, customers.body(record).vertices)
-                out = {name: {b: [float(x) for x in np.asarray(p)[i]] for i, b in enumerate(BONES)}
-                       for name, p in poses.items()}
-                conn.set(skey, json.dumps(out), ex=POSES_TTL_S)
-    with _lock:
-        _cache[key] = out
-        while len(_cache) > POSES_CACHE_SIZE:
-            _cache.popitem(last=False)
-    return out
+class Poses:
+    """The adapted poses of customers' bodies: the process LRU, the store (``store``), the
+    bodies (``bodies``) of the body model ``model``."""
 
+    def __init__(self, model: BodyModel, store: PoseStore, bodies: BodyCache):
+        self.model = model
+        self.store = store
+        self.bodies = bodies
 
-def forget_poses(customers: CustomerService, record) -> None:
-    """Drop a deleted customer's adapted poses: from the store and this process's LRU (other
-    processes' LRUs are keyed by the body alone and answer only for a ready record)."""
-    customers.repo.conn.delete(store_key(customers.repo.prefix, customers.model.version, record.weights or ()))
-    with _lock:
-        _cache.pop((customers.model.version, tuple(record.weights or ())), None)
+    def record_poses(self, record: Customer) -> dict[str, dict[str, list[float]]]:
+        """{preset name: {bone: [x, y, z] axis-angle}} of a ready customer record: from the process
+        LRU, else the store, else computed (once across processes) and stored."""
+        key = (self.model.version, tuple(record.weights or ()))
+        with _lock:
+            hit = _cache.get(key)
+            if hit is not None:
+                _cache.move_to_end(key)
+                return hit
+        skey = store_key(self.store.prefix, self.model.version, record.weights or ())
+        out = _load(self.store, skey)
+        if out is None:
+            # whether or not the lock came within the wait, the poses are then there or computed here
+            with self.store.lock(skey, ttl=POSES_LOCK_TTL_S, wait=POSES_LOCK_WAIT_S):
+                out = _load(self.store, skey)  # computed by another process while this one waited
+                if out is None:
+                    assert record.weights is not None
+                    poses = adapted_poses(self.model, self.bodies.get(record.id, record.weights).vertices)
+                    out = {name: {b: [float(x) for x in np.asarray(p)[i]] for i, b in enumerate(BONES)}
+                           for name, p in poses.items()}
+                    self.store.put(skey, json.dumps(out), POSES_TTL_S)
+        with _lock:
+            _cache[key] = out
+            while len(_cache) > POSES_CACHE_SIZE:
+                _cache.popitem(last=False)
+        return out
+
+    def forget(self, record: Customer) -> None:
+        """Drop a deleted customer's adapted poses: from the store and this process's LRU (other
+        processes' LRUs are keyed by the body alone and answer only for a ready record)."""
+        self.store.delete(store_key(self.store.prefix, self.model.version, record.weights or ()))
+        with _lock:
+            _cache.pop((self.model.version, tuple(record.weights or ())), None)
 
 
 def pose_arrays(poses: dict[str, dict[str, list[float]]]) -> dict[str, np.ndarray]:
-    """:func:`record_poses` as {name: (17, 3) axis-angle in ``BONES`` order}."""
+    """:meth:`Poses.record_poses` as {name: (17, 3) axis-angle in ``BONES`` order}."""
     return {name: np.array([p[b] for b in BONES], np.float64) for name, p in poses.items()}
-
-
-def customer_poses(customers: CustomerService, cid: str, creds: Credentials) -> dict[str, dict[str, list[float]]]:
-    """{preset name: {bone: [x, y, z] axis-angle radians (local rotation, rest frames = world
-    axes)}} for every bone, in ``BONES`` order (404 unknown customer, 409 not ready)."""
-    record = customers.require_ready(customers.open(customers.repo.get(cid), cid, creds), cid)
-    return record_poses(customers, record)

@@ -3,36 +3,52 @@ trip (the customer and the garments together), then in-process caches: the custo
 (per weights) and the garments' memory-mapped bases (per etag)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from service.model.body.model import BodyModel
 from service.model.garments.tryon import GarmentBasis
 from service.records import Garment
-from service.storage.records import fetch
+from service.storage.records import CustomerRepo, GarmentRepo, fetch
 
 from . import look as looks
 from . import poses as _poses
 from . import scenes
 from .auth import Credentials
+from .customers import CustomerService
 from .errors import Invalid
-
-if TYPE_CHECKING:
-    from .context import Context
+from .garments import GarmentService
 
 MAX_OUTFIT_GARMENTS = 12
+# CPU budget of one outfit request (measured on one core, issue 42: 12 garments with pose
+# targets cost 11-14 s): layering one garment over the others, and one pose target of one
+# garment (doc of pose_correctives: 40-160 ms per garment and pose; the upper end here).
+LAYER_CPU_S = 0.3
+POSE_TARGET_CPU_S = 0.16
+PAGE_POSES = 4  # the page's pose presets (web_client/poses.json)
+MAX_REQUEST_CPU_S = 6.0
+
+
+def outfit_cpu_s(n_garments: int, pose_correctives: bool) -> float:
+    """Estimated CPU seconds of an outfit of ``n_garments`` not cached yet."""
+    return n_garments * (LAYER_CPU_S + (PAGE_POSES * POSE_TARGET_CPU_S if pose_correctives else 0.0))
 
 
 class TryOnService:
-    def __init__(self, ctx: "Context"):
-        self.ctx = ctx
+    def __init__(self, model: BodyModel, customers_repo: CustomerRepo, garments_repo: GarmentRepo,
+                 customers: CustomerService, garments: GarmentService, poses: _poses.Poses):
+        self.model = model
+        self.customers_repo = customers_repo
+        self.garments_repo = garments_repo
+        self.customers = customers
+        self.garments = garments
+        self.poses = poses
 
     def _load(self, cid: str, gids: list[str], creds: Credentials):
-        customer, garments = fetch(self.ctx.customers_repo, cid, self.ctx.garments_repo, gids)
-        record = self.ctx.customers.require_ready(self.ctx.customers.open(customer, cid, creds), cid)
-        loaded = [self.ctx.garments.require_ready(g, gid) for g, gid in zip(garments, gids)]
+        customer, garments = fetch(self.customers_repo, cid, self.garments_repo, gids)
+        record = self.customers.require_ready(self.customers.open(customer, cid, creds), cid)
+        loaded = [self.garments.require_ready(g, gid) for g, gid in zip(garments, gids)]
         return record, loaded
 
     def _etag(self, kind: str, record, loaded: list[tuple[Garment, GarmentBasis]], compression: str | None) -> str:
-        return scenes.etag(kind, self.ctx.model.version, record.weights, compression,
+        return scenes.etag(kind, self.model.version, record.weights, compression,
                            [(g.id, basis.etag() or g.etag) for g, basis in loaded])
 
     def _page_poses(self, record, on: bool):
@@ -40,8 +56,8 @@ class TryOnService:
         that gets them, for ``scenes.outfit_glb`` to call once the outfit is layered. The page
         asks for ``/poses`` together with its first outfit: when the two requests reach
         different server processes, one adapts the poses while the other layers the outfit,
-        then waits for them (``poses.record_poses``' lock) instead of adapting them first."""
-        return (lambda: _poses.pose_arrays(_poses.record_poses(self.ctx.customers, record))) if on else None
+        then waits for them (``Poses.record_poses``' lock) instead of adapting them first."""
+        return (lambda: _poses.pose_arrays(self.poses.record_poses(record))) if on else None
 
     def garment_glb(self, cid: str, gid: str, creds: Credentials, compression: str | None,
                     if_none_match: list[str] | None = None, pose_correctives: bool = False) -> tuple[bytes | None, str]:
@@ -52,8 +68,8 @@ class TryOnService:
         tag = self._etag("garment" + ("|poses" if pose_correctives else ""), record, loaded, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
-        body = self.ctx.customers.body(record)
-        return scenes.outfit_glb(self.ctx.model, body, loaded, compression, with_avatar=False,
+        body = self.customers.body(record)
+        return scenes.outfit_glb(self.model, body, loaded, compression, with_avatar=False,
                                  poses=self._page_poses(record, pose_correctives)), tag
 
     def outfit_glb(self, cid: str, gids: list[str], creds: Credentials, compression: str | None,
@@ -66,6 +82,11 @@ class TryOnService:
         ids = list(dict.fromkeys(g.strip() for g in gids if g.strip()))
         if len(ids) > MAX_OUTFIT_GARMENTS:
             raise Invalid(("query", "garments"), f"at most {MAX_OUTFIT_GARMENTS} garments per outfit")
+        cost = outfit_cpu_s(len(ids), pose_correctives)
+        if cost > MAX_REQUEST_CPU_S:
+            most = int(MAX_REQUEST_CPU_S // outfit_cpu_s(1, pose_correctives))
+            raise Invalid(("query", "garments"), f"{len(ids)} garments with pose_correctives cost about {cost:.0f} s "
+                                                 f"of CPU; at most {most} garments per outfit with pose_correctives")
         record, loaded = self._load(cid, ids, creds)
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
@@ -73,5 +94,5 @@ class TryOnService:
         tag = self._etag(f"outfit|{look.key}" + ("|poses" if pose_correctives else ""), record, layered, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
-        return scenes.outfit_glb(self.ctx.model, self.ctx.customers.body(record), layered, compression,
+        return scenes.outfit_glb(self.model, self.customers.body(record), layered, compression,
                                  look=look, poses=self._page_poses(record, pose_correctives)), tag

@@ -5,10 +5,13 @@ the one unit/axis detector (``service.model.formats.frames``), and refused with 
 from __future__ import annotations
 
 import io
+import json
 import unicodedata
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 from scipy.spatial import cKDTree
 
 from service.model.formats import mesh_io
@@ -19,6 +22,7 @@ from service.model.body.measurements import ATTRIBUTES
 from service.model.formats.mesh_io import Scan, ScanError
 from service.model.formats import gltf_read
 from service.model.garments.catalogue import RenderLayout, Texture, render_layout
+from service.model.formats.declared_sizes import DeclaredSizeError, check_gltf, check_text_lines
 from service.model.formats.mhclo import Binding, MhcloError, parse_mhclo, parse_obj
 
 from .errors import Invalid
@@ -27,6 +31,7 @@ SCAN_FORMATS = "OBJ, PLY, STL, GLB/glTF (embedded buffers only) or XYZ"
 MAX_GARMENT_VERTICES = 100_000
 MAX_GARMENT_FACES = 400_000
 MIN_GARMENT_VERTICES = 3
+MAX_MHCLO_LINES = MAX_GARMENT_VERTICES + 10_000  # one binding line per vertex plus headers
 MAX_NAME_LENGTH = 200
 # bidirectional overrides and isolates: they reorder how a name is shown (spoofing)
 _BIDI_CONTROLS = {chr(c) for c in (*range(0x202A, 0x202F), *range(0x2066, 0x206A))}
@@ -41,6 +46,34 @@ class TemplateAvatar:
 
 
 BodyUpload = TemplateAvatar | Scan
+
+
+# Bytes of arrays a reader holds per point and per face of a mesh file (float64 points, their
+# normals and transformed copies, a k-d tree; int64 faces and their copies), and per byte of
+# the file (the text or chunk it is parsed from): the memory estimate of an upload.
+READ_BYTES_PER_POINT = 6 * 3 * 8
+READ_BYTES_PER_FACE = 3 * 3 * 8
+READ_BYTES_PER_FILE_BYTE = 2
+
+
+def upload_memory(data: bytes, filename: str | None) -> int:
+    """Estimated bytes needed to read one uploaded file, from its declared sizes (headers, line
+    counts, glTF accessors), before it is parsed: what the process's memory budget reserves.
+    A file whose sizes cannot be told costs its bytes times :data:`READ_BYTES_PER_FILE_BYTE`
+    (its reader then refuses it quickly)."""
+    base = READ_BYTES_PER_FILE_BYTE * len(data)
+    try:
+        kind = mesh_io.scan_type(data, filename)
+    except ScanError:
+        return base  # a texture or an unknown type
+    if kind in ("glb", "gltf"):
+        try:
+            doc, blob = gltf_read._parse_glb(data) if kind == "glb" else (json.loads(data.decode("utf-8-sig")), None)
+            return base + check_gltf(doc, None if blob is None else len(blob), len(data))
+        except Exception:
+            return base
+    points, faces = mesh_io.declared_size(data, kind)
+    return base + READ_BYTES_PER_POINT * points + READ_BYTES_PER_FACE * faces
 
 
 def read_body_upload(model: BodyModel, data: bytes, filename: str | None, loc: tuple = ("body", "mesh")) -> BodyUpload:
@@ -104,6 +137,14 @@ def read_mhclo(model: BodyModel, mhclo: bytes, obj: bytes) -> tuple[Binding, np.
 def read_mhclo_layout(model: BodyModel, mhclo: bytes, obj: bytes) -> tuple[Binding, np.ndarray, RenderLayout | None]:
     """:func:`read_mhclo` plus the render layout of the OBJ's texture coordinates (``vt``;
     None when some face corner has none)."""
+    try:  # line counts before the text is split into lines and numbers
+        check_text_lines(mhclo, MAX_MHCLO_LINES, "mhclo")
+    except DeclaredSizeError as exc:
+        raise Invalid(("body", "mhclo"), f"mhclo: {exc}") from exc
+    try:
+        mesh_io.check_declared_size(obj, "obj", MAX_GARMENT_VERTICES)
+    except ScanError as exc:
+        raise Invalid(("body", "obj"), f"obj: {exc}") from exc
     try:
         binding = parse_mhclo(_text(mhclo, "mhclo"), model.mean.shape[0])
     except MhcloError as exc:
@@ -151,6 +192,8 @@ def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | No
     when its indices are ``faces`` (as read by the mesh reader); else None. A broken embedded
     image is a 422 (field ``garment``)."""
     try:
+        doc, blob = gltf_read._parse_glb(data)
+        check_gltf(doc, len(blob), len(data))  # what read_glb decodes (meshopt views too) is bounded
         out = gltf_read.read_glb(data)
     except Exception:
         return None
@@ -179,55 +222,63 @@ def glb_look(data: bytes, faces: np.ndarray) -> tuple[RenderLayout, Texture | No
 
 MAX_TEXTURE_BYTES = 8 * 1024 * 1024
 MAX_TEXTURE_PX = 8192
+MAX_TEXTURE_PIXELS = 4096 * 4096  # decoded: 64 MiB as RGBA
+# Pillow's decompression-bomb limit from the texture limits: an image declaring more pixels is
+# refused on its header (Pillow raises at twice this; read_texture refuses above it).
+Image.MAX_IMAGE_PIXELS = MAX_TEXTURE_PIXELS
+TEXTURE_FORMATS = {"PNG": "image/png", "JPEG": "image/jpeg"}
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
-
-
-def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a JPEG's first SOFn segment, or None."""
-    pos = 2
-    while pos + 4 <= len(data):
-        if data[pos] != 0xFF:
-            return None
-        marker = data[pos + 1]
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            pos += 2
-            continue
-        seg = int.from_bytes(data[pos + 2:pos + 4], "big")
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            if pos + 9 > len(data):
-                return None
-            return int.from_bytes(data[pos + 7:pos + 9], "big"), int.from_bytes(data[pos + 5:pos + 7], "big")
-        if seg < 2:
-            return None
-        pos += 2 + seg
-    return None
+JPEG_QUALITY = 90
 
 
 def read_texture(data: bytes, filename: str | None, field: str = "texture") -> Texture:
-    """An uploaded texture: PNG or JPEG (by magic bytes), at most :data:`MAX_TEXTURE_BYTES`
-    and :data:`MAX_TEXTURE_PX` a side; anything else is a 422 naming the field."""
+    """An uploaded texture: a PNG or JPEG of at most :data:`MAX_TEXTURE_BYTES`,
+    :data:`MAX_TEXTURE_PX` a side and :data:`MAX_TEXTURE_PIXELS`, decoded whole (Pillow) and
+    re-encoded in its format (metadata dropped), so that only a real image of allowed size is
+    stored and served; anything else is a 422 naming the field."""
     loc = ("body", field)
     if not data:
         raise Invalid(loc, f"the {field} file is empty")
     if len(data) > MAX_TEXTURE_BYTES:
         raise Invalid(loc, f"the {field} is {len(data)} bytes; at most {MAX_TEXTURE_BYTES} (downscale it, e.g. to "
                            "2048 px JPEG)")
-    if data.startswith(PNG_MAGIC):
-        mime = "image/png"
-        size = (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")) \
-            if len(data) >= 33 and data[12:16] == b"IHDR" else None
-    elif data.startswith(JPEG_MAGIC):
-        mime = "image/jpeg"
-        size = _jpeg_size(data)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            image = Image.open(io.BytesIO(data), formats=list(TEXTURE_FORMATS))
+            fmt = image.format or ""
+            w, h = image.size
+            if max(w, h) > MAX_TEXTURE_PX or w * h > MAX_TEXTURE_PIXELS:
+                raise Invalid(loc, f"the {field} is {w}x{h} px; at most {MAX_TEXTURE_PX} px a side and "
+                                   f"{MAX_TEXTURE_PIXELS} pixels")
+            image.load()
+    except Invalid:
+        raise
+    except UnidentifiedImageError:
+        kind = "PNG" if data.startswith(PNG_MAGIC) else "JPEG" if data.startswith(JPEG_MAGIC) else None
+        raise Invalid(loc, f"the {field} is not a readable {kind} image" if kind
+                      else f"the {field} must be a PNG or JPEG image") from None
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise Invalid(loc, f"the {field} declares more than {MAX_TEXTURE_PIXELS} pixels") from None
+    except (OSError, ValueError, SyntaxError, EOFError) as exc:  # truncated, corrupt, unsupported mode
+        raise Invalid(loc, f"the {field} is not a readable {fmt or 'PNG or JPEG'} image "
+                           f"({' '.join(str(exc).split())[:80]})") from None
+    if min(w, h) < 1:
+        raise Invalid(loc, f"the {field} is empty ({w}x{h} px)")
+    keep = ("RGB", "L") if fmt == "JPEG" else ("RGB", "RGBA", "L", "LA")
+    if image.mode not in keep:
+        alpha = fmt == "PNG" and (image.mode in ("PA", "RGBa", "La") or "transparency" in image.info
+                                  or image.mode.endswith("A"))
+        image = image.convert("RGBA" if alpha else "RGB")
+    out = io.BytesIO()
+    if fmt == "JPEG":
+        image.save(out, "JPEG", quality=JPEG_QUALITY)
     else:
-        raise Invalid(loc, f"the {field} must be a PNG or JPEG image")
-    if size is None or min(size) < 1:
-        raise Invalid(loc, f"the {field} is not a readable {mime.split('/')[1].upper()} image (no image size found)")
-    if max(size) > MAX_TEXTURE_PX:
-        raise Invalid(loc, f"the {field} is {size[0]}x{size[1]} px; at most {MAX_TEXTURE_PX} px a side")
+        image.save(out, "PNG")
+    image.close()
     name = (filename or field).rsplit("/", 1)[-1][:100]
-    return Texture(name, mime, bytes(data))
+    return Texture(name, TEXTURE_FORMATS[fmt], out.getvalue())
 
 
 def parse_color(value: str | None, default: tuple[float, float, float, float]) -> tuple[float, float, float, float]:

@@ -4,7 +4,12 @@ algorithm (GCRA: a token bucket in one number), checked and updated by one Lua s
 round trip, atomic, Redis's own clock)."""
 from __future__ import annotations
 
+import math
+import time
+
 import redis
+
+from .queue import JobQueue
 
 # KEYS[1] bucket; ARGV[1] emission interval (us per request), ARGV[2] burst (requests).
 # Returns 0 when allowed, else the microseconds until a request would be.
@@ -39,3 +44,42 @@ class RateLimiter:
         interval_us = max(int(1_000_000 / rate), 1)
         wait_us = int(self._script(keys=[f"{self.prefix}rate:{bucket}"], args=[interval_us, max(burst, 1.0)]))
         return wait_us / 1_000_000
+
+
+ENDED_JOB_STATES = ("finished", "failed", "stopped", "canceled")
+
+
+class JobTracker:
+    """The jobs each requester (a bucket: ``client:<ip>`` or ``retailer:<id>``) has queued or
+    running, shared by every process: one sorted set per bucket (``<prefix>jobs:<bucket>``) of
+    job ids scored by the time they were queued."""
+
+    def __init__(self, conn: redis.Redis, prefix: str, queue: JobQueue):
+        self.conn = conn
+        self.prefix = prefix
+        self.queue = queue
+
+    def _key(self, bucket: str) -> str:
+        return f"{self.prefix}jobs:{bucket}"
+
+    def live(self, bucket: str, max_age_s: float) -> int:
+        """How many of the bucket's tracked jobs are still queued or running; ended, vanished
+        and older than ``max_age_s`` ones are forgotten."""
+        key = self._key(bucket)
+        self.conn.zremrangebyscore(key, "-inf", time.time() - max_age_s)
+        live = 0
+        for raw in self.conn.zrange(key, 0, -1):
+            job_id = raw.decode() if isinstance(raw, bytes) else str(raw)
+            job = self.queue.fetch(job_id)
+            status = None if job is None else job.get_status(refresh=False)
+            if job is None or str(getattr(status, "value", status)) in ENDED_JOB_STATES:
+                self.conn.zrem(key, job_id)
+            else:
+                live += 1
+        return live
+
+    def track(self, bucket: str, job_id: str, max_age_s: float) -> None:
+        """Count a job just queued against the bucket (the set expires after ``max_age_s``)."""
+        key = self._key(bucket)
+        self.conn.zadd(key, {job_id: time.time()})
+        self.conn.expire(key, int(math.ceil(max_age_s)))

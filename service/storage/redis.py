@@ -37,6 +37,9 @@ from service.settings import Settings
 
 log = logging.getLogger("tryon.storage")
 
+Connection = redis.Redis  # what the rest of the service names a connection by (it imports no redis)
+StorageError = redis.RedisError  # any failure of a storage call
+
 # Client timeouts: a request during an outage fails fast (the API answers 503) instead of
 # hanging; the connection pool reconnects by itself once Redis is back.
 CONNECT_TIMEOUT_S = 2.0

@@ -38,6 +38,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
              "the page's first dressed view of new customers over HTTP (outfit with pose correctives, /poses)"),
     "kernels": ("tests.bench.kernels", "run", "format_result",
                 "the compiled geometry kernels vs the numpy paths, same run: closest points, poses, outfits"),
+    "hostile": ("tests.bench.hostile", "run", "format_result",
+                "a default tryon serve tried as an attacker would: size bombs, slow bodies, spoofing, floods, logs"),
     "load": ("tests.bench.load", "run", "format_result",
              "mixed traffic at 80 req/s against a default tryon serve: p50/p99, errors, memory (--limit: seconds)"),
 }

@@ -7,7 +7,8 @@ drawn at random: 70 % try-ons of a stored customer and a demo garment, 20 % avat
 measurements as GLB, 10 % new customers), whether or not earlier ones were answered, so a
 server that falls behind shows it as latency (measured from the scheduled send time) instead of
 slowing the generator down. Each simulated shopper has its own address (``X-Forwarded-For``,
-trusted from loopback as behind a local proxy), so per-client rate limits apply per shopper.
+trusted from loopback, ``TRYON_TRUSTED_PROXIES=127.0.0.1``, as behind a local proxy), so
+per-client rate limits apply per shopper.
 
 Reported: p50/p99 latency (all, and per kind), errors (anything but 2xx, 429/503 included),
 the achieved rate, the CPU the server and the generator spent per request, and the server's
@@ -171,7 +172,8 @@ async def _drive(port: int, customers: list[tuple[str, str]], garments: list[str
 
 
 def bench_load(rate: float = RATE, seconds: float = SECONDS, seed: int = 0) -> dict:
-    with run_server(None, "embedded", workers=None, log_level="warning", check_log=False) as server:
+    with run_server(None, "embedded", workers=None, log_level="warning", check_log=False,
+                    TRYON_TRUSTED_PROXIES="127.0.0.1") as server:
         client = server.client
         garments = [g["id"] for g in client.get("/v1/garments").json()]
         rng = random.Random(seed + 1)

@@ -11,8 +11,8 @@ class FitParams:
 
     Weights are relative to the data terms, which are sums of squared metres over template
     vertices (or over the subsample in the initialisation). ``None`` or 0 switches a term off
-    where so noted. Why each value is what it is: the changelog (docs/layout.md, "Tuning
-    history", until the lead moves it there).
+    where so noted. Why each value is what it is: CHANGELOG.md, "Scan fitting: the measurements
+    behind `FitParams`' values".
     """
 
     # -- Alg. 1 (Sec. 4.2) loop limits

@@ -3,17 +3,19 @@ fingers and loose clothing. Pure numpy.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from service.model.geometry.mesh import vertex_normals
 from service.model.fitting.params import FitParams, TUNING
 
-if TYPE_CHECKING:
-    from service.model.fitting.rig import _Rig
 
+class _HairMasks(Protocol):
+    """What :func:`_hair` reads of a rig (``rig._Rig``, which imports this module)."""
 
+    scalp: np.ndarray
+    hair_back: np.ndarray
 
 
 def scalp_region(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray) -> np.ndarray:
@@ -86,7 +88,7 @@ def finger_weights(residuals: np.ndarray, fingers: np.ndarray, scale: float) -> 
     return np.where(fingers, 1.0 / (1.0 + (np.asarray(residuals, np.float64) / scale) ** 2), 1.0)
 
 
-def _hair(rig: _Rig, params: FitParams) -> np.ndarray:
+def _hair(rig: _HairMasks, params: FitParams) -> np.ndarray:
     """(n,) bool: the template vertices a bare scan may show hair over (``FitParams.hair_region``,
     ``hair_back``)."""
     return rig.scalp | rig.hair_back if params.hair_back else rig.scalp

@@ -25,6 +25,7 @@ import trimesh
 from trimesh.grouping import unique_rows
 
 from service.model.geometry.mesh import estimate_normals, simplify, vertex_normals  # noqa: F401 (re-exported)
+from service.model.formats.declared_sizes import DeclaredSizeError, check_gltf, check_ply, compressed_views
 from service.model.formats.gltf_buffers import FLOAT
 from service.model.formats.gltf_read import _parse_glb
 from service.model.formats.obj_io import ObjError, read_obj
@@ -142,6 +143,11 @@ def check_declared_size(data: bytes, kind: str, max_points: int) -> None:
         raise ScanError(f"the scan has {points} points; at most {max_points} are accepted (decimate it)")
     if faces > MAX_FACES_PER_POINT * max(max_points, MIN_SCAN_POINTS):
         raise ScanError(f"the scan has {faces} faces; at most {MAX_FACES_PER_POINT * max_points} are accepted")
+    if kind == "ply":  # every element's rows must fit in the data after the header
+        try:
+            check_ply(data)
+        except DeclaredSizeError as exc:
+            raise ScanError(f"the PLY file is malformed or too large: {exc}") from exc
 
 
 # -- readers -----------------------------------------------------------------------------------
@@ -219,9 +225,9 @@ def _check_gltf(data: bytes, kind: str, max_points: int) -> None:
     counts far beyond the point limit."""
     try:
         if kind == "glb":
-            doc, _ = _parse_glb(data)
+            doc, blob = _parse_glb(data)
         else:
-            doc = json.loads(data.decode("utf-8-sig"))
+            doc, blob = json.loads(data.decode("utf-8-sig")), None
     except Exception as exc:
         raise ScanError(f"cannot read the file as {kind.upper()}: {_reason(exc)}") from exc
     if not isinstance(doc, dict):
@@ -242,6 +248,14 @@ def _check_gltf(data: bytes, kind: str, max_points: int) -> None:
     if bad:
         raise ScanError(f"the {kind.upper()} file uses mesh compression ({', '.join(bad)}), which is not "
                         "supported: export it without compression")
+    try:  # every declared size, used or not, before trimesh allocates for any of them
+        check_gltf(doc, None if blob is None else len(blob), len(data))
+        compressed = compressed_views(doc)
+    except DeclaredSizeError as exc:
+        raise ScanError(f"the {kind.upper()} file is malformed or too large: {exc}") from exc
+    if compressed:  # trimesh would read the views' uncompressed fallback, declared or not
+        raise ScanError(f"the {kind.upper()} file has meshopt-compressed buffer views (EXT_meshopt_compression), "
+                        "which are not supported: export it without compression")
     nodes = doc.get("nodes", [])
     if isinstance(nodes, list) and len(nodes) > MAX_GLTF_NODES:
         raise ScanError(f"the {kind.upper()} file has {len(nodes)} nodes; at most {MAX_GLTF_NODES} are accepted")
