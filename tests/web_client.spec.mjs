@@ -74,20 +74,61 @@ try {
   await page.goto(base + '/');
   await page.waitForFunction(() => window.__tryon && window.__tryon.ready, null, { timeout: 60000 });
 
-  // the layout at 1280x800: the viewer and the catalogue side by side, nothing to scroll
+  // the layout at 1280x800: the viewer and the catalogue side by side, nothing to scroll, the
+  // measurements above the catalogue
   out.layout = {
     viewer: await box(page, '#viewer'), catalogue: await box(page, '#catalogue'),
+    measurements: await box(page, '#measurements'),
     firstGarment: await box(page, '#catalogue li:first-child button'),
     scrollHeight: await page.evaluate(() => document.documentElement.scrollHeight),
     innerHeight: await page.evaluate(() => window.innerHeight),
   };
 
+  // the privacy line before anything is stored, and the delete button then
+  out.privacyBefore = await page.textContent('#customer-status');
+  out.deleteDisabledBefore = await page.isDisabled('#delete');
+  await shot(page, '00-start-desktop');
+
+  // the catalogue: the shopper's gender first (the page starts female), "Show all" for the rest
+  const listed = (await (await fetch(base + '/v1/garments')).json());
+  const genderOf = Object.fromEntries(listed.map((g) => [g.id, g.gender ?? null]));
+  const visibleGarments = () => page.evaluate(() => [...document.querySelectorAll('#catalogue li')]
+    .filter((li) => !li.hidden && li.offsetParent !== null).map((li) => li.dataset.garment));
+  const catalogueState = async () => {
+    const ids = await visibleGarments();
+    return { genders: ids.map((id) => genderOf[id]), count: ids.length, total: listed.length,
+      title: await page.textContent('#catalogue-title'), button: await page.textContent('#catalogue-all'),
+      buttonShown: await page.isVisible('#catalogue-all') };
+  };
+  out.catalogue = { female: await catalogueState() };
+  await page.click('#catalogue-all');
+  out.catalogue.all = await catalogueState();
+  await page.click('#catalogue-all');
+  out.catalogue.femaleAgain = await catalogueState();
+
+  // real height on screen: a 150 cm and a 190 cm body (no clothes, A-pose), the projected
+  // height of what is drawn in CSS px against its height in metres
+  let n;
+  out.heightOnScreen = [];
+  for (const h of [150, 190]) {
+    n = await loadsNow(page);
+    await page.fill('#in-height_cm', String(h));
+    await waitLoad(page, n);
+    const sb = await page.evaluate(() => window.__tryon.sceneScreenBox());
+    out.heightOnScreen.push({ cm: h, px: sb.y1 - sb.y0, canvas: sb.height,
+      metres: await page.evaluate(() => window.__tryon.sceneWorldHeight()),
+      ruler: await page.evaluate(() => window.__tryon.rulerHeight) });
+    await shot(page, `height-${h}-desktop`, '#viewer');
+  }
+
   // fill the form
-  let n = await loadsNow(page);
+  n = await loadsNow(page);
   await page.selectOption('#in-gender', 'male');
   await page.fill('#in-height_cm', '180');
   await page.fill('#in-weight_kg', '80');
   await waitLoad(page, n);
+  out.catalogue.male = await catalogueState();
+  await page.click('#catalogue-all'); // the test's outfits mix women's and men's garments
   out.avatar = await page.evaluate(() => ({
     meshes: window.__tryon.meshCount(), skinned: window.__tryon.skinnedMeshCount(),
     bones: window.__tryon.boneNames(), height: window.__tryon.bboxHeight(), values: window.__tryon.values(),
@@ -164,7 +205,76 @@ try {
   await page.waitForTimeout(300);
   out.correctivesHips = await page.evaluate(() => window.__tryon.poseCorrectives());
   out.dressedCanvas = await canvasVariation(page);
+  out.privacyStored = await page.textContent('#customer-status');
   await shot(page, '03-dressed');
+
+  // sizes: a garment listed in more than one size gets a size picker with the recommended size
+  // marked (GET .../fit), the fit in words, the try-on of the chosen size and a fit map; a
+  // one-size garment (or a server without sizes) shows none of it
+  const sizedGarments = garments.filter((g) => Array.isArray(g.sizes) && g.sizes.length > 1);
+  const pickerOf = (id) => page.evaluate((g) => {
+    const div = document.querySelector(`#fits .garment-fit[data-garment="${g}"]`);
+    if (!div || div.offsetParent === null) return null;
+    return { labels: [...div.querySelectorAll('.size-picker button')].map((b) => b.dataset.size),
+      recommended: [...div.querySelectorAll('.size-picker button.recommended')].map((b) => b.dataset.size),
+      pressed: [...div.querySelectorAll('.size-picker button[aria-pressed="true"]')].map((b) => b.dataset.size),
+      words: div.querySelector('.fit-words').textContent };
+  }, id);
+  out.sizes = { sizedInCatalogue: sizedGarments.length, worn: [] };
+  for (const g of outfits[0]) {
+    out.sizes.worn.push({ id: g.id, name: g.name, sizes: (g.sizes || []).map((x) => x.label), picker: await pickerOf(g.id) });
+  }
+  out.sizes.sectionShown = await page.isVisible('#fit-section');
+  out.sizes.glbBefore = await page.evaluate(() => window.__tryon.lastGlb);
+  if (sizedGarments.length) {
+    // wear one sized garment (alone with the first outfit's other piece when that is sized too)
+    const g = sizedGarments.find((x) => outfits[0].some((o) => o.id === x.id)) || sizedGarments[0];
+    const wornNowIds = await wornNow(page);
+    if (!wornNowIds.includes(g.id)) await wear(page, [g.id]);
+    await page.waitForSelector(`#fits .garment-fit[data-garment="${g.id}"]`, { timeout: 30000 });
+    const cidNow = await page.evaluate(() => window.__tryon.customerId());
+    const tok = await page.evaluate(() => localStorage.getItem('tryon.customerToken'));
+    const fitRes = await fetch(`${base}/v1/customers/${cidNow}/garments/${g.id}/fit`, { headers: { Authorization: `Bearer ${tok}` } });
+    const fit = fitRes.ok ? await fitRes.json() : null;
+    const rec = { id: g.id, sizes: g.sizes.map((x) => x.label), fitStatus: fitRes.status, fit, picker: await pickerOf(g.id) };
+    await shot(page, 'sizes-01-recommended');
+    await page.locator('#fit-section').screenshot({ path: path.join(outdir, 'sizes-01-panel.png') });
+    out.screenshots.push(path.join(outdir, 'sizes-01-panel.png'));
+    // another size: the try-on asks for it
+    const other = rec.sizes.find((l) => l !== (fit && fit.recommended)) || rec.sizes[0];
+    n = await loadsNow(page);
+    await page.click(`#fits .garment-fit[data-garment="${g.id}"] .size-picker button[data-size="${other}"]`);
+    await waitLoad(page, n);
+    rec.other = other;
+    rec.pickerOther = await pickerOf(g.id);
+    rec.glbOther = await page.evaluate(() => window.__tryon.lastGlb);
+    rec.wornOther = await wornNow(page);
+    rec.wordsExpected = fit ? await page.evaluate(([f, l]) => window.__tryon.fitInWords(f.sizes.find((x) => x.label === l)), [fit, other]) : null;
+    await shot(page, 'sizes-02-other-size');
+    // the fit maps: vertex colours on the garments
+    rec.fitmap = {};
+    for (const mode of ['strain', 'ease']) {
+      n = await loadsNow(page);
+      await page.click(`#fitmap button[data-fitmap="${mode}"]`);
+      await waitLoad(page, n);
+      rec.fitmap[mode] = { glb: await page.evaluate(() => window.__tryon.lastGlb),
+        coloured: await page.evaluate(() => window.__tryon.vertexColourMeshes()),
+        legend: await page.isVisible('#fitmap-legend') };
+      await shot(page, `sizes-03-fitmap-${mode}`);
+    }
+    n = await loadsNow(page);
+    await page.click('#fitmap button[data-fitmap="off"]');
+    await waitLoad(page, n);
+    rec.fitmap.off = { coloured: await page.evaluate(() => window.__tryon.vertexColourMeshes()), legend: await page.isVisible('#fitmap-legend') };
+    if (fit && fit.recommended !== other) { // back to the recommended size for the rest of the test
+      n = await loadsNow(page);
+      await page.click(`#fits .garment-fit[data-garment="${g.id}"] .size-picker button[data-size="${fit.recommended}"]`);
+      await waitLoad(page, n);
+      rec.pressedAfterReset = (await pickerOf(g.id)).pressed;
+    }
+    out.sizes.sized = rec;
+    await wear(page, outfits[0].map((x) => x.id));
+  }
 
   // five bodies (and a 208 cm one), two outfits each, front / side / back. The camera keeps
   // the direction the shopper turned it to across avatar changes, and frames every body.
@@ -203,7 +313,8 @@ try {
         await page.evaluate((a) => window.__tryon.orbit(a), turn);
         const v = { outfit: k, view, pose: k === 0 ? 'a-pose' : b.pose, names,
           head: await page.evaluate(() => window.__tryon.headTop()),
-          scene: await page.evaluate(() => window.__tryon.sceneScreenBox()) };
+          scene: await page.evaluate(() => window.__tryon.sceneScreenBox()),
+          metres: await page.evaluate(() => window.__tryon.sceneWorldHeight()) };
         if (view === 'front') {
           v.pixels = {};
           for (const g of outfit) {
@@ -264,7 +375,24 @@ try {
   out.phoneScene = await page.evaluate(() => window.__tryon.sceneScreenBox());
   out.phoneCanvas = await box(page, '#scene');
   out.phonePoses = await box(page, '#poses');
+  out.phoneMeasurements = await box(page, '#measurements');
+  out.phoneCatalogue = await box(page, '#catalogue-section');
   await shot(page, '05-phone');
+  await page.screenshot({ path: path.join(outdir, '05-phone-full.png'), fullPage: true });
+  out.screenshots.push(path.join(outdir, '05-phone-full.png'));
+  // phones: a small woman and a large man, dressed (their own gender's clothes)
+  const phoneBodies = [{ name: 'w152-48', gender: 'female', height: 152, weight: 48 },
+    { name: 'm193-118', gender: 'male', height: 193, weight: 118 }];
+  for (const b of phoneBodies) {
+    await setBody(page, b);
+    const mine = (g) => genderOf[g.id] === b.gender;
+    const top = tops.find(mine), bottom = bottoms.find(mine);
+    await wear(page, [top, bottom].filter(Boolean).map((g) => g.id));
+    await shot(page, `phone-${b.name}`);
+    await page.screenshot({ path: path.join(outdir, `phone-${b.name}-full.png`), fullPage: true });
+    out.screenshots.push(path.join(outdir, `phone-${b.name}-full.png`));
+  }
+  out.phoneHeights = await page.evaluate(() => window.__tryon.rulerHeight);
   await page.close();
 
   // a scan customer (uploaded by the pytest side): the scan edited live over the WebSocket

@@ -18,6 +18,14 @@ const START_DIRECTION = [0, 0.06, 1]; // camera -> target direction before the s
 const BACKGROUND = 0xe7eaf0;
 const SCAN_COLOUR = 0xb8a99a;   // an uploaded scan carries no material: a neutral clay
 const EDIT_EPSILON = 0.05;      // cm/kg: a slider this close to the fitted value is not an edit
+// Bodies keep their real height on screen: the camera frames a standing figure of the body
+// model's tallest height (GET /v1/body-model, height_cm max) whatever the body, so a 150 cm and
+// a 190 cm body differ on screen as they do in life; a ruler beside the body marks the height.
+const FRAME_REFERENCE_FALLBACK_M = 2.1;
+const FRAME_REFERENCE_WIDTH_M = 0.9;  // the framed figure's width and depth (the body's own box when wider)
+const FRAME_REFERENCE_DEPTH_M = 0.5;
+const RULER_GAP_M = 0.12;       // the ruler stands this far to the side of the body's box
+const MAIN_FIELDS = ['gender', 'height_cm', 'weight_kg', 'chest_cm', 'waist_cm', 'hip_cm']; // the rest: "More measurements"
 
 const $ = (sel) => document.querySelector(sel);
 const state = {
@@ -33,6 +41,10 @@ const state = {
   pose: 'a-pose',
   scan: null,              // the customer record of an uploaded scan (live editing), else null
   view: 'scan',            // scan customers: 'scan' (edited live) | 'body' | 'scan-pose' (body as scanned)
+  catalogueAll: false,     // the catalogue shows every garment, not only the customer's gender (and unisex)
+  sizes: {},               // garment id -> the size label the shopper picked
+  fits: new Map(),         // `${customer}|${garment}` -> GET .../fit answer, or null (404: no sizes there)
+  fitmap: 'off',           // 'off' | 'strain' | 'ease': vertex colours on the garments (?fitmap=)
 };
 
 // ---- three.js scene -----------------------------------------------------------------------
@@ -52,7 +64,7 @@ const controls = new OrbitControls(camera, canvas);
 controls.target.set(0, 0.9, 0);
 controls.enableDamping = false;
 controls.listenToKeyEvents(canvas); // arrow keys when the canvas has focus
-controls.addEventListener('change', render);
+controls.addEventListener('change', () => { orientRuler(); render(); });
 
 // Lighting for cloth: a sky/ground hemisphere for soft fill, a warm key light that casts a soft
 // shadow on the floor, a cool rim light from behind to separate the silhouette.
@@ -137,9 +149,16 @@ function visibleBox(obj) {
 function frame() {
   const obj = shown();
   if (!obj) { render(); return; }
-  const box = visibleBox(obj);
-  if (box.isEmpty()) { render(); return; }
-  const centre = box.getCenter(new THREE.Vector3()), size = box.getSize(new THREE.Vector3());
+  const body = visibleBox(obj);
+  if (body.isEmpty()) { render(); return; }
+  placeRuler(body);
+  // the framed box: the body's, grown to a reference figure standing where the body stands
+  const bc = body.getCenter(new THREE.Vector3());
+  const box = body.clone().union(new THREE.Box3(
+    new THREE.Vector3(bc.x - FRAME_REFERENCE_WIDTH_M / 2, body.min.y, bc.z - FRAME_REFERENCE_DEPTH_M / 2),
+    new THREE.Vector3(bc.x + FRAME_REFERENCE_WIDTH_M / 2, body.min.y + referenceHeight(), bc.z + FRAME_REFERENCE_DEPTH_M / 2)));
+  if (ruler.visible) box.expandByPoint(ruler.position.clone().addScaledVector(ruler.userData.right, 0.25));
+  const centre = box.getCenter(new THREE.Vector3()), size = body.getSize(new THREE.Vector3());
   const dir = camera.position.clone().sub(controls.target);
   if (dir.lengthSq() < 1e-8) dir.set(...START_DIRECTION);
   dir.normalize();
@@ -162,19 +181,112 @@ function frame() {
   camera.updateProjectionMatrix();
   controls.update();
   // the floor under the feet
-  const feet = box.min.y;
-  floor.position.set(centre.x, feet, centre.z);
-  contact.position.set(centre.x, feet + 0.002, centre.z);
+  const feet = body.min.y;
+  floor.position.set(bc.x, feet, bc.z);
+  contact.position.set(bc.x, feet + 0.002, bc.z);
   contact.scale.set(Math.max(0.5, size.x * 0.75), Math.max(0.4, size.z * 1.6), 1);
   const reach = Math.max(size.x, size.y, size.z);
-  key.target.position.copy(centre);
-  key.position.copy(centre).add(new THREE.Vector3(1.4, 3.2, 2.2).normalize().multiplyScalar(reach * 2));
+  key.target.position.copy(bc);
+  key.position.copy(bc).add(new THREE.Vector3(1.4, 3.2, 2.2).normalize().multiplyScalar(reach * 2));
   const sc = key.shadow.camera;
   sc.left = sc.bottom = -reach * 0.9; sc.right = sc.top = reach * 0.9;
   sc.near = reach * 0.5; sc.far = reach * 4;
   sc.updateProjectionMatrix();
   hook.frames += 1;
   render();
+}
+
+function referenceHeight() {
+  const h = state.attributes.find((a) => a.name === 'height_cm');
+  return h && Number.isFinite(h.max) ? h.max / 100 : FRAME_REFERENCE_FALLBACK_M;
+}
+
+// The height mark: a ruler (a tick every 10 cm, a label every 50 cm) standing on the floor beside
+// the body, and a marker at the top of the body's head with its height.
+const ruler = new THREE.Group();
+let rulerLabel = null; // the body's height, at the top of its head
+ruler.name = 'ruler';
+scene.add(ruler);
+function labelSprite(text, heightM, colour = '#3a4a6b') {
+  const c = document.createElement('canvas');
+  const g = c.getContext('2d');
+  const px = 48;
+  g.font = `600 ${px}px system-ui, sans-serif`;
+  c.width = Math.ceil(g.measureText(text).width) + 16; c.height = px + 16;
+  g.font = `600 ${px}px system-ui, sans-serif`;
+  g.fillStyle = colour; g.textBaseline = 'middle';
+  g.fillText(text, 8, c.height / 2);
+  const t = new THREE.CanvasTexture(c);
+  t.colorSpace = THREE.SRGBColorSpace;
+  const s = new THREE.Sprite(new THREE.SpriteMaterial({ map: t, depthTest: false, toneMapped: false }));
+  s.scale.set(heightM * c.width / c.height, heightM, 1);
+  s.center.set(0, 0.5);
+  s.renderOrder = 3;
+  return s;
+}
+function buildRuler(topM) {
+  ruler.traverse((o) => { if (o.geometry) o.geometry.dispose(); if (o.material) { o.material.map?.dispose(); o.material.dispose(); } });
+  ruler.clear();
+  rulerLabel = null;
+  const mat = new THREE.MeshBasicMaterial({ color: 0x3a4a6b, toneMapped: false });
+  const bar = new THREE.Mesh(new THREE.BoxGeometry(0.008, topM, 0.008), mat);
+  bar.position.y = topM / 2;
+  ruler.add(bar);
+  for (let cm = 0; cm <= topM * 100 + 1e-6; cm += 10) {
+    const major = cm % 50 === 0;
+    const tick = new THREE.Mesh(new THREE.BoxGeometry(major ? 0.06 : 0.03, 0.004, 0.004), mat);
+    tick.position.set(major ? 0.03 : 0.015, cm / 100, 0);
+    ruler.add(tick);
+    if (major && cm > 0) { const l = labelSprite(`${cm}`, 0.045); l.position.set(0.07, cm / 100, 0); ruler.add(l); }
+  }
+  const head = new THREE.Mesh(new THREE.BoxGeometry(0.14, 0.006, 0.006), new THREE.MeshBasicMaterial({ color: 0xc2410c, toneMapped: false }));
+  head.name = 'ruler-head';
+  ruler.add(head);
+  ruler.userData.top = topM;
+}
+// The ruler stands to the camera's right of the body, facing the camera, wherever the shopper
+// turned it (never between the camera and the body).
+let rulerBody = null;
+function orientRuler() {
+  if (!rulerBody) return;
+  const back = camera.position.clone().sub(controls.target);
+  back.y = 0;
+  if (back.lengthSq() < 1e-8) back.set(0, 0, 1);
+  back.normalize();
+  const right = new THREE.Vector3(back.z, 0, -back.x); // up x back
+  const c = rulerBody.getCenter(new THREE.Vector3()), p = new THREE.Vector3();
+  let reach = 0;
+  for (let i = 0; i < 8; i += 1) {
+    p.set(i & 1 ? rulerBody.max.x : rulerBody.min.x, 0, i & 4 ? rulerBody.max.z : rulerBody.min.z).sub(c);
+    reach = Math.max(reach, p.dot(right));
+  }
+  ruler.position.copy(c).addScaledVector(right, reach + RULER_GAP_M);
+  ruler.position.y = rulerBody.min.y;
+  ruler.rotation.set(0, Math.atan2(back.x, back.z), 0); // its ticks towards the camera's right
+  ruler.userData.right = right;
+}
+function placeRuler(body) {
+  const top = Math.ceil(referenceHeight() * 10) / 10;
+  if (ruler.userData.top !== top) buildRuler(top);
+  const m = scanMesh && scanMesh.visible ? scanMesh : avatarMesh();
+  const own = m ? visibleBox(m) : body;
+  const h = own.max.y - body.min.y;
+  rulerBody = body;
+  orientRuler();
+  const head = ruler.getObjectByName('ruler-head');
+  head.position.set(-0.05, h, 0);
+  const inches = Math.round(h * 100 / CM_PER_IN);
+  const text = state.units === 'metric' ? `${Math.round(h * 100)} cm` : `${Math.floor(inches / 12)}' ${inches % 12}"`;
+  if (!rulerLabel || rulerLabel.userData.text !== text) {
+    if (rulerLabel) { ruler.remove(rulerLabel); rulerLabel.material.map.dispose(); rulerLabel.material.dispose(); }
+    rulerLabel = labelSprite(text, 0.06, '#c2410c');
+    rulerLabel.userData.text = text;
+    ruler.add(rulerLabel);
+  }
+  rulerLabel.center.set(1, 0); // left of the ruler, above the marker (the ruler's own labels are on its right)
+  rulerLabel.position.set(-0.02, h + 0.008, 0);
+  ruler.visible = h > 0.3;
+  hook.rulerHeight = h;
 }
 
 function dressUp(root) {
@@ -185,7 +297,11 @@ function dressUp(root) {
     o.castShadow = true;
     o.receiveShadow = true;
     const isAvatar = o === body;
+    // a fit map (?fitmap=strain|ease) comes as vertex colours (COLOR_0): shown as they are, not
+    // multiplied by the garment's colour or texture
+    const fitColours = !isAvatar && state.fitmap !== 'off' && o.geometry?.getAttribute('color');
     for (const m of [].concat(o.material)) {
+      if (fitColours) { m.vertexColors = true; m.map = null; m.color?.set(0xffffff); }
       // cloth is seen from both sides (sleeves, hems, open jackets); the body only from outside
       if (!isAvatar) m.side = THREE.DoubleSide;
       m.shadowSide = THREE.FrontSide;
@@ -293,11 +409,12 @@ const hook = {
   values: () => ({ ...state.values }),
   headTop,
   sceneScreenBox: () => screenBox(visibleBox(shown())),
+  sceneWorldHeight: () => visibleBox(shown()).getSize(new THREE.Vector3()).y,
   meshPixels,
   cameraDirection: () => camera.position.clone().sub(controls.target).normalize().toArray(),
   orbit: (azimuth) => { // turn the camera about the vertical through the target (radians), as a drag would
     const off = camera.position.clone().sub(controls.target).applyAxisAngle(new THREE.Vector3(0, 1, 0), azimuth);
-    camera.position.copy(controls.target).add(off); controls.update(); render();
+    camera.position.copy(controls.target).add(off); controls.update(); orientRuler(); render();
   },
   hair: () => state.hair,
   scanSize: () => (scanMesh ? new THREE.Box3().setFromObject(scanMesh).getSize(new THREE.Vector3()).toArray() : null),
@@ -624,6 +741,7 @@ function leaveScan() {
   if (ws) { const s = ws; ws = null; s.close(); }
   if (scanMesh) { scene.remove(scanMesh); scanMesh.geometry.dispose(); scanMesh.material.dispose(); scanMesh = null; }
   state.scan = null; state.view = 'scan'; scanPoseChosen = false;
+  privacyText();
   document.body.classList.remove('scan-customer');
   $('#scan-section').hidden = true; $('#catalogue-section').hidden = false; $('#save').hidden = false;
   state.values = { ...DEFAULTS };
@@ -633,6 +751,7 @@ function leaveScan() {
 let scanPoll = null;
 async function startScan(rec) {
   state.scan = rec;
+  privacyText();
   document.body.classList.add('scan-customer');
   $('#save').hidden = true; // saving measurements would replace the scan by a measured body
   $('#scan-section').hidden = false;
@@ -669,8 +788,8 @@ const toApi = (v, unit) => v / factor(unit);
 
 // ---- the form and sliders -----------------------------------------------------------------
 function buildForm() {
-  const fields = $('#fields'), sliders = $('#sliders');
-  fields.innerHTML = ''; sliders.innerHTML = '';
+  const fields = $('#fields'), more = $('#fields-more'), sliders = $('#sliders');
+  fields.innerHTML = ''; more.innerHTML = ''; sliders.innerHTML = '';
   for (const a of state.attributes) {
     const div = document.createElement('div');
     div.className = 'field'; div.id = `field-${a.name}`;
@@ -693,12 +812,13 @@ function buildForm() {
     const err = document.createElement('p');
     err.className = 'error'; err.id = `err-${a.name}`; err.setAttribute('aria-live', 'polite');
     div.append(label, input, hint, err);
-    fields.append(div);
+    (MAIN_FIELDS.includes(a.name) ? fields : more).append(div);
     input.addEventListener('input', () => {
       const raw = input.value.trim();
       if (raw === '') delete state.values[a.name];
       else state.values[a.name] = a.unit === null ? raw : toApi(Number(raw), a.unit);
       syncSliders();
+      if (a.name === 'gender') filterCatalogue();
       changed();
     });
     if (a.unit !== null && a.min !== null && a.max !== null) {
@@ -729,8 +849,11 @@ function syncForm() {
       input.value = v === undefined ? '' : toDisplay(v, a.unit);
       input.min = toDisplay(a.min, a.unit); input.max = toDisplay(a.max, a.unit);
     }
-    const range = a.unit === null ? '' : ` (${toDisplay(a.min, a.unit)}-${toDisplay(a.max, a.unit)} ${displayUnit(a.unit)})`;
-    document.getElementById(`hint-${a.name}`).textContent = `${a.description}${range}; optional`;
+    // the hint: the accepted range; the description (how to measure) as the field's tooltip
+    const hint = document.getElementById(`hint-${a.name}`);
+    hint.textContent = a.unit === null ? 'optional' : `${toDisplay(a.min, a.unit)}-${toDisplay(a.max, a.unit)} ${displayUnit(a.unit)}`;
+    hint.title = a.description; input.title = a.description;
+    document.querySelector(`label[for="in-${a.name}"]`).title = a.description;
   }
   document.querySelectorAll('.u').forEach((s) => { s.textContent = displayUnit(s.dataset.unit); });
 }
@@ -749,7 +872,7 @@ function syncSliders() {
 }
 
 document.querySelectorAll('input[name=units]').forEach((r) => r.addEventListener('change', () => {
-  state.units = r.value; syncForm(); syncSliders();
+  state.units = r.value; syncForm(); syncSliders(); frame(); // the ruler's height label too
 }));
 $('#measurements').addEventListener('submit', (e) => { e.preventDefault(); if (state.scan) sendScanEdit(); else refresh(); });
 
@@ -829,9 +952,28 @@ function setCustomer(id, token) {
   state.customerToken = id ? token : null;
   if (id) localStorage.setItem(CUSTOMER_KEY, id); else localStorage.removeItem(CUSTOMER_KEY);
   if (id && token) localStorage.setItem(TOKEN_KEY, token); else localStorage.removeItem(TOKEN_KEY);
-  $('#customer-status').textContent = id ? `Saved as customer ${id}.` : 'Not saved: nothing about you is stored.';
+  privacyText();
   $('#delete').disabled = !id;
   $('#save').textContent = id ? 'Update my saved data' : 'Save me';
+}
+
+// What the service keeps about the shopper, said as it is: nothing until they save or try a
+// garment on; then their measurements and the body shape made from them (the shape weights)
+// under a random id, with a token that only this browser keeps (localStorage; the service keeps
+// a hash of it), until they delete it (the service has no expiry for customers).
+function privacyText() {
+  const p = $('#customer-status');
+  const what = state.scan
+    ? `your scan${state.scan.editable ? ' (the uploaded mesh)' : ''}, the measurements and body shape (shape weights) fitted to it`
+    : 'your measurements and the body shape made from them (shape weights)';
+  p.textContent = state.customerId
+    ? `Stored on our server: ${what}, under the random id ${state.customerId}, until you delete it. `
+      + 'The key to it (a token) is kept only in this browser (localStorage); anyone with it can see your body. '
+      + '"Delete my data" removes both.'
+    : 'Nothing is stored yet: your avatar is made and forgotten. When you try on clothes or press "Save me", '
+      + 'we store your measurements and the body shape made from them (shape weights) under a random id, '
+      + 'with the key to it (a token) kept in this browser (localStorage), until you delete it.';
+  hook.privacy = p.textContent;
 }
 
 let generation = 0;
@@ -850,7 +992,11 @@ async function refresh() {
     if (state.worn.length) {
       if (!state.customerId) await saveCustomer();
       else if (state.customerStale) await updateCustomer();
-      r = await api(compressed(withHair(`/v1/customers/${state.customerId}/outfit.glb?garments=${state.worn.join(',')}&pose_correctives=1`)), asCustomer());
+      await loadFits();
+      if (gen !== generation) return;
+      const url = compressed(withHair(`/v1/customers/${state.customerId}/outfit.glb?garments=${state.worn.join(',')}${fitQuery()}&pose_correctives=1`));
+      hook.lastGlb = url;
+      r = await api(url, asCustomer());
     } else {
       if (state.customerId && state.customerStale) await updateCustomer();
       r = await api(compressed(withHair('/v1/avatars')), { method: 'POST', headers: { 'Content-Type': 'application/json', Accept: GLB },
@@ -861,6 +1007,7 @@ async function refresh() {
     clearErrors();
     hook.lastError = null;
     await showGlb(buf);
+    showFits();
     hook.ready = true;
   } catch (err) {
     if (gen !== generation) return;
@@ -878,11 +1025,42 @@ function cssColor(c) {
   return typeof c === 'string' ? c : '#888';
 }
 
+// The customer's gender (given in the form) first: their garments and the unisex ones, then,
+// behind "Show all", the others. Without a gender every garment shows. A worn garment always shows.
+function shopperGender() { const g = state.values.gender; return g === 'female' || g === 'male' ? g : null; }
+function forShopper(g, gender) { return !gender || !g.gender || g.gender === gender || g.gender === 'unisex'; }
+function filterCatalogue() {
+  const gender = shopperGender();
+  const all = state.catalogueAll || !gender;
+  let hidden = 0;
+  for (const li of document.querySelectorAll('#catalogue li')) {
+    const g = state.garments.find((x) => x.id === li.dataset.garment);
+    const mine = g && forShopper(g, gender);
+    li.hidden = !(all || mine || state.worn.includes(li.dataset.garment));
+    li.classList.toggle('other', Boolean(gender) && !mine);
+    if (!mine) hidden += 1;
+  }
+  // the shopper's gender first, then unisex, then the others (each in the catalogue's order)
+  const ul = $('#catalogue');
+  const rank = (li) => { const g = garment(li.dataset.garment); return !g || !gender ? 0 : g.gender === gender ? 0 : forShopper(g, gender) ? 1 : 2; };
+  const index = new Map(state.garments.map((g, i) => [g.id, i]));
+  [...ul.children].sort((a, b) => rank(a) - rank(b) || index.get(a.dataset.garment) - index.get(b.dataset.garment))
+    .forEach((li) => ul.append(li));
+  const btn = $('#catalogue-all');
+  btn.hidden = !gender || hidden === 0;
+  btn.setAttribute('aria-pressed', String(state.catalogueAll));
+  btn.textContent = state.catalogueAll ? `Only ${gender === 'female' ? "women's" : "men's"} and unisex`
+    : `Show all (${state.garments.length})`;
+  $('#catalogue-title').textContent = gender && !state.catalogueAll ? `Clothes for ${gender === 'female' ? 'women' : 'men'}` : 'Clothes';
+}
+$('#catalogue-all').addEventListener('click', () => { state.catalogueAll = !state.catalogueAll; filterCatalogue(); });
+
 function buildCatalogue() {
   const ul = $('#catalogue');
   ul.innerHTML = '';
   for (const g of state.garments) {
     const li = document.createElement('li');
+    li.dataset.garment = g.id;
     const btn = document.createElement('button');
     btn.type = 'button'; btn.dataset.garment = g.id; btn.setAttribute('aria-pressed', 'false');
     const img = document.createElement('img');
@@ -892,14 +1070,22 @@ function buildCatalogue() {
     const name = document.createElement('span');
     name.textContent = g.name;
     btn.append(img, name);
+    if (Array.isArray(g.sizes) && g.sizes.length > 1) {
+      const sz = document.createElement('span');
+      sz.className = 'sizes';
+      sz.dataset.range = sz.textContent = `${g.sizes[0].label}-${g.sizes[g.sizes.length - 1].label}`;
+      btn.append(sz);
+    }
     btn.addEventListener('click', () => {
       const on = !state.worn.includes(g.id);
       state.worn = on ? [...state.worn, g.id] : state.worn.filter((x) => x !== g.id);
       btn.setAttribute('aria-pressed', String(on));
+      filterCatalogue();
       refresh();
     });
     li.append(btn); ul.append(li);
   }
+  filterCatalogue();
 }
 
 // One small offscreen renderer draws each garment's mean shape once into an <img> (basis.glb
@@ -928,6 +1114,138 @@ async function thumbnails() {
   r.dispose();
 }
 
+// ---- sizes and fit ------------------------------------------------------------------------
+// A garment in sizes lists them (`sizes: [{label, measurements}]`, `fabric`, `base_size`); the
+// customer's fit of each (GET /v1/customers/{cid}/garments/{gid}/fit: recommended, and per size a
+// verdict and the regions' ease and strain) drives a size picker with the recommended size
+// marked, the fit in words, and the try-on of the chosen size (outfit.glb?sizes=, in the order of
+// ?garments=). A one-size garment, or a server whose fit answers 404, shows no size UI.
+const VERDICT_ORDER = ['too_tight', 'tight', 'loose', 'too_loose'];
+const GIRTH_WORDS = { too_tight: 'too tight', tight: 'tight', loose: 'loose', too_loose: 'too loose' };
+const LENGTH_WORDS = { too_tight: 'much too short', tight: 'short', loose: 'long', too_loose: 'much too long' };
+const SIZE_WORDS = { too_tight: 'too small', tight: 'snug', fit: 'fits', loose: 'roomy', too_loose: 'too big' };
+const REGION_NAMES = { chest: 'chest', bust: 'bust', waist: 'waist', hip: 'hips', hips: 'hips', thigh: 'thighs',
+  upper_arm: 'upper arms', shoulder: 'shoulders', shoulders: 'shoulders', neck: 'neck', calf: 'calves', seat: 'seat' };
+const LENGTH_NAMES = { sleeve: 'sleeves', inseam: 'legs', leg: 'legs', hem: 'hem', length: 'length', rise: 'rise', torso: 'body' };
+const FITMAP_LEGEND = {
+  strain: { css: 'linear-gradient(to right, #2f5bd3, #f2f2f2, #d62b2b)', labels: ['at rest', 'stretched', "at the fabric's limit"] },
+  ease: { css: 'linear-gradient(to right, #d62b2b, #2ca02c, #2f5bd3)', labels: ['presses the body', 'fits', 'hangs loose'] },
+};
+
+function sized(g) { return Array.isArray(g?.sizes) && g.sizes.length > 1; }
+function garment(id) { return state.garments.find((g) => g.id === id); }
+function fitOf(id) { return state.fits.get(`${state.customerId}|${id}`) ?? null; }
+function sizeOf(id) { // the size tried on: picked, else recommended, else the only one
+  const g = garment(id), fit = fitOf(id);
+  const labels = (g?.sizes || []).map((x) => x.label);
+  if (state.sizes[id] && labels.includes(state.sizes[id])) return state.sizes[id];
+  if (fit?.recommended) return fit.recommended;
+  return labels.length === 1 ? labels[0] : null;
+}
+
+async function loadFits() {
+  const cid = state.customerId;
+  await Promise.all(state.worn.filter((id) => sized(garment(id)) && !state.fits.has(`${cid}|${id}`)).map(async (id) => {
+    try {
+      const r = await fetch(`/v1/customers/${cid}/garments/${id}/fit`, asCustomer());
+      if (r.ok) state.fits.set(`${cid}|${id}`, await r.json());
+      else if (r.status === 404 || r.status === 422) state.fits.set(`${cid}|${id}`, null); // no sizes there
+    } catch { /* not now: no size UI this time */ }
+  }));
+}
+
+// ?sizes= (every worn garment's size, when at least one has a fit) and ?fitmap=
+function fitQuery() {
+  const fitted = state.worn.some((id) => fitOf(id));
+  if (!fitted) return '';
+  const labels = state.worn.map(sizeOf);
+  let q = labels.every(Boolean) ? `&sizes=${labels.map(encodeURIComponent).join(',')}` : '';
+  if (state.fitmap !== 'off') q += `&fitmap=${state.fitmap}`;
+  return q;
+}
+
+function regionName(region) {
+  const r = String(region).toLowerCase().replace(/_(cm|girth|length)$/, '');
+  if (LENGTH_NAMES[r]) return { name: LENGTH_NAMES[r], length: true };
+  return { name: REGION_NAMES[r] || r.replace(/_/g, ' '), length: false };
+}
+function joinWords(list) { return list.length < 2 ? list.join('') : `${list.slice(0, -1).join(', ')} and ${list[list.length - 1]}`; }
+// "tight at the hips and waist, loose at the chest; the sleeves are long"
+function fitInWords(size) {
+  const girths = [], lengths = [];
+  for (const v of VERDICT_ORDER) {
+    const rs = (size.regions || []).filter((r) => r.verdict === v).map((r) => regionName(r.region));
+    const g = [...new Set(rs.filter((r) => !r.length).map((r) => r.name))];
+    const l = [...new Set(rs.filter((r) => r.length).map((r) => r.name))];
+    if (g.length) girths.push(`${GIRTH_WORDS[v]} at the ${joinWords(g)}`);
+    if (l.length) lengths.push(`the ${joinWords(l)} ${l.length > 1 || /s$/.test(l[0]) ? 'are' : 'is'} ${LENGTH_WORDS[v]}`);
+  }
+  const text = [girths.join(', '), lengths.join(', ')].filter(Boolean).join('; ');
+  return text ? text[0].toUpperCase() + text.slice(1) + '.' : 'Fits well everywhere.';
+}
+
+function showFits() {
+  const box = $('#fits');
+  box.innerHTML = '';
+  const shown = state.worn.filter((id) => sized(garment(id)) && fitOf(id));
+  // a worn garment's card says the size tried on, the others their size range
+  document.querySelectorAll('#catalogue .sizes').forEach((sp) => {
+    const id = sp.closest('button').dataset.garment;
+    sp.textContent = shown.includes(id) && sizeOf(id) ? `size ${sizeOf(id)}` : sp.dataset.range;
+  });
+  $('#fit-section').hidden = shown.length === 0 || Boolean(state.scan);
+  for (const id of shown) {
+    const g = garment(id), fit = fitOf(id), chosen = sizeOf(id);
+    const div = document.createElement('div');
+    div.className = 'garment-fit'; div.dataset.garment = id;
+    const h = document.createElement('h3');
+    h.textContent = g.name;
+    if (g.fabric) { const f = document.createElement('span'); f.className = 'fabric'; f.textContent = g.fabric; h.append(' ', f); }
+    const picker = document.createElement('div');
+    picker.className = 'size-picker'; picker.setAttribute('role', 'group'); picker.setAttribute('aria-label', `Size of ${g.name}`);
+    const bySize = new Map((fit.sizes || []).map((x) => [x.label, x]));
+    for (const { label } of g.sizes) {
+      const b = document.createElement('button');
+      b.type = 'button'; b.dataset.size = label;
+      b.setAttribute('aria-pressed', String(label === chosen));
+      b.textContent = label;
+      const verdict = bySize.get(label)?.verdict;
+      b.title = verdict ? `${label}: ${SIZE_WORDS[verdict] || verdict}` : label;
+      if (label === fit.recommended) {
+        b.classList.add('recommended');
+        const badge = document.createElement('span'); badge.className = 'badge'; badge.textContent = 'best fit';
+        b.append(badge);
+        b.setAttribute('aria-label', `${label}, recommended`);
+      }
+      b.addEventListener('click', () => { state.sizes[id] = label; showFits(); refresh(); });
+      picker.append(b);
+    }
+    const words = document.createElement('p');
+    words.className = 'fit-words';
+    const size = bySize.get(chosen);
+    words.textContent = size ? `Size ${chosen} ${SIZE_WORDS[size.verdict] ? `(${SIZE_WORDS[size.verdict]})` : ''}: ${fitInWords(size)}` : '';
+    const rec = document.createElement('p');
+    rec.className = 'recommend';
+    rec.textContent = fit.recommended ? `We recommend ${fit.recommended} for you.` : '';
+    div.append(h, picker, words, rec);
+    box.append(div);
+  }
+  document.querySelectorAll('#fitmap button').forEach((b) => b.setAttribute('aria-pressed', String(b.dataset.fitmap === state.fitmap)));
+  const legend = FITMAP_LEGEND[state.fitmap];
+  $('#fitmap-legend').hidden = !legend;
+  if (legend) {
+    $('#legend-bar').style.background = legend.css;
+    $('#legend-labels').innerHTML = '';
+    for (const t of legend.labels) { const sp = document.createElement('span'); sp.textContent = t; $('#legend-labels').append(sp); }
+  }
+}
+document.querySelectorAll('#fitmap button').forEach((b) => b.addEventListener('click', () => {
+  state.fitmap = b.dataset.fitmap; showFits(); refresh();
+}));
+hook.fitInWords = fitInWords;
+hook.vertexColourMeshes = () => meshes().filter((m) => m.geometry.getAttribute('color')
+  && [].concat(m.material).every((x) => x.vertexColors)).map((m) => m.name);
+
 // ---- account ------------------------------------------------------------------------------
 $('#save').addEventListener('click', async () => {
   try {
@@ -947,7 +1265,9 @@ $('#delete').addEventListener('click', async () => {
   if (state.worn.length) { // nothing to dress without a customer
     state.worn = [];
     document.querySelectorAll('#catalogue button').forEach((b) => b.setAttribute('aria-pressed', 'false'));
+    filterCatalogue();
   }
+  showFits();
   refresh();
 });
 
