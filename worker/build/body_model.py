@@ -32,7 +32,7 @@ from service.model.body.model import BONES, BONE_PARENTS
 from service.model.geometry.mesh import mesh_edges, vertex_normals
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED = REPO.parent / "shared" / "data"
+SHARED = Path(os.environ.get("TRYON_SHARED_DATA") or REPO.parent / "shared" / "data")  # third-party sources
 ANSUR_DIR = SHARED / "anthropometry" / "ansur2"
 NHANES_DIR = SHARED / "anthropometry" / "nhanes_2017_2020"
 OUT_MODEL = REPO / "service" / "data" / "body_model.npz"

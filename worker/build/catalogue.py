@@ -34,6 +34,7 @@ import hashlib
 import importlib.util
 import io
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -54,7 +55,7 @@ from service.model.formats.mhclo import DM, Binding, parse_mhclo, parse_obj
 from worker.build import base_layer as BL
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED = REPO.parent / "shared" / "data"
+SHARED = Path(os.environ.get("TRYON_SHARED_DATA") or REPO.parent / "shared" / "data")  # third-party sources
 OUT = REPO / "service" / "data" / "catalogue"
 FORMAT = 1
 
@@ -743,7 +744,7 @@ def provenance(doc: dict, root: Path) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="tryon build-catalogue", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=OUT, help=f"output directory (default {OUT.relative_to(REPO)})")
-    ap.add_argument("--shared", type=Path, default=SHARED, help="the shared data folder (default ../shared/data)")
+    ap.add_argument("--shared", type=Path, default=SHARED, help="the shared data folder (default $TRYON_SHARED_DATA or ../shared/data)")
     ap.add_argument("--items", default=None, help="comma-separated item ids (default: all)")
     args = ap.parse_args(argv)
     build(args.out, args.shared, args.items.split(",") if args.items else None)
