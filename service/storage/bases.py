@@ -8,12 +8,10 @@ A garment in several sizes keeps one basis per size: ``garments/<id>/size-<i>/``
 size's index in its chart), all written in one temporary directory renamed into place."""
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
-from service.model.garments.tryon import GarmentBasis
+from service.model.garments.tryon import GarmentBasis, atomic_directory
 from service.storage.cache import VersionedLRU
 
 
@@ -31,18 +29,9 @@ class BasisStore:
 
     def save_sizes(self, gid: str, bases: list[GarmentBasis]) -> None:
         """One basis per size (chart order), written together atomically."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=self.root))
-        try:
+        with atomic_directory(self.path(gid)) as tmp:
             for i, basis in enumerate(bases):
                 basis.save(tmp / f"size-{i}")
-            target = self.path(gid)
-            if target.exists():
-                shutil.rmtree(target)
-            os.replace(tmp, target)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         for i in range(len(bases)):
             self._cache.drop(f"{gid}#{i}")
         self._cache.drop(gid)

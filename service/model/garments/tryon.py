@@ -17,6 +17,8 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -75,6 +77,23 @@ def example_vertices(model, examples: G.ExampleSet) -> np.ndarray:
     W = np.zeros((1 + 2 * examples.n, model.n_components))
     W[:, : examples.n] = examples.weights()
     return model.vertices(W)
+
+
+@contextmanager
+def atomic_directory(directory: Path) -> Iterator[Path]:
+    """Yield a temporary sibling of ``directory`` to write into; on success it replaces
+    ``directory`` in one rename, on failure it is removed and ``directory`` is left as it was."""
+    directory = Path(directory)
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=directory.parent))
+    try:
+        yield tmp
+        if directory.exists():
+            shutil.rmtree(directory)
+        os.replace(tmp, directory)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 @dataclass
@@ -188,22 +207,13 @@ class GarmentBasis:
 
     def save(self, directory: Path) -> None:
         """Write atomically: a temporary sibling directory renamed into place."""
-        directory = Path(directory)
-        directory.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=directory.parent))
-        try:
+        with atomic_directory(directory) as tmp:
             for k in ARRAYS:
                 if getattr(self, k) is not None:
                     np.save(tmp / f"{k}.npy", np.ascontiguousarray(getattr(self, k)))
             if self.material is not None:
                 save_material(self.material, tmp)
             (tmp / "meta.json").write_text(json.dumps(self.meta, sort_keys=True))
-            if directory.exists():
-                shutil.rmtree(directory)
-            os.replace(tmp, directory)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
 
     @classmethod
     def load(cls, directory: Path, mmap: bool = True) -> "GarmentBasis":
