@@ -190,15 +190,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                           job_monitoring_interval=args.job_monitoring_interval,
                           maintenance_interval=args.maintenance_interval, parent_pid=args.parent_pid)
     if args.command == "openapi":
-        text = openapi_text()
-        if str(args.out) == "-":
-            sys.stdout.write(text)
-        else:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(text, encoding="utf-8")
-            print(f"wrote {args.out}", file=sys.stderr)
+        write_output(openapi_text(), args.out)
         return 0
     raise AssertionError(f"unhandled command {args.command}")  # pragma: no cover
+
+
+
+def write_output(text: str, out: Path) -> None:
+    """Write a generated document to ``out`` (``-``: standard output), saying where."""
+    if str(out) == "-":
+        sys.stdout.write(text)
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text, encoding="utf-8")
+        print(f"wrote {out}", file=sys.stderr)
 
 
 if __name__ == "__main__":

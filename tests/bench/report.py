@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from service.cli import write_output
+
 from tests.bench.goals import GOALS, Goal
 
 REPO = Path(__file__).resolve().parents[2]
@@ -201,12 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.out} is not current: run `tryon bench-report`", file=sys.stderr)
             return 1
         return 0
-    if str(args.out) == "-":
-        sys.stdout.write(text)
-    else:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text, encoding="utf-8")
-        print(f"wrote {args.out}", file=sys.stderr)
+    write_output(text, args.out)
     return 0
 
 
