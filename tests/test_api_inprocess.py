@@ -25,7 +25,7 @@ SHOES = shared_data_dir() / "makehuman_clothes" / "shoes01"
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("inproc"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False,
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="mens-tshirt,mens-jeans,pencil-skirt",
                             TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c

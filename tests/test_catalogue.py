@@ -122,6 +122,7 @@ def test_loaded_once_per_process(cat):
 
 
 # -- fitting ------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_every_item_fits_every_example_avatar(cat, model, examples):
     nb = model.n_body_vertices
     trees = [cKDTree(E[:nb]) for E in examples]

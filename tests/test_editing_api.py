@@ -23,7 +23,7 @@ from tests.harness import RETAILERS, assert_422, redis_db, redis_url
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("edit"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False,
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="",
                             TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c

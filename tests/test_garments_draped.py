@@ -16,6 +16,9 @@ from service.settings import Settings
 from tests import draped_data as D
 from tests.harness import RETAILERS, assert_422, redis_db, redis_url
 
+# each test builds garments through the API (seconds each): the full tier
+pytestmark = pytest.mark.slow
+
 KEY = {"X-API-Key": RETAILERS["acme"]}
 
 

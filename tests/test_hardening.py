@@ -28,6 +28,7 @@ ORIGIN = "https://shop.example"
 
 
 def _settings(tmp: Path, url: str, **kw: object) -> Settings:
+    kw.setdefault("TRYON_DEMO_ITEMS", "mens-tshirt")  # one demo garment: all these tests try on
     return Settings(TRYON_DATA_DIR=tmp, REDIS_URL=url, TRYON_EMBEDDED_WORKER=False,
                     TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()), **kw)
 
@@ -168,6 +169,7 @@ def test_back_pressure_answers_503_at_once() -> None:
 
 
 # -- a Redis outage ---------------------------------------------------------------------------
+@pytest.mark.slow
 def test_redis_outage_is_503_then_recovers(tmp_path: Path) -> None:
     """Redis killed: every route that needs it answers 503 + Retry-After (never a 500); the
     routes that do not need it keep working; Redis back: the same client recovers by itself."""

@@ -226,7 +226,9 @@ def test_avatar_glb_choices(model, bodies) -> None:
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("look"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False)
+                            TRYON_EMBEDDED_WORKER=False,  # the catalogue items these tests try on
+                            TRYON_DEMO_ITEMS="womens-tshirt,pinstripe-blouse,cropped-tee,womens-jeans,mens-jeans,"
+                                             "business-suit")
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c
 

@@ -119,6 +119,7 @@ def test_the_makehuman_objs_read_as_the_reference_reads_them():
         assert np.array_equal(want[2], got.face_uv) and np.array_equal(want[3], got.uv), path
 
 
+@pytest.mark.slow
 def test_a_45_mb_scan_is_read_in_bounded_memory():
     """The test_faults upload scan (500,000 vertices, 1 M faces): the reader's peak allocation
     stays within 2.5x its result (trimesh's loader held ~8x)."""

@@ -328,6 +328,7 @@ def _bench_scan(model, person_index: int, pose_deg: float, degrade: tuple, cloud
     return SS.degrade(scan, degrade, np.random.default_rng([BF.SEED, 11, person["index"]])), person
 
 
+@pytest.mark.slow
 def test_a_flat_cap_over_the_head_is_found_and_a_crown_is_not(model):
     """Issue 12, processed scans: software that makes a scan watertight may close a head cut 4 cm
     below the crown with a flat cap of new points (``synthetic_scans.capped_head``, as dense as

@@ -103,6 +103,7 @@ INPUTS = {
 }
 
 
+@pytest.mark.slow
 def test_fast_path_matches_the_reference_on_held_out_subjects(model):
     """Tolerance: every one of the 11 measurements within 0.25 of its ISO 20685-1 allowable
     error of the reference's, body vertices within 2 mm (median within 0.1 mm). The two take

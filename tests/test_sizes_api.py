@@ -17,6 +17,9 @@ from service.settings import Settings
 from tests.bench.common import shared_data_dir
 from tests.harness import GLB, RETAILERS, assert_422, redis_db, redis_url
 
+# each test builds garments through the API (seconds each): the full tier
+pytestmark = pytest.mark.slow
+
 KEY = {"X-API-Key": RETAILERS["acme"]}
 SUIT = shared_data_dir() / "makehuman_clothes" / "male_casualsuit04"
 # EN 13402-3 men's chest / waist / hip (cm), sizes 48-52 (the middle of the table)

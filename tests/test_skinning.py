@@ -649,7 +649,7 @@ def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
 
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("poses"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False)
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="pencil-skirt")
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c
 

@@ -101,6 +101,7 @@ def test_fetch_is_one_round_trip(ctx: Context, model: BodyModel) -> None:
     assert garms[0] is not None and garms[0].id == gids[0] and garms[1] is None and garms[2] is None
 
 
+@pytest.mark.slow
 def test_garment_files_cache_and_delete(ctx: Context) -> None:
     garments, bases = ctx.garments_repo, ctx.bases
     assert garments.list() == []
@@ -179,6 +180,7 @@ def test_lock_is_exclusive(ctx: Context) -> None:
         assert held
 
 
+@pytest.mark.slow
 def test_lock_lease_is_renewed_and_lapses_when_its_holder_dies(ctx: Context, monkeypatch) -> None:
     """Held longer than its lease: still exclusive (renewed by its thread). A holder killed
     while holding (its key left behind, no renewal): the lock is free after one lease, not after
@@ -223,6 +225,7 @@ def test_enqueue_and_worker(ctx: Context, settings: Settings, model: BodyModel) 
     assert queue.get("ping-1") is None and queue.get("../bad") is None
 
 
+@pytest.mark.slow
 def test_demo_catalogue_keeps_its_look(ctx: Context) -> None:
     """The demo catalogue is the compiled MakeHuman catalogue, keyed by item id, with its
     layers, categories and genders; its bases keep the render layout and the material (texture
