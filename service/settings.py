@@ -84,6 +84,20 @@ class Settings(BaseSettings):
         "size on every example avatar with the cloth drape engine (service.model.drape) instead of carrying "
         "it with the body. Off by default until a build fits the time budget (see docs/drape.md).",
     )
+    drape_timeout: int = Field(
+        default=600,
+        validation_alias="TRYON_DRAPE_TIMEOUT",
+        gt=0,
+        description="Seconds a per-customer exact drape job (`?drape=exact` on a garment try-on) may run before "
+        "the worker kills it (then retried).",
+    )
+    drape_iterations: int = Field(
+        default=400,
+        validation_alias="TRYON_DRAPE_ITERATIONS",
+        gt=0,
+        description="Most solver iterations of a per-customer exact drape (the drape engine's "
+        "Config.max_iterations; fewer: faster, less settled).",
+    )
     demo_items: str = Field(
         default="all",
         validation_alias="TRYON_DEMO_ITEMS",

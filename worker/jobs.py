@@ -6,6 +6,8 @@ Each is thin: it calls the same use cases as the routes, on a context of the wor
   (``CustomerService.run_fit``: idempotent, deterministic failures recorded, not retried).
 * :func:`build_garment` (job id ``build-<garment id>``): one draped garment -> fitted to every
   example avatar -> its clothing basis (``GarmentService.run_build``, likewise).
+* :func:`drape_garment` (job id ``drape-<digest>``): a customer's exact drape of one garment
+  (``ExactDrapes.run``, likewise).
 """
 from __future__ import annotations
 
@@ -25,3 +27,9 @@ def build_garment(garment_id: str) -> dict[str, Any]:
     """Build a draped garment's clothing basis. Returns ``{"status": "done"|"failed"|"deleted",
     "garment_id", ...}``."""
     return worker_context().garments.run_build(garment_id, report_progress)
+
+
+def drape_garment(customer_id: str, garment_id: str, size: str | None, iterations: int, key: str) -> dict[str, Any]:
+    """Drape a garment on a customer's body (``?drape=exact``). Returns ``{"status": "done"|
+    "failed"|"deleted"|"stale", "customer_id", "garment_id", ...}``."""
+    return worker_context().drapes.run(customer_id, garment_id, size, iterations, key, report_progress)

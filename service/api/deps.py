@@ -17,6 +17,7 @@ from starlette.requests import HTTPConnection
 from service.application.auth import Credentials
 from service.application.context import Context
 from service.application.customers import CustomerService
+from service.application.drapes import ExactDrapes
 from service.application.editing import EditingService
 from service.application.garments import GarmentService
 from service.application.jobs import JobService
@@ -65,6 +66,10 @@ async def get_tryon(ctx: ContextDep) -> TryOnService:
     return ctx.tryon
 
 
+async def get_drapes(ctx: ContextDep) -> ExactDrapes:
+    return ctx.drapes
+
+
 async def get_jobs(ctx: ContextDep) -> JobService:
     return ctx.jobs
 
@@ -81,6 +86,7 @@ CustomersDep = Annotated[CustomerService, Depends(get_customers)]
 GarmentsDep = Annotated[GarmentService, Depends(get_garments)]
 TryOnDep = Annotated[TryOnService, Depends(get_tryon)]
 JobsDep = Annotated[JobService, Depends(get_jobs)]
+DrapesDep = Annotated[ExactDrapes, Depends(get_drapes)]
 EditingDep = Annotated[EditingService, Depends(get_editing)]
 LimitsDep = Annotated[Limits, Depends(get_limits)]
 

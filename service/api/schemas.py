@@ -104,7 +104,8 @@ class AvatarResponse(BaseModel):
 class JobRef(BaseModel):
     """A record's job (a customer's fit, a garment's build)."""
 
-    id: str = Field(description="Job id (fit-<customer id> or build-<garment id>)")
+    id: str = Field(description="Job id (fit-<customer id>, build-<garment id>, or drape-<digest> for a "
+                                "customer's exact drape of a garment)")
     url: str = Field(description="Where to poll it: /v1/jobs/{id}")
     status: Literal["queued", "running", "done", "failed"] | None = Field(
         default=None, description="The job's status now (null once the job record has expired)")
@@ -210,15 +211,16 @@ class JobResponse(BaseModel):
     """A background job (a scan fit), from the queue."""
 
     id: str
-    kind: str | None = Field(default=None, description="What the job does: fit (a customer's scan) or garment "
-                                                        "(a draped garment's build)")
+    kind: str | None = Field(default=None, description="What the job does: fit (a customer's scan), garment "
+                                                        "(a draped garment's build) or drape (a customer's exact "
+                                                        "drape of a garment, ?drape=exact)")
     status: Literal["queued", "running", "done", "failed"] = Field(
         description="queued (waiting, or waiting for a retry), running, done, failed (see error)")
     progress: float = Field(ge=0.0, le=1.0, description="Fraction done, 0..1")
     message: str | None = Field(default=None, description="What the job is doing")
     error: str | None = Field(default=None, description="Failed jobs: why, in one line")
-    customer_id: str | None = Field(default=None, description="The customer the job fits")
-    garment_id: str | None = Field(default=None, description="The garment the job builds")
+    customer_id: str | None = Field(default=None, description="The customer the job fits (or drapes on)")
+    garment_id: str | None = Field(default=None, description="The garment the job builds (or drapes)")
     created: str | None = Field(default=None, description="ISO 8601 UTC time the job was created")
     started: str | None = Field(default=None, description="... it last started running")
     ended: str | None = Field(default=None, description="... it ended")

@@ -4,31 +4,54 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
+from fastapi.responses import JSONResponse
 
 from service.api import responses as R
-from service.api.schemas import FitResponse
-from service.api.deps import (Compression, CredentialsDep, Expensive, Hair, IfNoneMatchDep, PoseCorrectives, TryOnDep,
-                              Underwear)
+from service.api.schemas import FitResponse, JobRef
+from service.api.deps import (Compression, CredentialsDep, DrapesDep, Expensive, Hair, IfNoneMatchDep, PoseCorrectives,
+                              TryOnDep, Underwear)
+from service.records import JobRef as JobRefRecord
 
 router = APIRouter(tags=["try-on"])
 FitMap = Annotated[Literal["strain", "ease"] | None, Query(description=(
     "Colour the garments by their fit (COLOR_0 on a white material): strain, blue at rest to red at the "
     "fabric's stretch limit (as CLO's strain map); ease, red where the cloth presses the body, green at the "
     "fabric's designed ease, blue where it hangs"))]
+Drape = Annotated[Literal["basis", "exact"], Query(description=(
+    "basis (default): the garment from its clothing basis, in milliseconds. exact: the garment draped on "
+    "this customer's own body by the cloth drape engine (its own size and fabric), computed once by a queued "
+    "job: the first request answers 202 with the job (also the Location header; the same job while it is "
+    "queued or running), then the draped garment, cached until the customer's body or the garment changes; "
+    "409 with the reason when the drape failed"))]
+EXACT_DRAPE_RESPONSES = {
+    202: {"description": "drape=exact: the customer's drape is being computed: poll the job (`url`, also the "
+                         "`Location` header), then ask again", "model": JobRef},
+    409: {"description": R.CUSTOMER_GLB_RESPONSE[409]["description"] + "; drape=exact: the customer's drape "
+                                                                         "failed (`detail`: why)"},
+    429: {"description": "drape=exact: the requester already has its cap of queued jobs", "headers": R.RETRY_AFTER},
+}
 
 
 @router.get("/v1/customers/{cid}/garments/{gid}.glb", response_class=Response, dependencies=[Expensive],
-            responses=R.CUSTOMER_SCENE_RESPONSE)
-def try_on_glb(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
-               compression: Compression = None, pose_correctives: PoseCorrectives = False,
+            responses={**R.CUSTOMER_SCENE_RESPONSE, **EXACT_DRAPE_RESPONSES})
+def try_on_glb(cid: str, gid: str, tryon: TryOnDep, drapes: DrapesDep, creds: CredentialsDep,
+               if_none_match: IfNoneMatchDep, compression: Compression = None,
+               pose_correctives: PoseCorrectives = False,
                size: Annotated[str | None, Query(max_length=64, description=(
                    "A size label of the garment's chart (default: the size recommended for this customer, "
                    "see /fit); unknown: 422 listing the garment's sizes"))] = None,
-               fitmap: FitMap = None) -> Response:
+               fitmap: FitMap = None, drape: Drape = "basis") -> Response:
     """The garment fitted to the customer, skinned with the customer's skeleton. ``ETag`` from
     (customer weights, garment etag, options); ``If-None-Match`` -> 304 without computing.
     ``pose_correctives=true``: one morph target per page pose (``pose:<name>``) that keeps the
-    garment outside the body in that pose (influence 1 in that pose, 0 otherwise)."""
+    garment outside the body in that pose (influence 1 in that pose, 0 otherwise).
+    ``drape=exact``: the customer's own drape of the garment (202 with its job until it is
+    done; then the same GLB layout with the draped garment, its own ``ETag``)."""
+    if drape == "exact":
+        out = drapes.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives, size, fitmap)
+        if isinstance(out, JobRefRecord):
+            return JSONResponse(out.model_dump(), status_code=202, headers={"Location": out.url})
+        return R.private_glb(*out)
     return R.private_glb(*tryon.garment_glb(cid, gid, creds, compression, if_none_match, pose_correctives, size,
                                             fitmap))
 

@@ -12,6 +12,7 @@ from service.model.body.model import BodyModel, load_body_model
 from service.settings import Settings, get_settings
 from service.storage import redis as R
 from service.storage.bases import BasisStore
+from service.storage.drapes import DrapeStore
 from service.storage.meshes import MeshStore
 from service.storage.limits import JobTracker, RateLimiter
 from service.storage.poses import PoseStore
@@ -21,6 +22,7 @@ from service.storage.records import CustomerRepo, GarmentRepo
 from . import parallel
 from .bodies import BodyCache
 from .customers import CustomerService
+from .drapes import ExactDrapes
 from .editing import EditingService
 from .editors import Editors
 from .examples import Examples
@@ -40,6 +42,7 @@ class Context:
     garments_repo: GarmentRepo = field(init=False)
     bases: BasisStore = field(init=False)
     meshes: MeshStore = field(init=False)
+    drape_store: DrapeStore = field(init=False)
     queue: JobQueue = field(init=False)
     bodies: BodyCache = field(init=False)
     editors: Editors = field(init=False)
@@ -47,6 +50,7 @@ class Context:
     customers: CustomerService = field(init=False)
     garments: GarmentService = field(init=False)
     tryon: TryOnService = field(init=False)
+    drapes: ExactDrapes = field(init=False)
     jobs: JobService = field(init=False)
     editing: EditingService = field(init=False)
     rate_limiter: RateLimiter = field(init=False)
@@ -60,6 +64,7 @@ class Context:
         self.garments_repo = GarmentRepo(self.conn, prefix)
         self.bases = BasisStore(settings.data_dir)
         self.meshes = MeshStore(settings.data_dir)
+        self.drape_store = DrapeStore(settings.data_dir)
         self.queue = JobQueue(self.conn)
         self.rate_limiter = RateLimiter(self.conn, prefix)
         self.limits = Limits(settings, self.rate_limiter, JobTracker(self.conn, prefix, self.queue))
@@ -69,11 +74,14 @@ class Context:
         self.poses = Poses(model, PoseStore(self.conn, prefix), self.bodies)
         # use cases, each after the ones it calls
         self.customers = CustomerService(model, self.customers_repo, self.queue, self.meshes, self.bodies,
-                                         self.editors, self.poses, self.limits, settings.fit_timeout)
+                                         self.editors, self.poses, self.limits, settings.fit_timeout,
+                                         self.drape_store)
         self.garments = GarmentService(settings, model, self.garments_repo, self.bases, self.queue, self.limits,
-                                       lambda: self.examples)
+                                       lambda: self.examples, self.drape_store)
         self.tryon = TryOnService(model, self.customers_repo, self.garments_repo, self.customers, self.garments,
                                   self.poses)
+        self.drapes = ExactDrapes(settings, model, self.customers_repo, self.garments_repo, self.customers,
+                                  self.garments, self.tryon, self.queue, self.limits, self.drape_store)
         self.jobs = JobService(self.queue, self.customers_repo, self.customers)
         self.editing = EditingService(model, self.customers, self.editors)
 

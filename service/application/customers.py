@@ -20,6 +20,7 @@ from service.model.fitting.scan_cleanup import kept_faces
 from service.model.body.shape import MeasurementError, avatar_from_measurements, estimate_gender
 from service.model.garments.tryon import CustomerBody
 from service.records import Customer, FitStats, JobRef, ScanInfo
+from service.storage.drapes import DrapeStore
 from service.storage.meshes import MeshStore
 from service.storage.queue import JobQueue
 from service.storage.records import CustomerRepo, new_id
@@ -50,7 +51,7 @@ def fit_job_id(cid: str) -> str:
 
 class CustomerService:
     def __init__(self, model: BodyModel, repo: CustomerRepo, queue: JobQueue, meshes: MeshStore, bodies: BodyCache,
-                 editors: Editors, poses: Poses, limits: Limits, fit_timeout: int):
+                 editors: Editors, poses: Poses, limits: Limits, fit_timeout: int, drapes: DrapeStore):
         self.model = model
         self.repo = repo
         self.queue = queue
@@ -60,6 +61,7 @@ class CustomerService:
         self.poses = poses
         self.limits = limits
         self.fit_timeout = fit_timeout
+        self.drapes = drapes
 
     # -- records -----------------------------------------------------------------------------
     def _new(self, **fields: Any) -> tuple[Customer, str]:
@@ -253,7 +255,8 @@ class CustomerService:
 
     def delete(self, cid: str, creds: Credentials = ANONYMOUS) -> None:
         """Delete a customer and everything derived from it (at any time: a waiting scan and its
-        fitting job too; a running fit is stopped)."""
+        fitting job too, a running fit is stopped; its exact drapes: a drape job still running
+        finds the customer gone and drops its result)."""
         self.open(self.repo.get(cid), cid, creds)
         self.bodies.drop(cid)
         record = self.repo.delete(cid)
@@ -262,6 +265,7 @@ class CustomerService:
         if record.job is not None:
             self.queue.cancel(record.job.id)
         self.meshes.delete(cid)
+        self.drapes.delete_customer(cid)
         self.editors.forget(cid)
         self.bodies.drop(cid)
         if record.weights:

@@ -24,6 +24,7 @@ from service.model.garments.tryon import GarmentBasis, build_garment_basis, refr
 from service.records import Garment, JobRef
 from service.settings import Settings
 from service.storage.bases import BasisStore
+from service.storage.drapes import DrapeStore
 from service.storage.queue import JobQueue
 from service.storage.records import GarmentRepo, new_id
 
@@ -64,7 +65,7 @@ def build_job_id(gid: str) -> str:
 
 class GarmentService:
     def __init__(self, settings: Settings, model: BodyModel, repo: GarmentRepo, bases: BasisStore, queue: JobQueue,
-                 limits: Limits, examples: Callable[[], Examples]):
+                 limits: Limits, examples: Callable[[], Examples], drapes: DrapeStore):
         self.settings = settings
         self.model = model
         self.repo = repo
@@ -72,6 +73,7 @@ class GarmentService:
         self.queue = queue
         self.limits = limits
         self._examples = examples  # the example avatars, built on first use
+        self.drapes = drapes  # customers' exact drapes of the garments
 
     @property
     def examples(self) -> Examples:
@@ -614,8 +616,8 @@ class GarmentService:
 
     # -- deleting ----------------------------------------------------------------------------
     def delete(self, gid: str, retailer: str) -> None:
-        """Delete one of the retailer's garments: its record, basis files, waiting upload and
-        build job (a running build is stopped)."""
+        """Delete one of the retailer's garments: its record, basis files, waiting upload, build
+        job (a running build is stopped) and every customer's exact drape of it."""
         record = self.repo.get(gid)
         if record is None:
             raise NotFound(f"garment '{gid}' not found")
@@ -625,6 +627,7 @@ class GarmentService:
         if record.job is not None:
             self.queue.cancel(record.job.id)
         self.bases.delete(gid)
+        self.drapes.delete_garment(gid)
 
     # -- the demo catalogue ------------------------------------------------------------------
     def demo_items(self) -> list[CatalogueItem]:
@@ -674,6 +677,7 @@ class GarmentService:
                 if old is not None:  # built for another body model: replaced
                     self.repo.delete(old.id)
                     self.bases.delete(old.id)
+                    self.drapes.delete_garment(old.id)
                 ids.append(rec.id)
                 log.info("demo garment %s built (%s) in %.2fs", item.id, rec.id, time.perf_counter() - t0)
             log.info("demo catalogue: %d garments ready in %.2fs", len(ids), time.perf_counter() - t_all)

@@ -93,7 +93,8 @@ class Limits:
     # -- queued jobs (all processes: Redis) ------------------------------------------------------
     def _track_age_s(self) -> float:
         """How long a tracked job counts at most (its retries included)."""
-        return JOB_TRACK_FACTOR * max(self.settings.fit_timeout, self.settings.garment_timeout)
+        return JOB_TRACK_FACTOR * max(self.settings.fit_timeout, self.settings.garment_timeout,
+                                      self.settings.drape_timeout)
 
     def check_jobs(self) -> None:
         """Before an upload that queues a job is parsed: :class:`TooManyRequests` (429 +

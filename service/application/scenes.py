@@ -225,14 +225,15 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
                compression: str | None, with_avatar: bool = True, look: Look | None = None,
                template: bool = True, cache: bool = True,
                poses: dict[str, np.ndarray] | Callable[[], dict[str, np.ndarray] | None] | None = None,
-               fitmap: str | None = None) -> bytes:
+               fitmap: str | None = None, worn: list[np.ndarray] | None = None) -> bytes:
     """Garments (already in layer order, inner first) on a customer's body, sharing one
     skeleton; with the avatar as the first mesh when ``with_avatar``. ``template``: the
     garments' static arrays from their bases' templates (see :func:`look_mesh`; False: the
     reference path, the same bytes). ``cache``: the layering from the process cache when the
     same layers were layered on the same body before (:func:`layered_outfit`; False: always
     layered, for benchmarks). ``fitmap``: ``strain`` or ``ease``: each garment coloured by
-    :func:`fitmap_colors` (COLOR_0). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
+    :func:`fitmap_colors` (COLOR_0). ``worn``: each garment's vertices (M_i, 3) on this body
+    from elsewhere (a per-customer drape) instead of its basis try-on, normals from its mesh. ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
     body): each garment also gets one pose-corrective morph target per pose
     (:func:`add_pose_correctives`); or a function returning them, called once the outfit is
     layered (the poses' adaptation may be under way in another server process meanwhile)."""
@@ -242,8 +243,12 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
         hidden = tuple(basis.hidden_body(model) for rec, basis in garments
                        if basis.material is not None or _opaque(rec))
         meshes = avatar_meshes(model, body.vertices, body.normals, look, template, hidden)
-    worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
-    normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
+    if worn is None:
+        worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
+        normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
+    else:
+        worn = [np.asarray(v, np.float32) for v in worn]
+        normals = [basis.normals(v) for v, (_, basis) in zip(worn, garments)]
     # the look's base layer is the innermost layer: a bra never shows through a blouse
     under = next((m for m in meshes if m.get("name") == "underwear"), None) if worn else None
     layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \

@@ -43,7 +43,7 @@ class TryOnService:
         self.garments = garments
         self.poses = poses
 
-    def _load(self, cid: str, gids: list[str], creds: Credentials, sizes: list[str | None] | None = None,
+    def load(self, cid: str, gids: list[str], creds: Credentials, sizes: list[str | None] | None = None,
               query: str = "size", refuse: str | None = None):
         """The customer and each garment with the basis of its size: ``sizes[i]`` (a label of
         garment i's chart; 422 listing them when unknown) or, where None, the size recommended
@@ -94,7 +94,7 @@ class TryOnService:
         return scenes.etag(kind, self.model.version, record.weights, compression,
                            [(g.id, basis.etag() or g.etag) for g, basis in loaded])
 
-    def _page_poses(self, record, on: bool):
+    def page_poses(self, record, on: bool):
         """The page's poses adapted to the customer (cached per body), when ``on``: a function
         that gets them, for ``scenes.outfit_glb`` to call once the outfit is layered. The page
         asks for ``/poses`` together with its first outfit: when the two requests reach
@@ -108,14 +108,14 @@ class TryOnService:
         """The garment fitted to the customer, skinned with the customer's skeleton, and its
         ETag (customer weights, garment etag, options); ``None`` bytes when ``if_none_match``
         matches (not modified: nothing is computed)."""
-        record, loaded = self._load(cid, [gid], creds, [size])
+        record, loaded = self.load(cid, [gid], creds, [size])
         tag = self._etag("garment" + ("|poses" if pose_correctives else "") + (f"|fitmap:{fitmap}" if fitmap else ""),
                          record, loaded, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
         body = self.customers.body(record)
         return scenes.outfit_glb(self.model, body, loaded, compression, with_avatar=False,
-                                 poses=self._page_poses(record, pose_correctives), fitmap=fitmap), tag
+                                 poses=self.page_poses(record, pose_correctives), fitmap=fitmap), tag
 
     def outfit_glb(self, cid: str, gids: list[str], creds: Credentials, compression: str | None,
                    if_none_match: list[str] | None = None, hair: str | None = None,
@@ -143,7 +143,7 @@ class TryOnService:
             else:
                 for gid, sz in zip(given, sizes):
                     chosen[ids.index(gid)] = sz.strip() or None
-        record, loaded = self._load(cid, ids, creds, chosen, "sizes", refuse)
+        record, loaded = self.load(cid, ids, creds, chosen, "sizes", refuse)
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
         layered: list[tuple[Garment, GarmentBasis]] = [loaded[i] for i in order]
@@ -152,4 +152,4 @@ class TryOnService:
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
         return scenes.outfit_glb(self.model, self.customers.body(record), layered, compression,
-                                 look=look, poses=self._page_poses(record, pose_correctives), fitmap=fitmap), tag
+                                 look=look, poses=self.page_poses(record, pose_correctives), fitmap=fitmap), tag
