@@ -3,7 +3,7 @@
 the same job while it waits), the queue's job is run by an rq worker in this process (the
 worker's entry point ``worker.jobs.drape_garment`` on this app's context), then the draped
 garment is served (200, its own ETag, validator-clean, outside the body); a failed drape is a
-409 with its reason; a changed body queues a new drape; deleting the customer or the garment
+409 with its reason; a changed body queues a new drape; the cap of queued jobs applies; deleting the customer or the garment
 removes its drapes. One small demo garment, few solver iterations. Slow: the app's start and
 the drapes take seconds."""
 from __future__ import annotations
@@ -152,6 +152,22 @@ def test_a_failed_drape_is_409_with_its_reason(client: TestClient, gid: str) -> 
     assert r.status_code == 409 and "cloth tore" in r.json()["detail"], r.text
     # the basis try-on is unaffected
     assert client.get(_url(cid, gid), headers=auth).status_code == 200
+
+
+def test_the_queued_job_cap_applies(client: TestClient, gid: str) -> None:
+    ctx = client.app.state.context
+    cust = _customer(client, height_cm=165, weight_kg=58)
+    cid, auth = cust["id"], bearer(cust)
+    settings = ctx.limits.settings
+    ctx.limits.settings = settings.model_copy(update={"max_queued_client": 0})
+    try:
+        r = client.get(_url(cid, gid), params={"drape": "exact"}, headers=auth)
+    finally:
+        ctx.limits.settings = settings
+    assert r.status_code == 429 and "Retry-After" in r.headers, r.text
+    assert ctx.queue.queue.count == 0  # nothing queued
+    assert client.get(_url(cid, gid), params={"drape": "exact"}, headers=auth).status_code == 202
+    _work(client)
 
 
 def test_deleting_the_garment_removes_its_drapes(client: TestClient, gid: str) -> None:
