@@ -225,7 +225,8 @@ def test_length_verdicts() -> None:
 
 def test_a_too_short_length_counts_as_tight() -> None:
     """Sizes S, M, L whose chest fits M best: M's sleeve too short for this customer -> L
-    (a tailor would not pick a short sleeve); without the sleeve, M."""
+    (a tailor would not pick a short sleeve); a sleeve short in every size, a short hem or no
+    sleeve: M."""
     R = len(S.REGIONS)
     ci, si = S.REGIONS.index("chest"), S.REGIONS.index("sleeve")
     G = np.full((3, R), np.nan)
@@ -238,7 +239,19 @@ def test_a_too_short_length_counts_as_tight() -> None:
     rep = S.fit_report(fit, body_cm)
     assert S.VERDICTS[int(rep.verdict[1, si])] in ("tight", "too_tight")
     assert rep.labels[rep.recommended] == "L"
+    # short in every size: no size mends it; reported, but the chest chooses
+    rep = S.fit_report(fit, np.where(np.arange(R) == si, 70.0, body_cm))
+    assert (rep.verdict[:, si] == 0).all() and rep.labels[rep.recommended] == "M"
+    # a hem too short in M only does not choose (a style, see CHOOSING_LENGTHS)
+    hi = S.REGIONS.index("hem")
     G[:, si] = np.nan
+    G[:, hi] = [30.0, 10.0, 30.0]
+    body_cm[hi] = 20.0
+    fit = S.size_fit(["S", "M", "L"], G, 1, np.where(np.isfinite(G[1]), G[1] - np.array(
+        [6.0 if r == "chest" else 0.0 for r in S.REGIONS]), np.nan), "woven")
+    rep = S.fit_report(fit, np.where(np.arange(R) == hi, 30.0, body_cm))
+    assert S.VERDICTS[int(rep.verdict[1, hi])] == "too_tight" and rep.labels[rep.recommended] == "M"
+    G[:, hi] = np.nan
     fit = S.size_fit(["S", "M", "L"], G, 1, np.where(np.isfinite(G[1]), G[1] - 6.0, np.nan), "woven")
     assert S.fit_report(fit, body_cm).labels[S.fit_report(fit, body_cm).recommended] == "M"
 

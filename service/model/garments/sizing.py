@@ -133,6 +133,11 @@ class LengthThresholds:
 # Hems: a top's or dress's length is a style more than a fit; 5 cm is about a hand's width
 # (a shirt that untucks, a skirt above the knee where it was meant at it), 10 cm another
 # silhouette (Aldrich: body lengths in 5 cm grade steps between "hip", "thigh", "knee").
+# the lengths whose "too short" rules a size out of the recommendation as a tight girth does (a
+# tailor would not pick a short sleeve or trouser leg). Not the hem: a top's or skirt's length
+# is a style, graded sizes barely differ in it (and not always in size order: a chart of girths
+# leaves the size bodies' heights to the population), so it would choose by noise
+CHOOSING_LENGTHS = ("sleeve", "inseam")
 LENGTH_THRESHOLDS: dict[str, LengthThresholds] = {
     "sleeve": LengthThresholds(too_short_cm=-5.0, short_cm=-2.5, long_cm=4.0, too_long_cm=8.0),
     "inseam": LengthThresholds(too_short_cm=-5.0, short_cm=-2.5, long_cm=5.0, too_long_cm=10.0),
@@ -544,14 +549,21 @@ def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
     v[:, length] = length_verdicts(ease[:, length], fit.design_cm[length],
                                    [r for r, p in zip(REGIONS, length) if p])
     size_v = np.array([_size_verdict(row[present]) for row in v], np.int64)
-    key = present if fit.key is None else present & fit.key
+    votes = present & (_IS_GIRTH | _CHOOSES)  # the hem neither rules out nor ranks sizes
+    key = votes if fit.key is None else votes & fit.key
     if not key.any():
-        key = present
+        key = votes
+    # the recommendation's verdicts: a short sleeve or inseam rules a size out like a tight
+    # girth, unless it is short in every size (no size mends it: the report says so, the
+    # choice goes by the other regions); a hem's length does not choose (:data:`CHOOSING_LENGTHS`)
+    choose = v.copy()
+    choose[:, length & ((v < 2).all(axis=0) | ~_CHOOSES)] = 2
     return FitReport(fit.labels, ease, strain, v, size_v, present,
-                     recommend(ease[:, present], fit.design_cm[present], v[:, present], key[present]))
+                     recommend(ease[:, present], fit.design_cm[present], choose[:, present], key[present]))
 
 
 _IS_GIRTH = np.array([r in GIRTH_REGIONS for r in REGIONS])
+_CHOOSES = np.array([r in CHOOSING_LENGTHS for r in REGIONS])
 
 
 def _size_verdict(v: np.ndarray) -> int:
