@@ -1,14 +1,19 @@
 """Sizes and fit, the maths (``service.model.sizing``): chart validation, grading keeps the base
 size and grows the others, garment girths per region, verdict thresholds per fabric, the
-recommendation rule and monotonicity of ease and strain with size."""
+recommendation rule and monotonicity of ease and strain with size; the length regions (sleeve,
+inseam, hem: ``service.model.garments.lengths``), their verdicts and stored records without
+them."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from service.application.sizes import Chart, chart_bodies
+from service.model.body.shape import avatar_from_measurements
 from service.model.garments import sizing as S
 from service.model.garments.catalogue import load_catalogue
+
+GIRTH = np.isin(S.REGIONS, S.GIRTH_REGIONS)
 
 CHART = {"S": {"chest_cm": 88.0, "waist_cm": 76.0, "hip_cm": 94.0},
          "M": {"chest_cm": 96.0, "waist_cm": 84.0, "hip_cm": 102.0},
@@ -68,7 +73,7 @@ def test_grading_follows_the_chart(model, graded) -> None:
     and its ease on its own body stays the design ease (within 1.5 cm)."""
     for name, (g0, faces, rests, on, bodies, chart) in graded.items():
         fit = S.sized_garment_fit(model, rests, faces, on, chart.labels, chart.base, bodies[chart.base], "woven")
-        present = np.isfinite(fit.design_cm)
+        present = np.isfinite(fit.design_cm) & GIRTH
         assert present.any(), name
         for s in range(3):
             own = S.girths_of_body(model, bodies[s])
@@ -76,7 +81,7 @@ def test_grading_follows_the_chart(model, graded) -> None:
             assert np.all(np.abs(ease - fit.design_cm)[present] < 1.5), (name, s, ease, fit.design_cm)
         steps = np.diff(fit.garment_cm, axis=0)
         assert np.all(steps[:, present] > 0.5), (name, steps)
-        charted = present & np.isin(S.GIRTH_REGIONS, ["chest", "waist", "hip"])
+        charted = present & np.isin(S.REGIONS, ["chest", "waist", "hip"])
         assert np.all(steps[:, charted] > 5.0), (name, steps)
 
 
@@ -88,7 +93,8 @@ def test_recommendation_and_monotonicity(model, graded) -> None:
         for s in range(3):
             rep = S.fit_report(fit, S.girths_of_body(model, bodies[s]))
             assert rep.recommended == s, (name, s, rep.to_dict())
-            E, T = rep.ease_cm[:, rep.present], rep.strain_pct[:, rep.present]
+            girths = rep.present & GIRTH
+            E, T = rep.ease_cm[:, girths], rep.strain_pct[:, girths]
             assert np.all(np.diff(E, axis=0) > 0) and np.all(np.diff(T, axis=0) <= 0)
 
 
@@ -148,3 +154,155 @@ def test_fit_map_colour_scales() -> None:
     assert e[2, 1] > 150 and e[2, 0] < 30  # green at the designed gap
     assert e[3, 2] > 200 and (e[4] == e[3]).all()  # blue: hanging
     assert S.fit_gap_m("stretch") < S.fit_gap_m("knit") < S.fit_gap_m("woven")
+
+
+# -- lengths ---------------------------------------------------------------------------------
+def _one_size(model, gid: str, body=None) -> S.SizeFit:
+    """A catalogue garment's one-size fit on ``body`` (default the mean avatar)."""
+    X = np.asarray(model.mean if body is None else body, np.float64)
+    item = next(i for i in load_catalogue().garments() if i.id == gid)
+    g = np.asarray(item.binding.fit(X))
+    return S.sized_garment_fit(model, g[None], np.asarray(item.faces), X, ["one size"], 0, X, "knit")
+
+
+def _lengths(fit: S.SizeFit) -> set[str]:
+    return {r for r, d in zip(S.REGIONS, fit.design_cm) if np.isfinite(d) and r in S.LENGTH_REGIONS}
+
+
+def test_length_regions_of_catalogue_garments(model) -> None:
+    """Long sleeves get a sleeve, T-shirt sleeves do not; trousers an inseam and no hem; tops
+    and skirts a hem; the lengths sit where the garments end (a long sleeve near the wrist,
+    jeans above the floor, a T-shirt's hem above the crotch, a skirt's below it)."""
+    got = {gid: _one_size(model, gid) for gid in ("longsleeve-tee", "mens-tshirt", "womens-tshirt", "mens-jeans",
+                                                    "pencil-skirt")}
+    assert _lengths(got["longsleeve-tee"]) == {"sleeve", "hem"}
+    assert _lengths(got["mens-tshirt"]) == {"hem"} and _lengths(got["womens-tshirt"]) == {"hem"}
+    assert _lengths(got["mens-jeans"]) == {"inseam"}
+    assert _lengths(got["pencil-skirt"]) == {"hem"}
+    ease = lambda gid, r: float(got[gid].design_cm[S.REGIONS.index(r)])  # noqa: E731
+    assert -6.0 < ease("longsleeve-tee", "sleeve") < 8.0
+    assert -15.0 < ease("mens-jeans", "inseam") < 0.0
+    assert ease("mens-tshirt", "hem") < 0.0 < ease("pencil-skirt", "hem")
+    # a length's strain is 0, its ease the garment's length minus the body's
+    body = S.girths_of_body(model, model.mean)
+    rep = S.fit_report(got["longsleeve-tee"], body)
+    i = S.REGIONS.index("sleeve")
+    assert rep.present[i] and rep.strain_pct[0, i] == 0.0
+    assert rep.ease_cm[0, i] == pytest.approx(got["longsleeve-tee"].garment_cm[0, i] - body[i])
+    assert any(r["region"] == "sleeve" and r["strain_pct"] == 0.0 for r in rep.to_dict()["sizes"][0]["regions"])
+
+
+def test_longer_arms_get_a_shorter_sleeve(model) -> None:
+    """The same garment on customers differing in arm length only: the longer arm's sleeve ease
+    is smaller by about the difference, and 8 cm more arm is a too-short (``too_tight``)
+    sleeve; the body's own sleeve length is the measured ``arm_length_cm``."""
+    fit = _one_size(model, "longsleeve-tee")
+    base = {"gender": "male", "height_cm": 178.0, "chest_cm": 100.0, "waist_cm": 88.0}
+    i = S.REGIONS.index("sleeve")
+    eases, verdicts = [], []
+    for arm in (58.0, 61.0, 66.0):
+        body = S.girths_of_body(model, avatar_from_measurements(model, {**base, "arm_length_cm": arm}).vertices)
+        assert body[i] == pytest.approx(arm, abs=1.0)
+        rep = S.fit_report(fit, body)
+        eases.append(float(rep.ease_cm[0, i]))
+        verdicts.append(S.VERDICTS[int(rep.verdict[0, i])])
+    assert eases[0] > eases[1] > eases[2], eases
+    assert eases[0] - eases[2] == pytest.approx(8.0, abs=1.5)
+    assert verdicts[2] in ("tight", "too_tight") and verdicts[2] != verdicts[0], (eases, verdicts)
+
+
+def test_length_verdicts() -> None:
+    """Too short is tight, too long loose, on the difference from the design's length ease."""
+    regions = ["sleeve", "inseam", "hem"]
+    design = np.array([2.0, -3.0, -10.0])
+    v = lambda dev: [S.VERDICTS[int(x)] for x in S.length_verdicts(design + np.array(dev), design, regions)]  # noqa: E731
+    assert v([0.0, 0.0, 0.0]) == ["fit"] * 3
+    assert v([-3.0, -3.0, -3.0]) == ["tight", "tight", "fit"]
+    assert v([-6.0, -6.0, -11.0]) == ["too_tight"] * 3
+    assert v([5.0, 5.0, 6.0]) == ["loose", "fit", "loose"]
+    assert v([9.0, 11.0, 11.0]) == ["too_loose"] * 3
+
+
+def test_a_too_short_length_counts_as_tight() -> None:
+    """Sizes S, M, L whose chest fits M best: M's sleeve too short for this customer -> L
+    (a tailor would not pick a short sleeve); a sleeve short in every size, a short hem or no
+    sleeve: M."""
+    R = len(S.REGIONS)
+    ci, si = S.REGIONS.index("chest"), S.REGIONS.index("sleeve")
+    G = np.full((3, R), np.nan)
+    G[:, ci] = [96.0, 104.0, 112.0]
+    G[:, si] = [56.0, 58.0, 60.0]
+    body_cm = np.full(R, np.nan)
+    body_cm[ci], body_cm[si] = 98.0, 62.0
+    fit = S.size_fit(["S", "M", "L"], G, 1, np.where(np.isfinite(G[1]), G[1] - np.array(
+        [6.0 if r == "chest" else 0.0 for r in S.REGIONS]), np.nan), "woven")
+    rep = S.fit_report(fit, body_cm)
+    assert S.VERDICTS[int(rep.verdict[1, si])] in ("tight", "too_tight")
+    assert rep.labels[rep.recommended] == "L"
+    # short in every size: no size mends it; reported, but the chest chooses
+    rep = S.fit_report(fit, np.where(np.arange(R) == si, 70.0, body_cm))
+    assert (rep.verdict[:, si] == 0).all() and rep.labels[rep.recommended] == "M"
+    # a hem too short in M only does not choose (a style, see CHOOSING_LENGTHS)
+    hi = S.REGIONS.index("hem")
+    G[:, si] = np.nan
+    G[:, hi] = [30.0, 10.0, 30.0]
+    body_cm[hi] = 20.0
+    fit = S.size_fit(["S", "M", "L"], G, 1, np.where(np.isfinite(G[1]), G[1] - np.array(
+        [6.0 if r == "chest" else 0.0 for r in S.REGIONS]), np.nan), "woven")
+    rep = S.fit_report(fit, np.where(np.arange(R) == hi, 30.0, body_cm))
+    assert S.VERDICTS[int(rep.verdict[1, hi])] == "too_tight" and rep.labels[rep.recommended] == "M"
+    G[:, hi] = np.nan
+    fit = S.size_fit(["S", "M", "L"], G, 1, np.where(np.isfinite(G[1]), G[1] - 6.0, np.nan), "woven")
+    assert S.fit_report(fit, body_cm).labels[S.fit_report(fit, body_cm).recommended] == "M"
+
+
+def test_stored_fit_without_lengths_still_reads() -> None:
+    """A size fit stored before the lengths (its ``regions`` the girths only) reads back with
+    no length regions, and reports; a new one round-trips its lengths."""
+    old = {"labels": ["S", "M"], "regions": list(S.GIRTH_REGIONS), "fabric": "knit",
+           "garment_cm": [[90.0, 80.0, None, None, 30.0, 100.0], [98.0, 88.0, None, None, 32.0, 108.0]],
+           "design_cm": [4.0, 6.0, None, None, 2.0, 5.0], "design_body_cm": [94.0, 82.0, None, None, 30.0, 103.0],
+           "key": [True, True, False, False, False, False]}
+    fit = S.SizeFit.from_meta(old)
+    assert fit.garment_cm.shape == (2, len(S.REGIONS)) and not np.isfinite(fit.design_cm[~GIRTH]).any()
+    assert list(fit.key) == [True, True] + [False] * (len(S.REGIONS) - 2)
+    body = np.array([95.0, 84.0, 100.0, 60.0, 30.0, 104.0, 60.0, 80.0, 20.0])
+    regions = {r["region"] for r in S.fit_report(fit, body).to_dict()["sizes"][0]["regions"]}
+    assert regions == {"chest", "waist", "upper_arm", "shoulders"}
+    new = fit.to_meta()
+    new["garment_cm"] = [row[:6] + [58.0, None, -5.0] for row in new["garment_cm"]]
+    new["design_cm"] = new["design_cm"][:6] + [2.0, None, -8.0]
+    back = S.SizeFit.from_meta(new)
+    assert back.garment_cm[1, S.REGIONS.index("sleeve")] == 58.0 and np.isnan(back.design_cm[S.REGIONS.index("inseam")])
+
+
+CHART_TALL = {"S": {"height_cm": 168.0, "chest_cm": 92.0, "waist_cm": 80.0, "hip_cm": 94.0},
+              "M": {"height_cm": 178.0, "chest_cm": 100.0, "waist_cm": 88.0, "hip_cm": 100.0},
+              "L": {"height_cm": 188.0, "chest_cm": 108.0, "waist_cm": 96.0, "hip_cm": 106.0}}
+
+
+@pytest.mark.slow
+def test_lengths_grow_with_a_chart_growing_in_height(model) -> None:
+    """Graded to a chart that grows in height: each size's sleeve and inseam are longer, the
+    ease on one customer grows with the size, and a customer made from each size's chart gets
+    about the design's length ease (its own size fits in length)."""
+    chart = Chart(S.validate_chart(CHART_TALL, "M")[0], "M", "knit")
+    bodies = chart_bodies(model, chart, "male")
+    src = np.asarray(model.mean, np.float64)
+    on = S.size_bodies_on(src, bodies, chart.base)
+    items = {i.id: i for i in load_catalogue().garments()}
+    for gid, region in (("longsleeve-tee", "sleeve"), ("mens-jeans", "inseam")):
+        item = items[gid]
+        faces = np.asarray(item.faces, np.int64)
+        rests = S.grade(model, item.binding.fit(src), faces, src, bodies, chart.base)
+        fit = S.sized_garment_fit(model, rests, faces, on, chart.labels, chart.base, bodies[chart.base], "knit",
+                                  list(CHART_TALL["M"]))
+        i = S.REGIONS.index(region)
+        assert np.isfinite(fit.garment_cm[:, i]).all(), (gid, fit.garment_cm)
+        assert np.all(np.diff(fit.garment_cm[:, i]) > 2.0), (gid, fit.garment_cm[:, i])
+        rep = S.fit_report(fit, S.girths_of_body(model, bodies[chart.base]))
+        assert np.all(np.diff(rep.ease_cm[:, i]) > 2.0), (gid, rep.ease_cm[:, i])
+        for s in range(3):
+            own = S.fit_report(fit, S.girths_of_body(model, bodies[s]))
+            assert abs(own.ease_cm[s, i] - fit.design_cm[i]) < 2.0, (gid, s, own.ease_cm[s, i], fit.design_cm[i])
+            assert S.VERDICTS[int(own.verdict[s, i])] == "fit"

@@ -1,12 +1,12 @@
 """Sizes and fit over the API in process: a MakeHuman garment uploaded with a size chart
 (graded by the service), the fit report of customers made from each size's chart measurements,
 the try-on per size (``?size=``, outfits ``?sizes=``), 422s for bad charts and unknown sizes,
-and graded meshes uploaded by the retailer (``garment_sizes``) built by the job."""
+graded meshes uploaded by the retailer (``garment_sizes``) built by the job, and the length
+regions (sleeve, inseam, hem) of demo garments."""
 from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,7 +32,7 @@ CHART = {"48": {"chest_cm": 96.0, "waist_cm": 84.0, "hip_cm": 98.0},
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("sizes"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="",
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="longsleeve-tee,mens-tshirt,mens-jeans",
                             TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c
@@ -80,7 +80,7 @@ def test_chart_made_customers_get_their_size(client: TestClient, sized: dict) ->
         assert rep["recommended"] == label, rep
         assert [s["label"] for s in rep["sizes"]] == list(CHART)
         regions = {x["region"] for x in rep["sizes"][0]["regions"]}
-        assert {"chest", "waist"} <= regions
+        assert {"chest", "waist", "inseam"} <= regions and "sleeve" not in regions  # T-shirt and jeans
         for i, reg in enumerate(rep["sizes"][0]["regions"]):
             eases = [s["regions"][i]["ease_cm"] for s in rep["sizes"]]
             strains = [s["regions"][i]["strain_pct"] for s in rep["sizes"]]
@@ -203,7 +203,7 @@ def test_one_garment_graded_by_the_job(client: TestClient) -> None:
 
 def test_graded_meshes_uploaded(client: TestClient) -> None:
     """Upload to ready: the retailer's graded meshes (``garment_sizes``, files in any order),
-    draped on one body; the larger mesh is the larger size: its ease is larger everywhere."""
+    draped on one body; the larger mesh is the larger size: its ease is larger at every girth."""
     small, _ = _on_mean_obj(client, 0.97)
     large, _ = _on_mean_obj(client, 1.03)
     chart = {"S": CHART["48"], "L": CHART["52"]}
@@ -216,8 +216,11 @@ def test_graded_meshes_uploaded(client: TestClient) -> None:
     cid, auth = _customer(client, CHART["50"])
     rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
     s, lg = rep["sizes"]
+    # girths (the meshes are scaled about the floor: the larger one's legs end higher, its inseam
+    # is shorter)
     for a, b in zip(s["regions"], lg["regions"]):
-        assert b["ease_cm"] > a["ease_cm"] + 1.0, (a, b)
+        if a["region"] not in ("sleeve", "inseam", "hem"):
+            assert b["ease_cm"] > a["ease_cm"] + 1.0, (a, b)
     # a mesh that is not the same garment: 422 before any job
     bad = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
     r = client.post("/v1/garments", data={"name": "Graded", "size_chart": json.dumps(chart), "garment_sizes": "S,L"},
@@ -255,3 +258,32 @@ def test_fit_map(client: TestClient, sized: dict, validate_glb) -> None:
             c = cols[0]
             assert (c[:, 0] > 0.9).any() and (c[:, 1] > 0.5).any(), "contact and designed fit both shown"
     assert_422(client.get(url, params={"fitmap": "heat"}, headers=auth), ["query", "fitmap"])
+
+
+def test_fit_report_lengths(client: TestClient) -> None:
+    """The demo long-sleeve tee has a ``sleeve`` (and a ``hem``), the T-shirt no sleeve, the
+    jeans an ``inseam`` and no hem; a length's strain is 0; a customer with 8 cm longer arms
+    gets 8 cm less sleeve ease and a too-short (tight) sleeve. Responses valid FitResponses."""
+    from service.api.schemas import FitResponse
+
+    demo = {g["catalogue_id"]: g["id"] for g in client.get("/v1/garments").json() if g["owner"] == "demo"}
+    body = {"height_cm": 178.0, "chest_cm": 100.0, "waist_cm": 88.0}
+    cid, auth = _customer(client, {**body, "arm_length_cm": 58.0})
+    long_cid, long_auth = _customer(client, {**body, "arm_length_cm": 66.0})
+
+    def regions(name: str, who: str, headers: dict) -> dict:
+        r = client.get(f"/v1/customers/{who}/garments/{demo[name]}/fit", headers=headers)
+        assert r.status_code == 200, r.text
+        FitResponse.model_validate(r.json())
+        return {x["region"]: x for x in r.json()["sizes"][0]["regions"]}
+
+    tee = regions("longsleeve-tee", cid, auth)
+    assert {"sleeve", "hem", "chest"} <= set(tee) and "inseam" not in tee
+    assert tee["sleeve"]["strain_pct"] == 0.0 and tee["hem"]["strain_pct"] == 0.0
+    short = regions("mens-tshirt", cid, auth)
+    assert "sleeve" not in short and "hem" in short
+    jeans = regions("mens-jeans", cid, auth)
+    assert "inseam" in jeans and "hem" not in jeans and "sleeve" not in jeans
+    longer = regions("longsleeve-tee", long_cid, long_auth)
+    assert longer["sleeve"]["ease_cm"] == pytest.approx(tee["sleeve"]["ease_cm"] - 8.0, abs=1.5), (tee, longer)
+    assert longer["sleeve"]["verdict"] in ("tight", "too_tight") and tee["sleeve"]["verdict"] != longer["sleeve"]["verdict"]

@@ -356,9 +356,13 @@ class LooksResponse(BaseModel):
 
 
 class RegionFit(BaseModel):
-    region: Literal["chest", "waist", "hip", "thigh", "upper_arm", "shoulders"]
-    ease_cm: float = Field(description="Garment girth minus body girth there (cm; negative: the cloth is stretched)")
-    strain_pct: float = Field(description="How far the body stretches the cloth there (%; 0 when looser)")
+    region: Literal["chest", "waist", "hip", "thigh", "upper_arm", "shoulders", "sleeve", "inseam", "hem"] = Field(
+        description="A girth (chest ... shoulders) or a length (sleeve, inseam, hem; see docs/sizes.md)")
+    ease_cm: float = Field(description="Girths: garment girth minus body girth there (cm; negative: the cloth is "
+                                       "stretched). Lengths: garment length minus body length (cm; negative: the "
+                                       "garment ends short of the body's landmark)")
+    strain_pct: float = Field(description="How far the body stretches the cloth there (%; 0 when looser; always 0 "
+                                          "for a length)")
     verdict: Literal["too_tight", "tight", "fit", "loose", "too_loose"]
 
 

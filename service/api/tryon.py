@@ -84,9 +84,11 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
             responses={k: v for k, v in R.CUSTOMER_SCENE_RESPONSE.items() if k not in (200, 304)})
 def garment_fit(cid: str, gid: str, tryon: TryOnDep, creds: CredentialsDep) -> dict:
     """How each size of the garment fits the customer: per size a verdict and, per region
-    (chest, waist, hip, thigh, upper arm, shoulders: those the garment covers), the ease (garment
-    girth minus body girth, cm), the strain of cloth tighter than the body (%) and a verdict
-    (too_tight, tight, fit, loose, too_loose; thresholds per fabric); ``recommended``: the size
-    with no tight region whose ease is closest to the garment's design ease (its ease on the
-    base size's body), else the loosest. Sizes in chart order."""
+    (girths chest, waist, hip, thigh, upper arm, shoulders; lengths sleeve, inseam, hem: those
+    the garment has), the ease (garment girth minus body girth, or garment length minus body
+    length, cm), the strain of cloth tighter than the body (%, 0 for a length) and a verdict
+    (too_tight, tight, fit, loose, too_loose; girth thresholds per fabric, a too short length is
+    tight, a too long one loose); ``recommended``: the size with no tight region whose ease is
+    closest to the garment's design ease (its ease on the base size's body), else the loosest.
+    Sizes in chart order."""
     return tryon.fit_report(cid, gid, creds)

@@ -149,7 +149,7 @@ _legacy_fits: dict[tuple[str, str], S.SizeFit] = {}
 
 
 def customer_girths(model, body: CustomerBody) -> np.ndarray:
-    """(R,) the customer's girths (cm) at ``sizing.GIRTH_REGIONS``, measured once per body."""
+    """(R,) the customer's girths and lengths (cm) at ``sizing.REGIONS``, measured once per body."""
     hit = getattr(body, "_girths", None)
     if hit is None:
         hit = S.girths_of_body(model, body.vertices)

@@ -19,6 +19,10 @@ Pure numpy/scipy (no web, queue or storage imports).
   size are constants of the garment (measured once at build, :func:`garment_girths`); a
   customer's body girths are measured once per body (:func:`body_girths`): the report is a
   few array operations (microseconds).
+- **Lengths** (``lengths``): where the sleeve, trouser leg and hem end on each size's body
+  against the body's own sleeve outseam, inseam and rise (:data:`LENGTH_REGIONS`), measured
+  with the girths at the build; too short is ``tight``, too long ``loose``
+  (:data:`LENGTH_THRESHOLDS`, on the difference from the design's length).
 - **Verdicts** from thresholds per fabric (:data:`FIT_THRESHOLDS`, ease in % of the body's
   girth, so one table serves the hip and the upper arm) and the **recommendation**
   (:func:`recommend`): of the sizes with no region ``tight`` or ``too_tight``, the one whose
@@ -36,6 +40,7 @@ from scipy.sparse.csgraph import connected_components
 
 from service.model.body import measurements as M
 from service.model.body.model import BONES
+from service.model.garments.lengths import LENGTH_REGIONS, LengthFrame, body_lengths, garment_lengths
 from service.model.geometry.mesh import mesh_edges
 from service.model.body.lbs import main_bone
 
@@ -49,8 +54,10 @@ ONE_SIZE = "one size"
 MAX_SIZES = 12
 MAX_LABEL_CHARS = 24
 
-# regions in report order: girths (a tape around body and garment), then lengths
+# regions in report order: girths (a tape around body and garment), then lengths (where the
+# garment ends on the body, ``lengths``)
 GIRTH_REGIONS = ("chest", "waist", "hip", "thigh", "upper_arm", "shoulders")
+REGIONS = GIRTH_REGIONS + LENGTH_REGIONS
 # upper arm: plane perpendicular to the shoulder -> elbow axis, this far down it (biceps level;
 # ANSUR II "bicepscircumferenceflexed" is taken at the biceps' fullest point, ~40 % down)
 UPPER_ARM_FRACTION = 0.4
@@ -63,7 +70,8 @@ SHOULDER_DROP_M = 0.04
 THIGH_DROP_M = 0.04
 # the chart measurement that sizes each region (a chart giving some of these: the
 # recommendation's design-ease distance is taken at those regions, as a tailor reads a chart)
-REGION_MEASUREMENT = {"chest": "chest_cm", "waist": "waist_cm", "hip": "hip_cm", "thigh": "thigh_cm"}
+REGION_MEASUREMENT = {"chest": "chest_cm", "waist": "waist_cm", "hip": "hip_cm", "thigh": "thigh_cm",
+                      "sleeve": "arm_length_cm", "inseam": "inseam_cm"}
 # the garment section around a region must cover every one of these angular sectors around the
 # body section's centre (the garment goes all around there), else it has no such region
 COVER_SECTORS = 12
@@ -99,6 +107,41 @@ FIT_THRESHOLDS: dict[str, FitThresholds] = {
     "knit": FitThresholds(too_tight_pct=-8.0, tight_pct=-2.0, loose_pct=16.0, too_loose_pct=28.0, strain_limit_pct=15.0),
     "stretch": FitThresholds(too_tight_pct=-20.0, tight_pct=-10.0, loose_pct=10.0, too_loose_pct=20.0,
                              strain_limit_pct=35.0),
+}
+
+
+@dataclass(frozen=True)
+class LengthThresholds:
+    """Verdict limits of one length region (cm), on how far a size ends from where the design
+    ends: ``ease - design ease`` (the base size's length ease on its own body). Below short_cm
+    it is ``tight`` (too short; ``too_tight`` below too_short_cm), above long_cm / too_long_cm
+    ``loose`` / ``too_loose`` (too long). Fabric does not change a length."""
+
+    too_short_cm: float
+    short_cm: float
+    long_cm: float
+    too_long_cm: float
+
+
+# Sleeves: ready-to-wear shirts come in sleeve lengths 1 inch (2.5 cm) apart (US dress-shirt
+# sizing 32/33, 34/35, ...; EN 13402-1 gives the arm length in 5 cm steps): one step short
+# shows the shirt cuff above the wrist bone, two is a different size. A longer sleeve bunches
+# at the wrist before it covers the hand: a little more room on the long side.
+# Inseams: trousers are sold in inseams 2 inches (5 cm) apart (US W/L 30, 32, 34): half a step
+# short the hem clears the shoe (no break), a full step is a "high-water" trouser; too long
+# breaks on the shoe and drags at two steps (alterations shorten: more room on the long side).
+# Hems: a top's or dress's length is a style more than a fit; 5 cm is about a hand's width
+# (a shirt that untucks, a skirt above the knee where it was meant at it), 10 cm another
+# silhouette (Aldrich: body lengths in 5 cm grade steps between "hip", "thigh", "knee").
+# the lengths whose "too short" rules a size out of the recommendation as a tight girth does (a
+# tailor would not pick a short sleeve or trouser leg). Not the hem: a top's or skirt's length
+# is a style, graded sizes barely differ in it (and not always in size order: a chart of girths
+# leaves the size bodies' heights to the population), so it would choose by noise
+CHOOSING_LENGTHS = ("sleeve", "inseam")
+LENGTH_THRESHOLDS: dict[str, LengthThresholds] = {
+    "sleeve": LengthThresholds(too_short_cm=-5.0, short_cm=-2.5, long_cm=4.0, too_long_cm=8.0),
+    "inseam": LengthThresholds(too_short_cm=-5.0, short_cm=-2.5, long_cm=5.0, too_long_cm=10.0),
+    "hem": LengthThresholds(too_short_cm=-10.0, short_cm=-5.0, long_cm=5.0, too_long_cm=10.0),
 }
 
 
@@ -381,9 +424,10 @@ def garment_girths(sections: GarmentSections, rest: np.ndarray, regions: dict[st
 # -- the fit ---------------------------------------------------------------------------------
 @dataclass
 class SizeFit:
-    """What a garment's fit report needs, fixed at its build: garment girths (S, R) cm per size
-    and region (NaN: the garment has no such region), the design ease (R,) cm (the base size's
-    ease on its own body), the fabric."""
+    """What a garment's fit report needs, fixed at its build: garment girths and lengths (S, R)
+    cm per size and region of ``REGIONS`` (NaN: the garment has no such region), the design
+    ease (R,) cm (the base size's ease on its own body), the fabric. Stored records made before
+    a region existed read it as NaN (:meth:`from_meta` maps regions by name)."""
 
     labels: list[str]
     garment_cm: np.ndarray
@@ -394,7 +438,7 @@ class SizeFit:
 
     def to_meta(self) -> dict:
         nan = lambda a: [None if not np.isfinite(x) else round(float(x), 3) for x in a]  # noqa: E731
-        return {"labels": list(self.labels), "regions": list(GIRTH_REGIONS), "fabric": self.fabric,
+        return {"labels": list(self.labels), "regions": list(REGIONS), "fabric": self.fabric,
                 "garment_cm": [nan(r) for r in self.garment_cm], "design_cm": nan(self.design_cm),
                 "design_body_cm": nan(self.design_body_cm),
                 "key": None if self.key is None else [bool(k) for k in self.key]}
@@ -402,26 +446,26 @@ class SizeFit:
     @classmethod
     def from_meta(cls, d: dict) -> "SizeFit":
         arr = lambda a: np.array([np.nan if x is None else x for x in a], np.float64)  # noqa: E731
-        if list(d["regions"]) != list(GIRTH_REGIONS):  # older builds: their regions, mapped by name
+        if list(d["regions"]) != list(REGIONS):  # older builds (no lengths): their regions, mapped by name
             idx = {r: i for i, r in enumerate(d["regions"])}
-            pick = lambda a: np.array([a[idx[r]] if r in idx else np.nan for r in GIRTH_REGIONS])  # noqa: E731
+            pick = lambda a: np.array([a[idx[r]] if r in idx else np.nan for r in REGIONS])  # noqa: E731
         else:
             pick = lambda a: a  # noqa: E731
-        key = None if d.get("key") is None else pick(np.array(d["key"], bool)).astype(bool)
+        key = None if d.get("key") is None else np.nan_to_num(pick(np.array(d["key"], float))).astype(bool)
         return cls(list(d["labels"]), np.stack([pick(arr(r)) for r in d["garment_cm"]]), pick(arr(d["design_cm"])),
                    pick(arr(d["design_body_cm"])), d["fabric"], key)
 
 
 def size_fit(labels: list[str], garment_cm: np.ndarray, base: int, base_body_cm: np.ndarray,
              fabric: str, measurements: list[str] | None = None) -> SizeFit:
-    """A garment's :class:`SizeFit`: girths (S, R) cm per size, the base size's index and the
-    girths (R,) cm of the base size's own body (from the chart; the body it was uploaded on
+    """A garment's :class:`SizeFit`: girths and lengths (S, R) cm per size, the base size's index
+    and the girths and lengths (R,) cm of the base size's own body (from the chart; the body it was uploaded on
     without a chart); ``measurements``: the names the chart gives (its key regions). Regions
     not present in every size are dropped (NaN)."""
     G = np.asarray(garment_cm, np.float64)
     G[:, ~np.isfinite(G).all(axis=0)] = np.nan
     given = set(measurements or ())
-    key = np.array([REGION_MEASUREMENT.get(r) in given for r in GIRTH_REGIONS])
+    key = np.array([REGION_MEASUREMENT.get(r) in given for r in REGIONS])
     return SizeFit(list(labels), G, G[base] - base_body_cm, np.asarray(base_body_cm, np.float64), fabric,
                    key if key.any() else None)
 
@@ -446,10 +490,25 @@ def verdicts(ease_cm: np.ndarray, body_cm: np.ndarray, design_cm: np.ndarray, fa
     return v
 
 
+def length_verdicts(ease_cm: np.ndarray, design_cm: np.ndarray, regions) -> np.ndarray:
+    """Verdict index (into ``VERDICTS``) of each length ease (..., L) cm at the length
+    ``regions`` (L names of ``LENGTH_REGIONS``) for the design's length ease design_cm (L,):
+    too short -> ``tight`` / ``too_tight``, too long -> ``loose`` / ``too_loose``
+    (:data:`LENGTH_THRESHOLDS`, on ``ease - design ease``)."""
+    th = [LENGTH_THRESHOLDS[r] for r in regions]
+    d = np.asarray(ease_cm, np.float64) - design_cm
+    v = np.full(d.shape, 2, np.int64)
+    v[d < np.array([t.short_cm for t in th])] = 1
+    v[d < np.array([t.too_short_cm for t in th])] = 0
+    v[d > np.array([t.long_cm for t in th])] = 3
+    v[d > np.array([t.too_long_cm for t in th])] = 4
+    return v
+
+
 @dataclass
 class FitReport:
-    """The fit of every size on one body: ease (S, R) cm, strain (S, R) % (0 where the garment
-    is looser than the body), verdicts (S, R) and per size (S,) (indices into ``VERDICTS``),
+    """The fit of every size on one body at ``REGIONS``: ease (S, R) cm, strain (S, R) % (0
+    where the garment is looser than the body, and at lengths), verdicts (S, R) and per size (S,) (indices into ``VERDICTS``),
     present (R,) bool (regions the garment has), recommended size index."""
 
     labels: list[str]
@@ -461,7 +520,7 @@ class FitReport:
     recommended: int
 
     def to_dict(self) -> dict:
-        regions = [r for r, p in zip(GIRTH_REGIONS, self.present) if p]
+        regions = [r for r, p in zip(REGIONS, self.present) if p]
         idx = np.flatnonzero(self.present)
         return {"recommended": self.labels[self.recommended],
                 "sizes": [{"label": lb, "verdict": VERDICTS[int(self.size_verdict[s])],
@@ -473,22 +532,38 @@ class FitReport:
 
 
 def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
-    """Every size of a garment (``fit``) on a body with girths body_cm (R,) (:func:`body_girths`)."""
+    """Every size of a garment (``fit``) on a body with girths and lengths body_cm (R,)
+    (:func:`girths_of_body`). A length's strain is 0 (a length is not stretched)."""
     present = np.isfinite(fit.design_cm) & np.isfinite(body_cm) & (body_cm > 0)
-    G = fit.garment_cm[:, present]
-    B = body_cm[present]
     ease = np.full(fit.garment_cm.shape, np.nan)
     strain = np.full(fit.garment_cm.shape, np.nan)
-    ease[:, present] = G - B
-    strain[:, present] = 100.0 * np.maximum(0.0, B / G - 1.0)
     v = np.full(fit.garment_cm.shape, 2, np.int64)
-    v[:, present] = verdicts(G - B, B, fit.design_cm[present], fit.fabric)
+    girth = present & _IS_GIRTH
+    G, B = fit.garment_cm[:, girth], body_cm[girth]
+    ease[:, girth] = G - B
+    strain[:, girth] = 100.0 * np.maximum(0.0, B / G - 1.0)
+    v[:, girth] = verdicts(G - B, B, fit.design_cm[girth], fit.fabric)
+    length = present & ~_IS_GIRTH
+    ease[:, length] = fit.garment_cm[:, length] - body_cm[length]
+    strain[:, length] = 0.0
+    v[:, length] = length_verdicts(ease[:, length], fit.design_cm[length],
+                                   [r for r, p in zip(REGIONS, length) if p])
     size_v = np.array([_size_verdict(row[present]) for row in v], np.int64)
-    key = present if fit.key is None else present & fit.key
+    votes = present & (_IS_GIRTH | _CHOOSES)  # the hem neither rules out nor ranks sizes
+    key = votes if fit.key is None else votes & fit.key
     if not key.any():
-        key = present
+        key = votes
+    # the recommendation's verdicts: a short sleeve or inseam rules a size out like a tight
+    # girth, unless it is short in every size (no size mends it: the report says so, the
+    # choice goes by the other regions); a hem's length does not choose (:data:`CHOOSING_LENGTHS`)
+    choose = v.copy()
+    choose[:, length & ((v < 2).all(axis=0) | ~_CHOOSES)] = 2
     return FitReport(fit.labels, ease, strain, v, size_v, present,
-                     recommend(ease[:, present], fit.design_cm[present], v[:, present], key[present]))
+                     recommend(ease[:, present], fit.design_cm[present], choose[:, present], key[present]))
+
+
+_IS_GIRTH = np.array([r in GIRTH_REGIONS for r in REGIONS])
+_CHOOSES = np.array([r in CHOOSING_LENGTHS for r in REGIONS])
 
 
 def _size_verdict(v: np.ndarray) -> int:
@@ -527,8 +602,9 @@ def region_spec(model) -> RegionSpec:
 
 
 def girths_of_body(model, X: np.ndarray) -> np.ndarray:
-    """(R,) a body's girths (cm) at ``GIRTH_REGIONS`` (X (V, 3) metres)."""
-    return body_girths(region_spec(model).regions(X))
+    """(R,) a body's girths and lengths (cm) at ``REGIONS`` (X (V, 3) metres): the tapes of
+    :class:`RegionSpec`, then ``lengths.body_lengths``."""
+    return np.concatenate([body_girths(region_spec(model).regions(X)), body_lengths(model.measurement_spec, X)])
 
 
 def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np.ndarray, labels: list[str],
@@ -538,9 +614,17 @@ def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np
     rs = region_spec(model)
     sections = GarmentSections(faces, rests.shape[1])
     bodies_on = np.asarray(bodies_on)
-    G = np.stack([garment_girths(sections, rests[s], rs.regions(bodies_on[s] if bodies_on.ndim == 3 else bodies_on))
-                  for s in range(len(rests))])
-    return size_fit(labels, G, base, body_girths(rs.regions(base_body)), fabric, measurements)
+    thigh = GIRTH_REGIONS.index("thigh")
+    rows = []
+    for s in range(len(rests)):
+        X = bodies_on[s] if bodies_on.ndim == 3 else bodies_on
+        regions = rs.regions(X)
+        g = garment_girths(sections, rests[s], regions)
+        frame = LengthFrame.of(model, X, np.stack([regions[r].centre for r in ("chest", "waist", "hip")]))
+        V = np.asarray(rests[s], np.float64)
+        around = lambda n, o, c, x: sections.girth(V, Region(n, float(o), c, x)) is not None  # noqa: E731
+        rows.append(np.concatenate([g, garment_lengths(around, frame, legs=bool(np.isfinite(g[thigh])))]))
+    return size_fit(labels, np.stack(rows), base, girths_of_body(model, base_body), fabric, measurements)
 
 
 # EN 13402-3:2013 "Size designation of clothes - Part 3: Size designation of clothes for

@@ -361,7 +361,7 @@ class CustomerBody:
     _face_bounds: tuple | None = None  # geometry.face_bounds of the body, once per customer
     _bindings: dict = field(default_factory=dict)
     _posed: dict = field(default_factory=dict)  # pose set digest -> posed bodies (application.scenes)
-    _girths: object = None  # sizing.GIRTH_REGIONS girths (R,) cm, measured on first need
+    _girths: object = None  # sizing.REGIONS girths and lengths (R,) cm, measured on first need
 
     def binding(self, basis: "GarmentBasis", garment: np.ndarray) -> np.ndarray:
         """(M, 1) nearest body vertex of each garment vertex on this body (cached per garment)."""
