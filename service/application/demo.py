@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -23,9 +23,6 @@ from . import scenes
 from .sizes import Chart
 from .uploads import parse_color
 
-if TYPE_CHECKING:
-    from .garments import GarmentService
-
 log = logging.getLogger("tryon.garments")
 
 DEMO_OWNER = "demo"
@@ -38,9 +35,10 @@ GENDERS = ("female", "male")
 
 
 class DemoCatalogue:
-    """The demo catalogue's part of the garment service."""
+    """The demo catalogue's part of the garment service (a mixin of ``GarmentService``: it uses
+    its settings, model, repo, bases, drapes, examples and its ``.mhclo`` build path)."""
 
-    def demo_items(self: GarmentService) -> list[CatalogueItem]:
+    def demo_items(self) -> list[CatalogueItem]:
         """The catalogue garments served as the demo catalogue (``TRYON_DEMO_ITEMS``: 'all',
         or comma-separated catalogue ids; '' none), in catalogue order."""
         items = load_catalogue().garments()
@@ -53,7 +51,7 @@ class DemoCatalogue:
             raise ValueError(f"TRYON_DEMO_ITEMS: unknown catalogue items {unknown}")
         return [it for it in items if it.id in ids]
 
-    def demo_chart(self: GarmentService, item: CatalogueItem, body_cm: dict[str, dict[str, float]] | None = None
+    def demo_chart(self, item: CatalogueItem, body_cm: dict[str, dict[str, float]] | None = None
                    ) -> Chart | None:
         """The size chart a demo garment is built in (``demo_sizes.demo_chart``: EN 13402-3
         letter sizes XS-XL), its base size the one nearest the body the garment is bound to
@@ -73,7 +71,7 @@ class DemoCatalogue:
         sizes, base = SZ.validate_chart(table, SZ.nearest_size(table, cache[gender]))
         return Chart(sizes, base, DEMO_FABRICS.get(item.id, SZ.DEFAULT_FABRIC))
 
-    def _current_demo(self: GarmentService, old: Garment | None, chart: Chart | None) -> GarmentBasis | None:
+    def _current_demo(self, old: Garment | None, chart: Chart | None) -> GarmentBasis | None:
         """The stored basis of a demo garment that needs no rebuild: built for this body model
         in the sizes the catalogue defines now (``chart``; None: one size); else None."""
         if old is None or not old.is_current(self.model.version):
@@ -86,7 +84,7 @@ class DemoCatalogue:
             return None
         return self.bases.load(old.id, old.etag, old.base_index())
 
-    def ensure_demo(self: GarmentService) -> list[str]:
+    def ensure_demo(self) -> list[str]:
         """Build and store the demo catalogue where missing, built for another body model or
         in other sizes than the catalogue defines now, through the path a retailer's ``.mhclo``
         upload takes: in the sizes of its chart (:meth:`demo_chart`: graded, one basis per
@@ -126,7 +124,7 @@ class DemoCatalogue:
             log.info("demo catalogue: %d garments ready in %.2fs", len(ids), time.perf_counter() - t_all)
         return ids
 
-    def _build_demo(self: GarmentService, item: CatalogueItem, chart: Chart | None) -> Garment:
+    def _build_demo(self, item: CatalogueItem, chart: Chart | None) -> Garment:
         """One demo garment built and published: graded to ``chart`` (as an ``.mhclo`` upload
         with a size chart) or one size (as one without)."""
         record: dict[str, Any] = dict(
