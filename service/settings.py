@@ -104,6 +104,13 @@ class Settings(BaseSettings):
         description="Demo catalogue built at the first start: 'all' the compiled MakeHuman garments, or "
         "comma-separated catalogue item ids (e.g. for test servers), or '' none.",
     )
+    demo_sizes: bool = Field(
+        default=True,
+        validation_alias="TRYON_DEMO_SIZES",
+        description="Demo tops, bottoms and suits in the five EN 13402-3 letter sizes XS-XL (graded, one "
+        "clothing basis per size, a fit report per size); false: every demo garment in one size (a quicker "
+        "first start, e.g. for test servers). Shoes, the hat and underwear are one size either way.",
+    )
 
     cors_origins: str = Field(
         default="",

@@ -20,6 +20,9 @@ from typing import Any
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
+# test apps build their demo garments in one size (seconds, not minutes) unless a test asks for
+# sizes (``TRYON_DEMO_SIZES=True`` in its Settings, or in run_server's environment)
+os.environ.setdefault("TRYON_DEMO_SIZES", "false")
 VALIDATE_SCRIPT = REPO / "tests" / "gltf_validate.mjs"
 
 

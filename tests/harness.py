@@ -268,7 +268,9 @@ def _run_server(data_dir: Path, backend: str, url: str | None, workers: int | No
     port = free_port()
     data_dir.mkdir(parents=True, exist_ok=True)
     log_path = data_dir.parent / f"{data_dir.name}-server.log"
-    env = {**os.environ, "TRYON_DATA_DIR": str(data_dir), "TRYON_RATE_LIMIT_CLIENT": TEST_RATE_LIMIT,
+    # demo garments in one size unless a test asks for sizes (TRYON_DEMO_SIZES): a quick start
+    env = {**os.environ, "TRYON_DEMO_SIZES": "false", "TRYON_DATA_DIR": str(data_dir),
+           "TRYON_RATE_LIMIT_CLIENT": TEST_RATE_LIMIT,
            "TRYON_RETAILER_KEYS": ",".join(f"{n}:{k}" for n, k in RETAILERS.items()), **env_extra}
     for var in ("TRYON_BODY_MODEL", "REDIS_URL", "TRYON_REDIS_PREFIX"):
         if var not in env_extra:

@@ -107,6 +107,7 @@ def test_committed_files(cat):
     assert total < MAX_BYTES, total
     prov = (root / "PROVENANCE.md").read_text()
     assert "CC0 1.0" in prov and "8cf9645b975a98eea056b140df11a1d278da0d10" in prov
+    assert "EN 13402-3" in prov and "Derived, not the standard" in prov  # the demo size charts
     for iid in list(cat.items) + list(cat.skins):
         assert f"`{iid}`" in prov, iid
     assert "CC0 1.0 Universal" in (root / "LICENSE_CC0.txt").read_text()

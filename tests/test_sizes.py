@@ -306,3 +306,47 @@ def test_lengths_grow_with_a_chart_growing_in_height(model) -> None:
             own = S.fit_report(fit, S.girths_of_body(model, bodies[s]))
             assert abs(own.ease_cm[s, i] - fit.design_cm[i]) < 2.0, (gid, s, own.ease_cm[s, i], fit.design_cm[i])
             assert S.VERDICTS[int(own.verdict[s, i])] == "fit"
+
+
+def test_demo_charts(model) -> None:
+    """Every demo garment's chart: tops and suits by chest (bust) girth, bottoms by waist (and
+    the derived hip), the middles of the EN 13402-3 letter-code intervals XS-XL, valid charts
+    in the model's ranges; shoes, the hat and underwear one size. The base size is the one
+    nearest the body."""
+    from service.model.garments.demo_sizes import DEMO_SIZE_LABELS, demo_chart
+
+    ranges = {a.name: (a.min, a.max) for a in model.attributes if a.name != "gender"}
+    seen = set()
+    for item in load_catalogue().garments():
+        found = demo_chart(item.category, item.gender)
+        if item.category in ("shoes", "hat", "underwear"):
+            assert found is None, item.id
+            continue
+        assert found is not None, item.id
+        name, chart = found
+        assert "EN 13402-3" in name and tuple(chart) == DEMO_SIZE_LABELS
+        sizes, _ = S.validate_chart(chart, "M", ranges)
+        key = "waist_cm" if item.category == "bottom" else "chest_cm"
+        table = S.EN13402_3_LETTER_WAIST_CM if key == "waist_cm" else S.EN13402_3_LETTER_CHEST_CM
+        for s in sizes:
+            lo, hi = table[s["label"]]
+            assert s["measurements"][key] == (lo + hi) / 2, (item.id, s)
+        seen.add(item.category)
+    assert {"top", "bottom", "suit"} <= seen
+    tops = demo_chart("top", "male")[1]
+    assert S.nearest_size(tops, {"chest_cm": 101.6, "waist_cm": 92.0}) == "M"
+    assert S.nearest_size(tops, {"chest_cm": 113.0}) == "XL"
+    assert demo_chart("bottom", "female")[1]["M"] != demo_chart("bottom", "male")[1]["M"]  # the derived hips
+
+
+def test_bound_size_fits(model, graded) -> None:
+    """A bound garment's per-size example fits: on the body a size was graded on, that size's
+    rest shape; the base size's fits are the binding's own."""
+    g0, faces, rests, on, bodies, chart = graded["pencil-skirt"]
+    item = next(i for i in load_catalogue().garments() if i.id == "pencil-skirt")
+    fits = S.bound_size_fits(item.binding.fit, on, rests, on)
+    assert len(fits) == len(rests)
+    for s in range(len(rests)):
+        assert np.allclose(fits[s][s], rests[s], atol=1e-5)
+    assert np.allclose(fits[chart.base], np.stack([item.binding.fit(X) for X in on]), atol=1e-6)
+    assert not np.allclose(fits[0][1], fits[2][1], atol=1e-3)  # sizes differ on the same body

@@ -287,3 +287,60 @@ def test_fit_report_lengths(client: TestClient) -> None:
     longer = regions("longsleeve-tee", long_cid, long_auth)
     assert longer["sleeve"]["ease_cm"] == pytest.approx(tee["sleeve"]["ease_cm"] - 8.0, abs=1.5), (tee, longer)
     assert longer["sleeve"]["verdict"] in ("tight", "too_tight") and tee["sleeve"]["verdict"] != longer["sleeve"]["verdict"]
+
+
+# -- the demo catalogue in sizes -------------------------------------------------------------
+@pytest.fixture(scope="module")
+def demo_client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    """An app whose demo catalogue is the men's T-shirt, in sizes (test apps build one size)."""
+    with redis_db() as db:
+        settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("demo-sizes"), REDIS_URL=redis_url(db),
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="mens-tshirt", TRYON_DEMO_SIZES=True)
+        with TestClient(create_app(settings), raise_server_exceptions=True) as c:
+            yield c
+
+
+def test_demo_garment_in_sizes(demo_client: TestClient) -> None:
+    """The demo men's T-shirt is built in the five EN 13402-3 sizes of its chart, shipped as
+    the size nearest the mean avatar (M); a customer made from the M row gets M; XS and XL
+    try-ons differ (each size's basis) and XL's garment girth is the larger; a second start
+    keeps it, sizes off rebuilds it in one size, sizes on again in five."""
+    from service.model.formats.gltf_read import read_glb
+    from service.model.garments.demo_sizes import demo_chart
+
+    client = demo_client
+    listed = [g for g in client.get("/v1/garments").json() if g.get("catalogue_id") == "mens-tshirt"]
+    assert len(listed) == 1
+    g = client.get(f"/v1/garments/{listed[0]['id']}").json()
+    chart = demo_chart("top", "male")[1]
+    assert [s["label"] for s in g["sizes"]] == ["XS", "S", "M", "L", "XL"]
+    assert [s["measurements"] for s in g["sizes"]] == [chart[k] for k in chart]
+    assert g["base_size"] == "M" and g["fabric"] == "knit" and g["status"] == "ready"
+
+    cid, auth = _customer(client, chart["M"])
+    rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
+    assert rep["recommended"] == "M", rep
+    assert [s["label"] for s in rep["sizes"]] == list(chart)
+    url = f"/v1/customers/{cid}/garments/{g['id']}.glb"
+    xs, xl = (client.get(url, params={"size": s}, headers=auth) for s in ("XS", "XL"))
+    assert xs.status_code == 200 and xl.status_code == 200
+    assert xs.headers["etag"] != xl.headers["etag"]
+    P = [np.asarray(read_glb(r.content)["positions"], np.float64) for r in (xs, xl)]
+    assert P[0].shape == P[1].shape and np.abs(P[0] - P[1]).max() > 1e-3  # each size its own basis
+    # the garment's own girths (ease on one body): XL wider than XS by about the chart's 32 cm
+    chest = {s["label"]: next(r["ease_cm"] for r in s["regions"] if r["region"] == "chest") for s in rep["sizes"]}
+    assert chest["XL"] - chest["XS"] > 25.0, chest
+    assert list(chest) == sorted(chest, key=chest.__getitem__), chest  # growing with size
+
+    garments = client.app.state.context.garments
+    assert garments.ensure_demo() == [g["id"]]  # idempotent: nothing rebuilt
+    garments.settings.demo_sizes = False
+    try:
+        one = garments.ensure_demo()
+    finally:
+        garments.settings.demo_sizes = True
+    assert one != [g["id"]]  # rebuilt in one size, the sized one removed
+    assert client.get(f"/v1/garments/{g['id']}").status_code == 404
+    assert [s["label"] for s in client.get(f"/v1/garments/{one[0]}").json()["sizes"]] == ["one size"]
+    again = garments.ensure_demo()  # the catalogue defines 5 sizes again: rebuilt in sizes
+    assert again != one and len(client.get(f"/v1/garments/{again[0]}").json()["sizes"]) == 5

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -14,7 +13,7 @@ from typing import Any
 from service.model.body.model import BodyModel
 from service.model.garments.autofit import fit_to_examples
 from service.model.drape import DrapeError, drape_examples
-from service.model.garments.catalogue import CatalogueItem, Material, RenderLayout, Texture, load_catalogue
+from service.model.garments.catalogue import Material, RenderLayout, Texture
 from service.model.fitting.checks import FitError
 from service.model.fitting.fit import fit_body
 from service.model.formats.mesh_io import scan_type
@@ -32,6 +31,7 @@ from . import scenes
 from . import sizes as sizing
 from .sizes import Chart
 from .errors import Conflict, Forbidden, Invalid, NotFound
+from .demo import DemoCatalogue
 from .examples import Examples
 from .limits import Limits
 from .progress import MonotoneProgress, Progress
@@ -47,12 +47,7 @@ ORDER_MIN_BODY_RMS_M = 0.005  # components that barely move the body under the g
 ORDER_SWAP_COS = -0.3  # a +/- pair whose garment moves against its body: swapped files
 ORDER_MIN_COS = 0.3  # body-motion-weighted mean cosine below this: files in the wrong order
 DEFAULT_LAYER = 1
-DEMO_OWNER = "demo"
-DEMO_LOCK_S = 120
 UPLOAD_METALLIC, UPLOAD_ROUGHNESS = 0.0, 0.85  # cloth: dielectric, rough
-# the demo catalogue's cloth, by catalogue id (jersey tops, elastane sportswear; the rest woven)
-DEMO_FABRICS = {"womens-tshirt": "knit", "cropped-tee": "knit", "mens-tshirt": "knit", "longsleeve-tee": "knit",
-                "white-tshirt": "knit", "sports-trousers": "stretch"}
 BUILD_JOB = "worker.jobs.build_garment"  # the rq job, by dotted path
 # shares of a build job's progress
 BUILD_SHARES = {"avatar_fit": 0.3, "autofit": 0.6, "basis": 0.1}
@@ -63,7 +58,7 @@ def build_job_id(gid: str) -> str:
     return f"build-{gid}"
 
 
-class GarmentService:
+class GarmentService(DemoCatalogue):
     def __init__(self, settings: Settings, model: BodyModel, repo: GarmentRepo, bases: BasisStore, queue: JobQueue,
                  limits: Limits, examples: Callable[[], Examples], drapes: DrapeStore):
         self.settings = settings
@@ -231,7 +226,8 @@ class GarmentService:
         rec = Garment(id=gid, body_model=self.model.version, textured=_textured(material, layout),
                       **chart.record_fields(), **record)
         try:
-            rec = self._store_sizes(rec, rests, faces, on, bodies[chart.base], chart, layout, material)
+            rec = self._store_sizes(rec, rests, faces, on, bodies[chart.base], chart, layout, material,
+                                    bound=binding.fit)
         except DrapeError as exc:
             raise Invalid(("body", "mhclo"), f"the garment cannot be draped: {exc}") from None
         try:
@@ -243,10 +239,17 @@ class GarmentService:
 
     def _store_sizes(self, record: Garment, rests: np.ndarray, faces: np.ndarray, bodies_on: np.ndarray,
                      base_body: np.ndarray, chart: Chart, layout: RenderLayout | None, material: Material | None,
-                     progress: Progress | None = None) -> Garment:
-        """Every size's example fits (``sizes.size_example_fits``) and basis, stored together;
-        the record with its counts, combined ETag and girths per size (``fit``)."""
-        fits = sizing.per_size_fits(self.model, rests, faces, bodies_on, progress)
+                     progress: Progress | None = None, bound: Callable[[np.ndarray], np.ndarray] | None = None
+                     ) -> Garment:
+        """Every size's example fits and basis, stored together; the record with its counts,
+        combined ETag and girths per size (``fit``). The example fits: carried by the warp
+        (``sizes.size_example_fits``), or for a garment bound to the body (``bound``: its
+        binding's fit, avatar -> garment) by its binding (``sizing.bound_size_fits``,
+        milliseconds a size)."""
+        if bound is not None:
+            fits = SZ.bound_size_fits(bound, self.examples.vertices, rests, bodies_on)
+        else:
+            fits = sizing.per_size_fits(self.model, rests, faces, bodies_on, progress)
         if self.settings.drape:  # each size keeps its own size: its rest shape settled on every example
             fits = [self.drape_to_examples(rests[s], faces, f, chart.fabric) for s, f in enumerate(fits)]
         bases = []
@@ -628,60 +631,6 @@ class GarmentService:
             self.queue.cancel(record.job.id)
         self.bases.delete(gid)
         self.drapes.delete_garment(gid)
-
-    # -- the demo catalogue ------------------------------------------------------------------
-    def demo_items(self) -> list[CatalogueItem]:
-        """The catalogue garments served as the demo catalogue (``TRYON_DEMO_ITEMS``: 'all',
-        or comma-separated catalogue ids; '' none), in catalogue order."""
-        items = load_catalogue().garments()
-        want = self.settings.demo_items.strip()
-        if want == "all":
-            return items
-        ids = [w.strip() for w in want.split(",") if w.strip()]
-        unknown = sorted(set(ids) - {it.id for it in items})
-        if unknown:
-            raise ValueError(f"TRYON_DEMO_ITEMS: unknown catalogue items {unknown}")
-        return [it for it in items if it.id in ids]
-
-    def ensure_demo(self) -> list[str]:
-        """Build and store the demo catalogue (the compiled MakeHuman garments, see
-        ``service.model.garments.catalogue``) where missing or built for another body model, through the
-        path a retailer's ``.mhclo`` upload takes (fitted to every example avatar by its
-        binding, checked, basis built), keyed by catalogue item id, with its UVs, material,
-        category, gender and layer (idempotent; one process builds, the others wait on the
-        Redis lock). Returns their ids."""
-        ids: list[str] = []
-        with self.repo.lock("demo-garments", ttl=DEMO_LOCK_S, wait=DEMO_LOCK_S) as held:
-            if not held:
-                log.warning("demo garments: lock not obtained; not building them")
-            t_all = time.perf_counter()
-            for item in self.demo_items():
-                gid = self.repo.demo_id(item.id)
-                old = self.repo.get(gid) if gid else None
-                basis = self.bases.load(old.id, old.etag) if old is not None and old.is_current(self.model.version) else None
-                if basis is not None:
-                    if held:
-                        self._current_skinning(old, basis)
-                    ids.append(old.id)
-                    continue
-                if not held:
-                    continue
-                t0 = time.perf_counter()
-                rgba = parse_color(item.color, scenes.DEFAULT_GARMENT_COLOR)
-                rec = self._create_from_binding(
-                    item.binding, item.faces.astype(np.int32), item.render_layout(), item.material, name=item.name,
-                    owner=DEMO_OWNER, source="demo", color=rgba, layer=int(item.layer or 0),
-                    category=item.category, gender=item.gender, catalogue_id=item.id, swatch=item.color,
-                    fabric=DEMO_FABRICS.get(item.id, "woven"))
-                self.repo.set_demo_id(item.id, rec.id)
-                if old is not None:  # built for another body model: replaced
-                    self.repo.delete(old.id)
-                    self.bases.delete(old.id)
-                    self.drapes.delete_garment(old.id)
-                ids.append(rec.id)
-                log.info("demo garment %s built (%s) in %.2fs", item.id, rec.id, time.perf_counter() - t0)
-            log.info("demo catalogue: %d garments ready in %.2fs", len(ids), time.perf_counter() - t_all)
-        return ids
 
 
 def _graded_order(files: list[tuple[bytes, str | None]], garment_sizes: list[str] | None,

@@ -83,6 +83,44 @@ PROCESS = """\
   avatar), so it fits any avatar through `Binding.fit`. Plain colours, planar UVs, no texture."""
 
 
+SIZE_CHARTS = """\
+## Size charts (the demo catalogue in sizes)
+
+Not made by this build: the charts are data in `service/model/garments/demo_sizes.py` (with the
+standard's intervals in `service/model/garments/sizing.py`); the service grades each garment to
+them at its first start (`TRYON_DEMO_SIZES`, on by default; docs/sizes.md).
+
+Standard: **EN 13402-3:2013** *Size designation of clothes - Part 3: Size designation of clothes
+for body measurements and intervals* (CEN/TC 248), its **letter codes**: a letter size is made for
+an interval of a body dimension, tops and whole-body garments by chest girth (men) or bust girth
+(women), bottoms by waist girth. A chart row is the middle of its interval.
+
+| size | chest / bust interval (cm) | `chest_cm` | waist interval (cm) | `waist_cm` | `hip_cm` women (derived) | `hip_cm` men (derived) |
+| --- | --- | ---: | --- | ---: | ---: | ---: |
+| XS | 78-86 | 82 | 64-70 | 67 | 90 | 85 |
+| S | 86-94 | 90 | 70-76 | 73 | 94 | 89 |
+| M | 94-102 | 98 | 76-82 | 79 | 98 | 92 |
+| L | 102-110 | 106 | 82-88 | 85 | 102 | 96 |
+| XL | 110-118 | 114 | 88-94 | 91 | 106 | 100 |
+
+- **The standard's numbers**: the chest/bust and waist intervals. They were taken from published
+  summaries of the standard's letter-code table (e.g. the Wikipedia article "EN 13402"); the
+  project holds no copy of the standard's text to check the bounds against.
+- **Derived, not the standard's**: the bottoms' hip girths: the hip girth of the service's
+  population-estimated avatar at that waist and gender (`shape.avatar_from_measurements` given
+  the waist alone, body model `bm-5b35f84f21e1`), rounded to the centimetre. Every measurement
+  a chart does not give (height, inseam, ...) is estimated per size the same way at the build.
+- Tops (`top`) and the suits (`suit`: business suit, dungarees) use the chest chart, bottoms
+  (`bottom`) the waist and hip chart; each size's body is made for the garment's gender (the
+  standard's scale is the same for men's chest and women's bust). Shoes, the hat and the base
+  layer are one size.
+- **Base size** (the garment as shipped): the row nearest the body the garment is bound to, the
+  mean example avatar (chest 101.6, waist 91.8, hip 102.7 cm as the service measures it): M for
+  tops and suits, XL for bottoms.
+- **Fabric**: knit for the T-shirts (`womens-tshirt`, `cropped-tee`, `mens-tshirt`,
+  `longsleeve-tee`, `white-tshirt`), stretch for `sports-trousers`, woven for the others."""
+
+
 def _sha(p: Path) -> str:
     return hashlib.sha256(p.read_bytes()).hexdigest()
 
@@ -92,7 +130,7 @@ def render(doc: dict, root: Path) -> str:
     lines = ["# Catalogue data: provenance and licence", "",
              "Compiled by `tryon build-catalogue` (`worker/build/catalogue.py`); do not edit by hand.",
              f"Body model: `{doc['body_model']}` (hm08, {doc['n_base_vertices']} vertices). Format {doc['format']}.",
-             "", "## Sources", "", SOURCES, "", LICENCE, "", PROCESS, "", "## Items", "",
+             "", "## Sources", "", SOURCES, "", LICENCE, "", PROCESS, "", SIZE_CHARTS, "", "## Items", "",
              "| id | name | category | gender | layer | vertices / triangles | from | textures |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for it in doc["items"]:

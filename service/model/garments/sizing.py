@@ -260,6 +260,19 @@ def grade(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, bod
     return out
 
 
+def bound_size_fits(fit, examples: np.ndarray, rests: np.ndarray, bodies_on: np.ndarray) -> list[np.ndarray]:
+    """Every size's example fits of a garment bound to the body (a MakeHuman binding: ``fit``
+    maps an avatar (V, 3) to the garment (M, 3)): size s on example e is the binding's fit to
+    e plus that size's grading displacement where it was graded, ``rests[s] -
+    fit(bodies_on[s])``: the graded garment carried with each body as the binding carries the
+    garment (made to measure, as the warp's per-size fits; the base size's are exactly the
+    binding's fits). examples (E, V, 3), rests (S, M, 3), bodies_on (S, V, 3) -> S arrays
+    (E, M, 3) float64."""
+    on_examples = np.stack([np.asarray(fit(X), np.float64) for X in examples])
+    return [on_examples + (np.asarray(rests[s], np.float64) - np.asarray(fit(bodies_on[s]), np.float64))[None]
+            for s in range(len(rests))]
+
+
 def size_bodies_on(source: np.ndarray, bodies: np.ndarray, base: int) -> np.ndarray:
     """(S, V, 3) the body each size's rest shape sits on: ``source + bodies[s] - bodies[base]``."""
     src = np.asarray(source, np.float64)
@@ -628,18 +641,33 @@ def sized_garment_fit(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np
 
 
 # EN 13402-3:2013 "Size designation of clothes - Part 3: Size designation of clothes for
-# body measurements" (CEN/TC 248), letter codes: the chest girth (men) or bust girth (women)
-# intervals of XS to XL, 8 cm wide; a size made for an interval is made for its middle. The
-# demo catalogue and `tryon bench sizes` use these middles as the size charts of tops.
+# body measurements" (CEN/TC 248), letter codes XS to XL: the body-dimension intervals a letter
+# size is made for; a size made for an interval is made for its middle. Tops and whole-body
+# garments by chest girth (men) or bust girth (women), 8 cm intervals; bottoms by waist girth,
+# 6 cm intervals. The demo catalogue (``service.model.garments.demo_sizes``) and `tryon bench
+# sizes` use these middles as size charts.
 EN13402_3_LETTER_CHEST_CM: dict[str, tuple[float, float]] = {
     "XS": (78.0, 86.0), "S": (86.0, 94.0), "M": (94.0, 102.0), "L": (102.0, 110.0), "XL": (110.0, 118.0),
+}
+EN13402_3_LETTER_WAIST_CM: dict[str, tuple[float, float]] = {
+    "XS": (64.0, 70.0), "S": (70.0, 76.0), "M": (76.0, 82.0), "L": (82.0, 88.0), "XL": (88.0, 94.0),
 }
 
 
 def en13402_chart(measurement: str = "chest_cm") -> dict[str, dict[str, float]]:
-    """The EN 13402-3 letter sizes XS-XL as a size chart of ``measurement`` (the intervals'
-    middles, cm)."""
-    return {k: {measurement: (lo + hi) / 2} for k, (lo, hi) in EN13402_3_LETTER_CHEST_CM.items()}
+    """The EN 13402-3 letter sizes XS-XL as a size chart of ``measurement`` (the chest or bust
+    intervals' middles, cm; ``waist_cm``: the waist intervals')."""
+    table = EN13402_3_LETTER_WAIST_CM if measurement == "waist_cm" else EN13402_3_LETTER_CHEST_CM
+    return {k: {measurement: (lo + hi) / 2} for k, (lo, hi) in table.items()}
+
+
+def nearest_size(chart: dict[str, dict[str, float]], body: dict[str, float]) -> str:
+    """The label of the size of ``chart`` (label -> measurements, cm) whose measurements are
+    nearest those of ``body`` (name -> value, cm; Euclidean over the chart's measurements):
+    the size of a garment made on that body."""
+    def dist(ms: dict[str, float]) -> float:
+        return math.sqrt(sum((v - float(body[k])) ** 2 for k, v in ms.items()))
+    return min(chart, key=lambda label: dist(chart[label]))
 
 
 # -- the fit map -----------------------------------------------------------------------------
