@@ -27,6 +27,7 @@ def tee(model):
     return X[used] + 0.008 * n[used], remap[F]
 
 
+@pytest.mark.slow
 def test_autofit_stays_off_every_target_and_keeps_its_own_fit(model, tee):
     g, faces = tee
     nb = model.n_body_vertices

@@ -128,6 +128,7 @@ def test_reskin_scan_round_trip(model):
     assert np.median(err) < 1e-6 and err.max() < 0.02
 
 
+@pytest.mark.slow
 def test_twisted_elbow_keeps_more_volume_than_skinning_the_suit(model):
     """Paper Fig. 8: a 90-degree forearm twist of a closed suit, through the graph (default: M*
     by dual quaternions) against LBS of the suit with weights transferred from the body."""

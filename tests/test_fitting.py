@@ -1270,6 +1270,7 @@ def test_scan_to_surface_mm_against_brute_force():
     assert F.scan_to_surface_mm(V[Fc[:, 0]], V, Fc) == pytest.approx(0.0, abs=1e-9)  # points on it
 
 
+@pytest.mark.slow
 def test_bench_fits_the_scan_as_uploaded(model):
     """``tryon bench fitting --via-file``: the scan as the fitting job gets it from an upload
     (``as_uploaded``: the file read by ``uploads.read_body_upload``, stored as the queue

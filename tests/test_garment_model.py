@@ -124,6 +124,7 @@ def test_a_vertex_inside_facing_skin_is_pushed_out_of_it():
     assert wide[0, 0] == pytest.approx(0.005, abs=1e-6) and wide[2, 0] == pytest.approx(0.005, abs=1e-6)
 
 
+@pytest.mark.slow
 def test_heavy_crotch_keeps_the_bottoms_outside(model):
     """The penetration figure's misses (`tryon bench tryon`): a 179 cm / 111 kg man in
     MakeHuman's jeans and denim shorts, whose crotch is a crease (skin facing skin). No

@@ -116,6 +116,7 @@ def test_garment_name_stripped(client: TestClient) -> None:
 
 
 # -- rate limits and back-pressure ------------------------------------------------------------
+@pytest.mark.slow
 def test_rate_limit_per_client_and_retailer(limited: TestClient) -> None:
     """0.5 requests/s per client and per retailer key (bursts of 1): the next request within 2 s
     is answered 429 with Retry-After; a retailer's key has its own budget; 2 s later the

@@ -193,6 +193,7 @@ def holes(origins: np.ndarray, normals: np.ndarray, cloth: np.ndarray, skin_kept
     return out
 
 
+@pytest.mark.slow
 def test_outfit_leaves_out_the_body_under_opaque_garments_without_a_hole(model, dressed) -> None:
     """A man in jeans and a T-shirt: ``outfit.glb``'s avatar keeps every vertex but none
     of the faces under the two garments (their bases' ``hidden_body``), the head, hands and feet

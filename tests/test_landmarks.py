@@ -230,6 +230,7 @@ def test_thighs_pressed_together_give_no_wrong_crotch(model, rig, seed):
     assert crotch is None or 100 * np.linalg.norm(crotch - scan.true_posed[_perineum(model)]) < LANDMARK_CM
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 7])
 def test_a_skirt_gives_no_crotch_or_the_right_one(model, rig, seed):
     """A pencil skirt hides where the legs join: the legs part at its hem, which must not be

@@ -303,6 +303,7 @@ HEAVY_MAN = {"gender": "male", "height_cm": 179.1, "weight_kg": 111.4, "chest_cm
              "inseam_cm": 87.8, "arm_length_cm": 62.4}
 
 
+@pytest.mark.slow
 def test_nothing_inside_a_heavy_crotch_over_http(client: TestClient, model) -> None:
     """End to end, the crease anchors (``garment.crease_anchors``) in what a shop gets: the
     179 cm / 111 kg man's avatar.glb (its underwear) and try-on GLBs of catalogue bottoms: GLB

@@ -107,6 +107,7 @@ def test_round_trip_of_a_mesh():
     assert np.allclose(got.vertices, m.vertices, atol=1e-7) and np.array_equal(got.faces, m.faces)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not MH_CLOTHES.is_dir(), reason="needs ../shared/data")
 def test_the_makehuman_objs_read_as_the_reference_reads_them():
     files = sorted(MH_CLOTHES.rglob("*.obj"))

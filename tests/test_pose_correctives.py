@@ -122,6 +122,7 @@ def test_outfit_glb_carries_the_pose_targets(model, setup, compression,
     assert all(m["targets"] is None for m in ref["meshes"])
 
 
+@pytest.mark.slow
 def test_pose_targets_on_threads_are_those_of_one_thread(model, setup, monkeypatch: pytest.MonkeyPatch) -> None:
     """An outfit's pose targets and posed bodies made one pose per thread (parallel.WORKERS)
     give the same GLB bytes as made one after another, on a body new to both."""
@@ -153,6 +154,7 @@ def test_round_trip_values(model, setup) -> None:
         assert np.allclose(out["meshes"][0]["targets"][k], d[np.asarray(b.render_vertex)], atol=1e-7)
 
 
+@pytest.mark.slow
 def test_outfit_correctives_keep_the_layer_order(model, setup) -> None:
     """The blouse under the jacket on the heavy man, the three page poses: with both garments'
     targets at 1 (as outfit.glb makes them), the blouse is outside the jacket over no more of
@@ -262,6 +264,7 @@ def exact_pokes(pv: np.ndarray, faces: np.ndarray, posed: C.PosedBody) -> int:
     return int((~rim[F[face]].any(axis=1) & (dist < 0.02) & (np.abs(s) > np.cos(np.pi / 4) * dist) & (s < 0)).sum())
 
 
+@pytest.mark.slow
 def test_body_pokes_through_the_jeans_are_pushed_out_in_a_pose_that_pushes_no_vertex(model) -> None:
     """The page's arms-down and hands-on-hips poses leave the legs as at rest: no jeans vertex
     gets into the 165 cm / 105 kg woman (step 1 pushes nothing), yet body vertices poke through
@@ -446,6 +449,7 @@ def test_body_tucks_hide_the_skin_showing_through_the_underwear(model, setup) ->
     assert counts[0] >= 5 and counts[1] == 0, counts
 
 
+@pytest.mark.slow
 def test_poking_through_prefilter_misses_nothing(model, setup) -> None:
     """``poking_through``'s prefilter (body points near ``garment_index``'s samples: the
     vertices plus barycentric grids on long triangles) finds the same pokes, depths and faces

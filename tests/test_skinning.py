@@ -340,6 +340,7 @@ def cropped_tee(model):
     return _catalogue_basis_without(model, "cropped-tee", "SKIN_LIMB_SIDE")
 
 
+@pytest.mark.slow
 def test_cropped_tee_armpits_stretch_less_in_hands_on_hips(model, cropped_tee) -> None:
     """Issue 11 (b): on the 165 cm / 105 kg woman in the page's hands-on-hips pose (adapted to
     her) the cropped tee's armpit seams stretched 5.2x (p99.9 of its edges): a seam vertex with
@@ -669,6 +670,7 @@ def test_poses_route(client: TestClient) -> None:
     assert np.linalg.norm(arm) > 0
 
 
+@pytest.mark.slow
 def test_adapted_poses_are_computed_once_for_every_process(client: TestClient, monkeypatch) -> None:
     """The poses' adaptation (~0.5 s of CPU per body) runs once per body for the whole service:
     its result is stored (a process with an empty LRU -- another server process, or this one
