@@ -44,7 +44,8 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
         pytest.fail("run `npm ci` at the repo root (playwright-core, three)")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     (ARTIFACTS.parent / ".gitignore").write_text("*\n")
-    with run_server(tmp_path / "data", "embedded") as server:
+    # the demo catalogue in sizes: the page's size picker, fit words and fit map are exercised
+    with run_server(tmp_path / "data", "embedded", TRYON_DEMO_SIZES="true") as server:
         base = str(server.client.base_url).rstrip("/")
         assert server.client.get("/vendor/three/build/three.module.js").status_code == 200
         # a clothed mesh scan, fitted by the server's job while the browser works on the rest
