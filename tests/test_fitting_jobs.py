@@ -223,7 +223,6 @@ def test_a_hand_missing_from_the_scan_is_left_to_the_prior_and_said(server: Serv
     """Issue 12: a bare scan whose left hand is missing (a hole, as a scanner leaves): the fit
     holds that hand at its rest posture (``FitParams.unseen_prior``) and the customer says so,
     ``unseen: ["hand_l"]``; the rest of the body is measured as usual."""
-    from service.model.fitting import fit as F
     from service.model.fitting import rig as F_rig
     _, _, scan = scans["cloud"]
     rig = F_rig._rig(model)

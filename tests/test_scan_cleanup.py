@@ -190,7 +190,6 @@ def test_fit_scan_with_floor_and_cut_head(model):
     scanner's noisy tilted floor under it: the floor is dropped, the body and its stature are
     recovered (the head top from the model), as well as without the cleaning or better."""
     from service.model.fitting import fit as F
-    from service.model.fitting import params as F_params
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 1)[0]
@@ -212,7 +211,6 @@ def test_fit_scan_on_a_room_floor(model):
     """A point cloud in centimetres standing on a 3.2 m square of the room's floor (wider than a
     person): the fit tells the unit after dropping the floor and recovers the body."""
     from service.model.fitting import fit as F
-    from service.model.fitting import params as F_params
     from tests.bench.common import heldout_people
 
     person = heldout_people(model, 2)[1]

@@ -1,7 +1,7 @@
 """The garment catalogue: list, upload (retailers), read, delete, and the clothing basis."""
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool

@@ -93,7 +93,7 @@ def _subdivide(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
 
 
 def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
-    from service.model.drape import FABRICS, Config, precompute
+    from service.model.drape import FABRICS, precompute
     from tests.drape_cases import cylinder, revolved_body, ring_girth, square_sag, tube
 
     out: dict = {"rows": {}, "drapes": []}

@@ -19,7 +19,7 @@ from typing import Any
 
 from service.cli import write_output
 
-from tests.bench.goals import GOALS, Goal
+from tests.bench.goals import GOALS
 
 REPO = Path(__file__).resolve().parents[2]
 SAVE_DIR = REPO / "docs" / "bench"
