@@ -225,8 +225,9 @@ def test_length_verdicts() -> None:
 
 def test_a_too_short_length_counts_as_tight() -> None:
     """Sizes S, M, L whose chest fits M best: M's sleeve too short for this customer -> L
-    (a tailor would not pick a short sleeve); a sleeve short in every size, a short hem or no
-    sleeve: M."""
+    when the chart sizes lengths (a tailor would not pick a short sleeve); with a chart of
+    chest alone (which promises no sleeve length) the short sleeve is reported and the chest
+    chooses M; a sleeve short in every size, a short hem or no sleeve: M."""
     R = len(S.REGIONS)
     ci, si = S.REGIONS.index("chest"), S.REGIONS.index("sleeve")
     G = np.full((3, R), np.nan)
@@ -234,8 +235,11 @@ def test_a_too_short_length_counts_as_tight() -> None:
     G[:, si] = [56.0, 58.0, 60.0]
     body_cm = np.full(R, np.nan)
     body_cm[ci], body_cm[si] = 98.0, 62.0
-    fit = S.size_fit(["S", "M", "L"], G, 1, np.where(np.isfinite(G[1]), G[1] - np.array(
-        [6.0 if r == "chest" else 0.0 for r in S.REGIONS]), np.nan), "woven")
+    design = np.where(np.isfinite(G[1]), G[1] - np.array([6.0 if r == "chest" else 0.0 for r in S.REGIONS]), np.nan)
+    rep = S.fit_report(S.size_fit(["S", "M", "L"], G, 1, design, "woven", ["chest_cm"]), body_cm)
+    assert S.VERDICTS[int(rep.verdict[1, si])] in ("tight", "too_tight")
+    assert rep.labels[rep.recommended] == "M"
+    fit = S.size_fit(["S", "M", "L"], G, 1, design, "woven", ["chest_cm", "height_cm"])
     rep = S.fit_report(fit, body_cm)
     assert S.VERDICTS[int(rep.verdict[1, si])] in ("tight", "too_tight")
     assert rep.labels[rep.recommended] == "L"

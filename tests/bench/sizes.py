@@ -112,8 +112,8 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
                 if got != want:
                     misses.append({"garment": gid, "chest_cm": m["chest_cm"], "want": want, "got": got})
                 # girths: the chart grows in chest girth only, lengths follow the estimated heights
-                girths = rep.present & np.isin(S.REGIONS, S.GIRTH_REGIONS)
-                E, T = rep.ease_cm[:, girths], rep.strain_pct[:, girths]
+                is_girth = rep.present & np.isin(S.REGIONS, S.GIRTH_REGIONS)
+                E, T = rep.ease_cm[:, is_girth], rep.strain_pct[:, is_girth]
                 mono = (np.diff(E, axis=0) > 0).all(axis=0) & (np.diff(T, axis=0) <= 1e-9).all(axis=0)
                 mono_ok += int(mono.sum())
                 mono_tot += int(mono.size)

@@ -134,10 +134,14 @@ class LengthThresholds:
 # (a shirt that untucks, a skirt above the knee where it was meant at it), 10 cm another
 # silhouette (Aldrich: body lengths in 5 cm grade steps between "hip", "thigh", "knee").
 # the lengths whose "too short" rules a size out of the recommendation as a tight girth does (a
-# tailor would not pick a short sleeve or trouser leg). Not the hem: a top's or skirt's length
-# is a style, graded sizes barely differ in it (and not always in size order: a chart of girths
-# leaves the size bodies' heights to the population), so it would choose by noise
+# tailor would not pick a short sleeve or trouser leg), when the chart sizes that length (gives
+# one of the measurements below): a chart of girths alone (EN 13402-3's letter codes by chest)
+# promises no sleeve length, and sizing up for a long arm there buys a chest too loose; the
+# report still says the sleeve is short. Not the hem: a top's or skirt's length is a style,
+# graded sizes barely differ in it (and not always in size order: a chart of girths leaves the
+# size bodies' heights to the population), so it would choose by noise
 CHOOSING_LENGTHS = ("sleeve", "inseam")
+LENGTH_MEASUREMENTS = {"sleeve": ("arm_length_cm", "height_cm"), "inseam": ("inseam_cm", "height_cm")}
 LENGTH_THRESHOLDS: dict[str, LengthThresholds] = {
     "sleeve": LengthThresholds(too_short_cm=-5.0, short_cm=-2.5, long_cm=4.0, too_long_cm=8.0),
     "inseam": LengthThresholds(too_short_cm=-5.0, short_cm=-2.5, long_cm=5.0, too_long_cm=10.0),
@@ -478,7 +482,8 @@ def size_fit(labels: list[str], garment_cm: np.ndarray, base: int, base_body_cm:
     G = np.asarray(garment_cm, np.float64)
     G[:, ~np.isfinite(G).all(axis=0)] = np.nan
     given = set(measurements or ())
-    key = np.array([REGION_MEASUREMENT.get(r) in given for r in REGIONS])
+    key = np.array([REGION_MEASUREMENT.get(r) in given or bool(given & set(LENGTH_MEASUREMENTS.get(r, ())))
+                    for r in REGIONS])
     return SizeFit(list(labels), G, G[base] - base_body_cm, np.asarray(base_body_cm, np.float64), fabric,
                    key if key.any() else None)
 
@@ -562,7 +567,10 @@ def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
     v[:, length] = length_verdicts(ease[:, length], fit.design_cm[length],
                                    [r for r, p in zip(REGIONS, length) if p])
     size_v = np.array([_size_verdict(row[present]) for row in v], np.int64)
-    votes = present & (_IS_GIRTH | _CHOOSES)  # the hem neither rules out nor ranks sizes
+    # a sleeve or inseam chooses only where the chart sizes it (:data:`LENGTH_MEASUREMENTS`)
+    charted = np.zeros(len(REGIONS), bool) if fit.key is None else np.asarray(fit.key, bool)
+    chooses = _CHOOSES & charted
+    votes = present & (_IS_GIRTH | chooses)  # the hem neither rules out nor ranks sizes
     key = votes if fit.key is None else votes & fit.key
     if not key.any():
         key = votes
@@ -570,7 +578,7 @@ def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
     # girth, unless it is short in every size (no size mends it: the report says so, the
     # choice goes by the other regions); a hem's length does not choose (:data:`CHOOSING_LENGTHS`)
     choose = v.copy()
-    choose[:, length & ((v < 2).all(axis=0) | ~_CHOOSES)] = 2
+    choose[:, length & ((v < 2).all(axis=0) | ~chooses)] = 2
     return FitReport(fit.labels, ease, strain, v, size_v, present,
                      recommend(ease[:, present], fit.design_cm[present], choose[:, present], key[present]))
 
