@@ -206,6 +206,11 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
         fit, picker = s["fit"], s["picker"]
         assert picker["labels"] == s["sizes"] == [x["label"] for x in fit["sizes"]]
         assert picker["recommended"] == [fit["recommended"]] and picker["pressed"] == [fit["recommended"]]
+        # the recommendation in words: the closest size when every size is tight or short somewhere
+        rec_verdict = next(x["verdict"] for x in fit["sizes"] if x["label"] == fit["recommended"])
+        want = (f"No size fits you everywhere; {fit['recommended']} comes closest." if rec_verdict in ("tight", "too_tight")
+                else f"We recommend {fit['recommended']} for you.")
+        assert picker["recommendText"] == want, (picker, rec_verdict)
         # another size chosen: pressed, tried on (?sizes= in the order of ?garments=), its fit in words
         assert s["pickerOther"]["pressed"] == [s["other"]]
         from urllib.parse import parse_qs, urlparse

@@ -218,7 +218,7 @@ try {
     return { labels: [...div.querySelectorAll('.size-picker button')].map((b) => b.dataset.size),
       recommended: [...div.querySelectorAll('.size-picker button.recommended')].map((b) => b.dataset.size),
       pressed: [...div.querySelectorAll('.size-picker button[aria-pressed="true"]')].map((b) => b.dataset.size),
-      words: div.querySelector('.fit-words').textContent };
+      words: div.querySelector('.fit-words').textContent, recommendText: div.querySelector('.recommend').textContent };
   }, id);
   out.sizes = { sizedInCatalogue: sizedGarments.length, worn: [] };
   for (const g of outfits[0]) {

@@ -1226,7 +1226,10 @@ function showFits() {
     words.textContent = size ? `Size ${chosen} ${SIZE_WORDS[size.verdict] ? `(${SIZE_WORDS[size.verdict]})` : ''}: ${fitInWords(size)}` : '';
     const rec = document.createElement('p');
     rec.className = 'recommend';
-    rec.textContent = fit.recommended ? `We recommend ${fit.recommended} for you.` : '';
+    // every size tight or short somewhere: the recommended one is the closest, and says so
+    const recTight = ['too_tight', 'tight'].includes(bySize.get(fit.recommended)?.verdict);
+    rec.textContent = !fit.recommended ? ''
+      : recTight ? `No size fits you everywhere; ${fit.recommended} comes closest.` : `We recommend ${fit.recommended} for you.`;
     div.append(h, picker, words, rec);
     box.append(div);
   }
