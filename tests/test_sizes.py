@@ -354,3 +354,34 @@ def test_bound_size_fits(model, graded) -> None:
         assert np.allclose(fits[s][s], rests[s], atol=1e-5)
     assert np.allclose(fits[chart.base], np.stack([item.binding.fit(X) for X in on]), atol=1e-6)
     assert not np.allclose(fits[0][1], fits[2][1], atol=1e-3)  # sizes differ on the same body
+
+
+def _cylinder(radius: float, n: int = 48, rings: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """A closed-sided cylinder (rings * n, 3) along y, 0.8 m tall, and its faces."""
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    y = np.linspace(-0.4, 0.4, rings)
+    V = np.stack([np.tile(radius * np.cos(a), rings), np.repeat(y, n), np.tile(radius * np.sin(a), rings)], 1)
+    F = []
+    for r in range(rings - 1):
+        for i in range(n):
+            p, q = r * n + i, r * n + (i + 1) % n
+            F += [[p, p + n, q], [q, p + n, q + n]]
+    return V, np.asarray(F, np.int64)
+
+
+def test_grading_keeps_the_gap_to_the_body() -> None:
+    """A tube 2 cm off a cylinder of radius 15 cm, carried to a cylinder of 20 cm by scaling
+    (what a warp does: the gap grows to 2.7 cm): ``keep_offsets`` sets it back to 2 cm, so the
+    size's ease (2 pi gap) is the base's; a tube 15 cm off (hanging) keeps the warp's."""
+    body, F = _cylinder(0.15)
+    big = body * [0.20 / 0.15, 1.0, 0.20 / 0.15]
+    tube, tF = _cylinder(0.17, rings=5)
+    tube[:, 1] *= 0.5
+    warped = tube * [0.20 / 0.15, 1.0, 0.20 / 0.15]
+    out = S.keep_offsets(tube, warped, body, big, F, tF)
+    r = np.hypot(out[:, 0], out[:, 2])
+    assert np.abs(r - 0.22).max() < 0.002, (r.min(), r.max())  # the 2 cm gap kept (polygon: ~1 mm)
+    far = _cylinder(0.30, rings=5)[0]
+    far[:, 1] *= 0.5
+    far_warped = far * [0.20 / 0.15, 1.0, 0.20 / 0.15]
+    assert np.allclose(S.keep_offsets(far, far_warped, body, big, F), far_warped)

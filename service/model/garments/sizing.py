@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import connected_components
 from service.model.body import measurements as M
 from service.model.body.model import BONES
 from service.model.garments.lengths import LENGTH_REGIONS, LengthFrame, body_lengths, garment_lengths
-from service.model.geometry.mesh import mesh_edges
+from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges, neighbour_mean, row_dot, vertex_normals
 from service.model.body.lbs import main_bone
 
 FABRICS = ("woven", "knit", "stretch")
@@ -260,8 +260,53 @@ def grade(model, garment: np.ndarray, faces: np.ndarray, source: np.ndarray, bod
     res = AF.autofit(garment, faces, src, T, model.body_faces, params, body_points=helpers,
                      body_labels=main_bone(model.lbs_indices, model.lbs_weights),
                      label_hops=AF.bone_hops(model.bone_parents))
-    out[others] = res.fits
+    out[others] = [keep_offsets(garment, f, src, t, model.body_faces, faces) for f, t in zip(res.fits, T)]
     return out
+
+
+# grading keeps the garment's distance from the body (its ease) where it lies near the body:
+# fully up to KEEP_NEAR_M off the surface, fading to the warp's own (scaled with the body) at
+# KEEP_FAR_M, where cloth hangs (a skirt's hem) rather than follows the body
+KEEP_NEAR_M = 0.04
+KEEP_FAR_M = 0.10
+# the correction is smoothed over the garment's edges (neighbour means) so that the body's
+# normals turning in creases (armpits, crotch) do not crumple short edges
+KEEP_SMOOTHING = 3
+
+
+def keep_offsets(garment: np.ndarray, warped: np.ndarray, source: np.ndarray, target: np.ndarray,
+                 body_faces: np.ndarray, garment_faces: np.ndarray | None = None) -> np.ndarray:
+    """The warped garment (M, 3) with each vertex's offset along the body's normal set back to
+    the garment's (M, 3) offset on ``source`` (V, 3), measured at the same body point (face and
+    barycentrics of the vertex's closest point on ``source``) of ``target`` (V, 3): the warp
+    places the cloth along the body and scales its gap with the body; a size's ease is the
+    gap kept (girth = body girth + 2 pi gap on a convex section). Weighted by
+    ``KEEP_NEAR_M``/``KEEP_FAR_M``, smoothed over ``garment_faces`` (K, 3) when given.
+    Returns (M, 3) float64."""
+    g = np.asarray(garment, np.float64)
+    W = np.asarray(warped, np.float64)
+    F = np.asarray(body_faces, np.int64)
+    src, tgt = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    face, _, bary = closest_points_on_mesh(g, src, F)
+    tri = F[face]
+
+    def point_and_normal(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        N = vertex_normals(X, F)
+        c = np.einsum("mk,mkd->md", bary, X[tri])
+        n = np.einsum("mk,mkd->md", bary, N[tri])
+        return c, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+    c0, n0 = point_and_normal(src)
+    ct, nt = point_and_normal(tgt)
+    d0 = row_dot(g - c0, n0)
+    dw = row_dot(W - ct, nt)
+    w = np.clip((KEEP_FAR_M - d0) / (KEEP_FAR_M - KEEP_NEAR_M), 0.0, 1.0)
+    shift = w * (d0 - dw)
+    if garment_faces is not None:
+        A = neighbour_mean(garment_faces, len(g))
+        for _ in range(KEEP_SMOOTHING):
+            shift = 0.5 * (shift + A @ shift)
+    return W + shift[:, None] * nt
 
 
 def bound_size_fits(fit, examples: np.ndarray, rests: np.ndarray, bodies_on: np.ndarray) -> list[np.ndarray]:
