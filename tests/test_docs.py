@@ -16,10 +16,12 @@ from pathlib import Path
 
 import pytest
 
+from service.model.garments.sizing import VERDICTS
 from service.settings import SERVE_PID_ENV, Settings
 from tests.bench import report
 from tests.bench.goals import GOALS, Goal
 from tests.harness import REPO, bearer, run_server
+
 
 DOCS = REPO / "docs"
 README = REPO / "README.md"
@@ -159,7 +161,9 @@ def test_readme_tour_runs_against_a_live_server(server, tmp_path: Path):
     assert len(measured) == 12
     assert lines[1].startswith("ready ")
     assert "304" in lines and lines[-1] == "204"
-    for name in ("avatar.glb", "tryon.glb", "outfit.glb"):
+    recommended, verdicts = ast.literal_eval(lines[lines.index("304") + 1])  # the fit report's line
+    assert recommended in [label for label, _ in verdicts] and all(v in VERDICTS for _, v in verdicts), verdicts
+    for name in ("avatar.glb", "tryon.glb", "tryon-strain.glb", "outfit.glb"):
         assert (tmp_path / name).read_bytes()[:4] == b"glTF", name
     assert any("Women's T-shirt" in line and "ready" in line for line in lines)
 
