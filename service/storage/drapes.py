@@ -7,13 +7,13 @@ place) by the drape job; removed with the customer or the garment. With several 
 directory must be shared storage, as for the garment bases."""
 from __future__ import annotations
 
-import os
+import io
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from service.storage.files import atomic_write
 from service.storage.records import valid_id
 
 SUFFIX = ".npy"
@@ -47,14 +47,9 @@ class DrapeStore:
         directory = self._dir(cid, gid)
         directory.mkdir(parents=True, exist_ok=True)
         target = self.path(cid, gid, key)
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=SUFFIX, dir=directory)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.save(f, np.ascontiguousarray(vertices, np.float32))
-            os.replace(tmp, target)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        buf = io.BytesIO()
+        np.save(buf, np.ascontiguousarray(vertices, np.float32))
+        atomic_write(target, buf.getvalue())
         for old in directory.glob(f"*{SUFFIX}"):
             if old != target and not old.name.startswith(".tmp-"):
                 old.unlink(missing_ok=True)

@@ -6,12 +6,12 @@ storage, as for the garment bases."""
 from __future__ import annotations
 
 import io
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from service.storage.files import atomic_write
 
 MESH_FILE = "mesh.npz"
 
@@ -29,14 +29,7 @@ class MeshStore:
         directory.mkdir(parents=True, exist_ok=True)
         buf = io.BytesIO()
         np.savez(buf, **arrays)
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(buf.getvalue())
-            os.replace(tmp, directory / MESH_FILE)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_write(directory / MESH_FILE, buf.getvalue())
 
     def load(self, cid: str) -> dict[str, np.ndarray] | None:
         try:
