@@ -84,6 +84,15 @@ class Settings(BaseSettings):
         "size on every example avatar with the cloth drape engine (service.model.drape) instead of carrying "
         "it with the body. Off by default until a build fits the time budget (see docs/drape.md).",
     )
+    drape_population: int = Field(
+        default=64,
+        validation_alias="TRYON_DRAPE_POPULATION",
+        ge=0,
+        description="With TRYON_DRAPE on: population bodies (drawn from the body model's own distribution) a "
+        "garment is also draped on at its build, the clothing basis then being the least-squares line through "
+        "the example and population drapes (a drape is not linear in the body); 0: central differences of the "
+        "examples alone.",
+    )
     drape_timeout: int = Field(
         default=600,
         validation_alias="TRYON_DRAPE_TIMEOUT",

@@ -25,7 +25,7 @@ HAT = shared_data_dir() / "makehuman_clothes" / "fedora01"
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("drape"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="", TRYON_DRAPE=True,
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="", TRYON_DRAPE=True, TRYON_DRAPE_POPULATION=8,
                             TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c

@@ -33,6 +33,40 @@ def test_basis_is_exact_for_garments_linear_in_the_weights(model):
     np.testing.assert_allclose(G.synthesize(g, B, w), expect, atol=2e-5)
 
 
+def test_regressed_basis_is_exact_for_linear_fits_and_stored_as_examples(model):
+    """G.regress_basis through linear data recovers it; G.example_equivalent gives example fits
+    whose central differences (build_basis) are that basis exactly."""
+    ex = T.example_set(model, n=5, c=0.5)
+    rng = np.random.default_rng(2)
+    g_true = rng.normal(size=(30, 3))
+    B_true = rng.normal(size=(5, 30, 3))
+    W = np.vstack([ex.weights(), T.population_weights(ex, 20)])
+    fits = g_true[None] + np.einsum("ki,imd->kmd", W, B_true)
+    g, B = G.regress_basis(fits, W, ex.sigma, ridge=0.0)
+    np.testing.assert_allclose(g, g_true, atol=1e-4)
+    np.testing.assert_allclose(B, B_true, rtol=1e-3, atol=1e-3)
+    g2, B2 = G.build_basis(G.example_equivalent(g, B, ex), ex)
+    np.testing.assert_allclose(g2, g, atol=1e-6)
+    np.testing.assert_allclose(B2, B, rtol=1e-3, atol=1e-3)
+    with pytest.raises(ValueError, match="at least 6"):
+        G.regress_basis(fits[:4], W[:4], ex.sigma)
+
+
+def test_regressed_basis_fits_a_kinked_garment_better_than_two_examples():
+    """Cloth that hangs (constant) on small bodies and follows large ones (a kink at w = 0, as
+    contact makes it): the least-squares line over the population misses it by less, over the
+    population, than the central difference of two examples half a std from the mean."""
+    ex = G.ExampleSet(n=1, c=0.5, sigma=np.array([1.0]))
+    W = np.vstack([ex.weights(), T.population_weights(ex, 200, seed=3)])
+    kink = lambda w: np.maximum(w, 0.0)[:, None, None] * np.ones((1, 4, 3))  # noqa: E731
+    g, B = G.regress_basis(kink(W[:, 0]), W, ex.sigma)
+    g0, B0 = G.build_basis(kink(ex.weights()[:, 0]), ex)
+    test = T.population_weights(ex, 500, seed=4)
+    truth = kink(test[:, 0])
+    err = lambda g, B: np.mean([np.abs(G.synthesize(g, B, w) - t).mean() for w, t in zip(test, truth)])  # noqa: E731
+    assert err(g, B) < 0.75 * err(g0, B0), (err(g, B), err(g0, B0))
+
+
 def test_synthesis_matches_slow_loop():
     rng = np.random.default_rng(1)
     g = rng.normal(size=(7, 3)).astype(np.float32)

@@ -12,7 +12,8 @@ from typing import Any
 
 from service.model.body.model import BodyModel
 from service.model.garments.autofit import fit_to_examples
-from service.model.drape import DrapeError, drape_examples
+from service.model.drape import DrapeError
+from service.model.garments.draped import draped_example_fits
 from service.model.garments.catalogue import Material, RenderLayout, Texture
 from service.model.fitting.checks import FitError
 from service.model.fitting.fit import fit_body
@@ -289,17 +290,19 @@ class GarmentService(DemoCatalogue):
                           progress: Progress | None = None) -> np.ndarray:
         """The garment at its own size (``rest`` (N, 3), as uploaded on its body) settled on every
         example avatar by the cloth drape engine, each solve started from the warp fit there
-        (``warp_fits`` (E, N, 3)): the example fits (E, N, 3) of its clothing basis. The one
-        place a garment meets the examples (per size, for graded garments). Raises
-        ``DrapeError`` (degenerate rest shape, a drape that cannot settle)."""
-        bodies = np.stack([self.model.body_vertices(E) for E in self.examples.vertices]).astype(np.float64)
+        (``warp_fits`` (E, N, 3)), and on ``settings.drape_population`` population bodies
+        (started from the warp fits' basis there): the example fits (E, N, 3) of its clothing
+        basis, those of the least-squares basis through all the drapes when there are population
+        bodies (``garments.draped.draped_example_fits``). The one place a garment meets the
+        examples (per size, for graded garments). Raises ``DrapeError`` (degenerate rest shape,
+        a drape that cannot settle)."""
+        ex = self.examples
         cb = None if progress is None else (lambda f, msg: progress(f, msg))
-        fits, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
-                                     np.asarray(warp_fits, np.float64), bodies, self.model.body_faces, fabric,
-                                     progress=cb)
-        log.info("draped on %d examples: %.1fs, %d of them settled", len(fits),
-                 sum(s["seconds"] for s in stats), sum(bool(s["settled"]) for s in stats))
-        return fits
+        d = draped_example_fits(self.model, ex.set, ex.vertices, rest, faces, warp_fits, fabric,
+                                self.settings.drape_population, progress=cb)
+        log.info("draped on %d bodies: %.1fs, %d of them settled", len(d.drapes),
+                 sum(s["seconds"] for s in d.stats), sum(bool(s["settled"]) for s in d.stats))
+        return d.fits
 
     def _fits_from_meshes(self, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:
         ex = self.examples
@@ -562,7 +565,7 @@ class GarmentService(DemoCatalogue):
                 "layer": record.layer, "created": record.created, "id": gid, "body_model": self.model.version}
         rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
         material = _upload_material(upload.texture, rgba, None, upload.layout)
-        basis = build_garment_basis(self.model, result.fits, faces, self.examples.set, meta=meta,
+        basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta,
                                     layout=upload.layout, material=material, rest=garment)
         self.bases.save(gid, basis)
         ready = record.model_copy(update={"status": "ready", "error": None, "progress": None,

@@ -72,6 +72,44 @@ def build_basis(fits: np.ndarray, examples: ExampleSet) -> tuple[np.ndarray, np.
     return g.astype(np.float32), ((plus - minus) / step).astype(np.float32)
 
 
+# Ridge weight of the regressed basis (dimensionless: per unit of a component's squared std):
+# small enough not to bias a well-sampled basis, large enough to keep a thinly sampled one finite.
+REGRESSION_RIDGE = 1e-3
+
+
+def regress_basis(fits: np.ndarray, weights: np.ndarray, sigma: np.ndarray,
+                  ridge: float = REGRESSION_RIDGE) -> tuple[np.ndarray, np.ndarray]:
+    """The clothing basis as the least-squares line through garments fitted to many bodies:
+    fits (K, M, 3) on bodies of weights (K, N) (the examples and population bodies), sigma (N,)
+    each component's std -> (g (M, 3), B (N, M, 3)) minimising
+
+        sum_k || g + sum_i w_ki B_i - fit_k ||^2 + ridge K sum_i sigma_i^2 ||B_i||^2
+
+    (the ridge per unit std of each component and per body). The try-on is the
+    same arithmetic as with :func:`build_basis`; where the fits are not linear in the body
+    (cloth that is tight on large bodies and hangs on small ones) the line is fitted over the
+    bodies a shop will see instead of through two examples half a std from the mean."""
+    fits = np.asarray(fits, np.float64)
+    W = np.asarray(weights, np.float64)
+    K, n = W.shape
+    if len(fits) != K or K < n + 1:
+        raise ValueError(f"need at least {n + 1} fitted bodies for {n} components and one fit per body; "
+                         f"got {len(fits)} fits for {K} bodies")
+    A = np.hstack([np.ones((K, 1)), W / sigma[None, :]])  # columns in std units: one ridge for all
+    reg = ridge * K * np.diag(np.r_[0.0, np.ones(n)])
+    sol = np.linalg.solve(A.T @ A + reg, A.T @ fits.reshape(K, -1))
+    g = sol[0].reshape(fits.shape[1:])
+    B = (sol[1:] / sigma[:, None]).reshape(n, *fits.shape[1:])
+    return g.astype(np.float32), B.astype(np.float32)
+
+
+def example_equivalent(g: np.ndarray, B: np.ndarray, examples: ExampleSet) -> np.ndarray:
+    """(1 + 2N, M, 3): the example fits whose central differences (:func:`build_basis`) are
+    exactly the basis (g, B): g, g +/- c sigma_i B_i (a regressed basis stored like any other)."""
+    W = examples.weights()
+    return (g[None].astype(np.float64) + np.einsum("ki,imd->kmd", W, np.asarray(B, np.float64))).astype(np.float32)
+
+
 def synthesize(g: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Garment for weights w: g + sum_i w_i B_i (M, 3) float32 (3MN multiply-adds)."""
     n = B.shape[0]

@@ -72,6 +72,14 @@ def example_set(model, n: int | None = None, c: float | None = None) -> G.Exampl
     return G.ExampleSet(n=n, c=float(c or EXAMPLES["c"]), sigma=np.sqrt(model.variances[:n]))
 
 
+def population_weights(examples: G.ExampleSet, count: int, seed: int = 0) -> np.ndarray:
+    """(count, N) body weights drawn from the body model's own distribution (independent normal
+    components of std sigma_i, the PCA's model of the population), the same for a given seed:
+    the bodies a regressed clothing basis is fitted over (``G.regress_basis``)."""
+    rng = np.random.default_rng(seed)
+    return rng.standard_normal((count, examples.n)) * examples.sigma[None, :]
+
+
 def example_vertices(model, examples: G.ExampleSet) -> np.ndarray:
     """(1 + 2N, V, 3) float32 example avatars in listing order."""
     W = np.zeros((1 + 2 * examples.n, model.n_components))

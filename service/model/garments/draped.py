@@ -1,0 +1,57 @@
+"""A garment's example fits from the cloth drape engine: the garment at its own size settled on
+every example avatar and on population bodies, and the clothing basis through those drapes
+(``garment.regress_basis``) returned as example fits (``garment.example_equivalent``), so that it
+is stored and tried on like any other basis.
+
+Shapes: rest (M, 3) m, faces (F, 3) int, warp fits (E, M, 3) on the E = 1 + 2N example avatars
+(listing order), example avatars (E, V, 3)."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.model.drape import drape_examples
+
+from . import garment as G
+from .tryon import population_weights
+
+
+@dataclass
+class DrapedFits:
+    """fits (E, M, 3) float32: the basis's example fits; drapes (E + P, M, 3): every drape
+    (examples first, then the population bodies of ``weights`` (P, N)); stats: one per drape."""
+    fits: np.ndarray
+    drapes: np.ndarray
+    weights: np.ndarray
+    stats: list[dict]
+
+
+def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarray, rest: np.ndarray,
+                        faces: np.ndarray, warp_fits: np.ndarray, fabric: str, population: int,
+                        progress: Callable[[float, str], None] | None = None) -> DrapedFits:
+    """The garment (its rest shape: its own size) draped on every example avatar, each solve
+    started from its warp fit there, and on ``population`` bodies drawn from the body model's
+    distribution (``tryon.population_weights``), started from the warp fits' basis there. With
+    population bodies the fits are those of the least-squares basis through all the drapes: a
+    drape is not linear in the body (tight on large bodies, hanging on small ones), and the
+    central difference of two examples half a std from the mean extrapolates it badly. Raises
+    ``DrapeError`` naming the body that failed."""
+    warp_fits = np.asarray(warp_fits, np.float64)
+    W = population_weights(examples, population)
+    shapes, inits = np.asarray(example_avatars), warp_fits
+    if len(W):
+        g0, B0 = G.build_basis(warp_fits, examples)
+        padded = np.zeros((len(W), model.n_components))
+        padded[:, : examples.n] = W
+        shapes = np.concatenate([shapes, model.vertices(padded)])
+        inits = np.concatenate([warp_fits, [G.synthesize(g0, B0, w) for w in W]])
+    bodies = np.stack([model.body_vertices(X) for X in shapes]).astype(np.float64)
+    drapes, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
+                                   np.asarray(inits, np.float64), bodies, model.body_faces, fabric, progress=progress)
+    fits = drapes[: len(warp_fits)]
+    if len(W):
+        g, B = G.regress_basis(drapes, np.vstack([examples.weights(), W]), examples.sigma)
+        fits = G.example_equivalent(g, B, examples)
+    return DrapedFits(fits=fits, drapes=drapes, weights=W, stats=stats)
