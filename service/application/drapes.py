@@ -22,6 +22,7 @@ import numpy as np
 
 from service.model.body.model import BodyModel
 from service.model.drape import Config, DrapeError, precompute
+from service.model.garments.garment import CLEARANCE
 from service.model.garments.tryon import GarmentBasis, try_on
 from service.records import Customer, Garment, JobRef
 from service.settings import Settings
@@ -42,7 +43,11 @@ log = logging.getLogger("tryon.drapes")
 
 DRAPE_JOB = "worker.jobs.drape_garment"  # the rq job, by dotted path (the service never imports worker)
 # bump when what a drape is made of changes (its method, its start): every key, job id and ETag changes
-DRAPE_VERSION = 1
+DRAPE_VERSION = 2
+# How far the cloth of an exact drape rests outside the skin (m). Contact is per garment vertex, so
+# body details smaller than the garment's triangles (nipples, shoulder blades, the armpit's fold)
+# show through a cloth lying at the try-on's 3 mm (``garment.CLEARANCE``); twice that hides them.
+EXACT_CLEARANCE_M = 2 * CLEARANCE
 DRAPE_START = 0.05  # a drape job's progress once the records are loaded and the basis try-on made
 
 
@@ -164,7 +169,7 @@ class ExactDrapes:
         progress(DRAPE_START, "draping the garment on the customer's body")
         try:
             draper = precompute(drape_rest(basis), np.asarray(basis.faces, np.int64), garment.fabric,
-                                Config(max_iterations=int(iterations)))
+                                Config(max_iterations=int(iterations), clearance_m=EXACT_CLEARANCE_M))
             result = draper.solve(self.model.body_vertices(body.vertices).astype(np.float64),
                                   self.model.body_faces, start)
         except DrapeError as exc:

@@ -50,6 +50,12 @@ GOALS: dict[str, tuple[Goal, ...]] = {
         Goal("self-intersecting face pairs", "rows/self_intersections/value", "<=", 0, "pairs", source="issue 43"),
         Goal("one 10k-vertex garment draped on one body, 2 cores", "rows/garment_10k_s/value", "<=", 4.0, "s",
              source="issue 43"),
+        Goal("basis try-on vs direct drape, held-out people, mean", "rows/basis_vs_drape_mean_mm/value", "<=", 3.0,
+             "mm", source="issue 43 (pre-fitted path 0.9 mm)"),
+        Goal("basis try-on vs direct drape, held-out people, p99", "rows/basis_vs_drape_p99_mm/value", "<=", 12.0,
+             "mm", source="issue 43 (pre-fitted path 5.8 mm)"),
+        Goal("whole build, one garment on every example (and the population bodies) + basis, 2 cores",
+             "rows/whole_build_s/value", "<=", 300.0, "s", source="issue 43 (CLO auto-fit: minutes)"),
     ),
     "avatar": (
         Goal("all 12 entered: within ISO 20685-1 on every attribute (fast path)",
@@ -91,6 +97,8 @@ GOALS: dict[str, tuple[Goal, ...]] = {
         Goal("fit report per garment, in process", "timings/fit_report_ms", "<=", 5.0, "ms", 1.0, "issue 44"),
         Goal("try-on of one size, in process", "timings/one_size_try_on_ms", "<=", 2.0, "ms", 1.0,
              "issue 44: as today without sizes"),
+        Goal("try-on of one size, 10k vertices or more (subdivided), in process", "timings/one_size_try_on_10k_ms",
+             "<=", 2.0, "ms", 1.0, "issue 44: as today without sizes"),
     ),
     "tryon": (
         Goal("in-process try-on, 10,240-vertex skirt, synthesis + push-out + GLB, median CPU time",
