@@ -133,6 +133,10 @@ def test_drape_examples_keeps_the_garment_size_on_each_body():
     assert fits.shape == (2, len(V), 3) and fits.dtype == np.float32 and len(stats) == 2
     for fit, Rb in zip(fits, (0.155, 0.16)):
         hoop = ring_girth(fit.astype(np.float64), nh // 2, na) / ring_girth(V, nh // 2, na) - 1
-        assert abs(hoop - (Rb / Rg - 1)) < 0.005
+        # this coarse tube (32 sides) lies on the body's vertices between its own (the final
+        # body-vertex / cloth-face pass): it circumscribes the body's circle, up to 1 / cos(pi / 32)
+        # wider than a tube whose vertices alone touch it
+        circumscribed = (Rb + Config().clearance_m) / (Rg * np.cos(np.pi / na)) - 1
+        assert Rb / Rg - 1 - 0.002 < hoop < circumscribed + 0.002, (hoop, Rb / Rg - 1, circumscribed)
     with pytest.raises(DrapeError, match="example avatar 1"):
         drape_examples(V, F, np.stack([inits[0], inits[1] * np.nan]), np.stack(bodies), BF, "knit")

@@ -50,6 +50,8 @@ from service.model.geometry.solvers import factor_spd
 from .fabrics import Fabric, fabric as _fabric
 
 GRAVITY_M_S2 = 9.81  # standard gravity
+FACE_CONTACT_MIN_COS = 0.5  # body-vertex / cloth-face contact only where both rest on skin facing within 60 degrees
+FACE_CONTACT_MAX_LATERAL_M = 0.004  # ... and where the cloth point is within this of the body vertex's normal line
 
 
 class DrapeError(ValueError):
@@ -77,6 +79,8 @@ class Config:
     contact_near_m: float = 0.02  # ... and in between of those that may be this close to the body ...
     contact_moved_m: float = 0.0005  # ... and have moved more than this since their last refresh
     contact_k: int = 8  # nearest body vertices whose faces are searched for the closest point
+    face_contact_m: float = 0.008  # body vertices this close to a settled garment's face are pushed out of it (0: off) ...
+    face_contact_passes: int = 3  # ... in this many passes
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
@@ -395,6 +399,14 @@ class Draper:
         if body is not None:
             body.refresh(x)
             x, _ = body.project(x, None, None)
+            if cfg.face_contact_m > 0:
+                # body details between the cloth's vertices (a nipple, a shoulder blade) pushed out
+                # of the settled cloth, once: inside the iterations the pushes fight the membrane
+                # and fold the cloth where an arm meets the torso
+                body.refresh_faces(x, self.faces, cfg.face_contact_m)
+                for _ in range(cfg.face_contact_passes):
+                    if not body.push_faces(x, self.faces):
+                        break
             d = body.signed_distance(x, exact=True)
             max_inside = float(max(0.0, -d.min()))
             if max_inside > cfg.max_inside_m:
@@ -489,6 +501,59 @@ class _Body:
         inc = sp.csr_matrix((np.ones(F.size), (F.reshape(-1), np.repeat(np.arange(len(F)), 3))), shape=(len(V), len(F)))
         self.normals = _normals(V, F, inc)
         self.q = self.n = None
+
+    def refresh_faces(self, x: np.ndarray, faces: np.ndarray, near_m: float) -> None:
+        """Body vertices within ``near_m`` of the garment (x (N, 3), faces (F, 3)) whose closest
+        garment point lies inside a face (not on its edges: a body vertex beyond a hem or a
+        cuff is not under the cloth): the pairs :meth:`push_faces` keeps apart."""
+        d, _ = cKDTree(x).query(self.V, distance_upper_bound=near_m + 0.05)
+        cand = np.flatnonzero(np.isfinite(d))
+        self.face_pairs = None
+        if not len(cand):
+            return
+        face, q, bary = geometry.closest_points_on_mesh(self.V[cand], x, faces, k=self.cfg.contact_k)
+        dist = np.linalg.norm(q - self.V[cand], axis=1)
+        keep = (dist < near_m) & (bary.min(axis=1) > 0.02)
+        if keep.any():
+            self.face_pairs = (cand[keep], face[keep], bary[keep])
+
+    def push_faces(self, x: np.ndarray, faces: np.ndarray) -> int:
+        """Body-vertex / cloth-face contact (the other half of two-way contact): where a body
+        vertex is closer than ``clearance`` to the cloth point above it along its normal (or
+        through the cloth: a nipple or a shoulder blade between garment vertices), the face's
+        three vertices move out along that normal, each by its barycentric share (PBD's
+        point-triangle constraint, Mueller et al. 2007 Sec. 4.4), the largest move per vertex.
+        In place; returns the number of pairs pushed."""
+        if getattr(self, "face_pairs", None) is None:
+            return 0
+        b, f, w = self.face_pairs
+        p, n = self.V[b], self.normals[b]
+        tri = faces[f]
+        q = (x[tri] * w[:, :, None]).sum(1)
+        depth = self.cfg.clearance_m - ((q - p) * n).sum(1)
+        # only cloth lying on the same skin: the face's vertices rest on body points facing the
+        # same way (not an arm pressed against the side panel of a shirt, which would push the
+        # panel into the torso and the torso push it back)
+        same = (self.n[tri] * n[:, None, :]).sum(2).min(axis=1) > FACE_CONTACT_MIN_COS
+        # ... and only the cloth right above the body vertex, along its normal
+        d = q - p
+        lateral = np.linalg.norm(d - (d * n).sum(1, keepdims=True) * n, axis=1)
+        hit = (depth > 0) & same & (lateral < FACE_CONTACT_MAX_LATERAL_M)
+        if not hit.any():
+            return 0
+        tri, w, n, depth = tri[hit], w[hit], n[hit], depth[hit]
+        scale = depth / (w ** 2).sum(1)  # the face point moves by depth when each vertex moves w_i * scale
+        move = np.zeros(len(x))
+        dirs = np.zeros((len(x), 3))
+        for k in range(3):
+            amount = w[:, k] * scale
+            np.maximum.at(move, tri[:, k], amount)
+        for k in range(3):  # direction: the normal of the deepest pair of each vertex
+            amount = w[:, k] * scale
+            best = amount >= move[tri[:, k]] - 1e-15
+            dirs[tri[best, k]] = n[best]
+        x += move[:, None] * dirs
+        return int(hit.sum())
 
     def refresh(self, x: np.ndarray) -> None:
         """Closest points and normals of every vertex of x (N, 3)."""
