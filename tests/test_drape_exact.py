@@ -34,17 +34,22 @@ MAX_INSIDE_M = 0.001
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("exact"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="mens-tshirt",
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="mens-tshirt,mens-jeans",
                             TRYON_DRAPE_ITERATIONS=DRAPE_ITERATIONS,
                             TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
             yield c
 
 
+def _demo(client: TestClient, catalogue_id: str) -> dict:
+    (g,) = [g for g in client.get("/v1/garments").json() if g["catalogue_id"] == catalogue_id]
+    return g
+
+
 @pytest.fixture(scope="module")
 def gid(client: TestClient) -> str:
-    (g,) = client.get("/v1/garments").json()
-    assert g["catalogue_id"] == "mens-tshirt" and g["fabric"] == "knit"
+    g = _demo(client, "mens-tshirt")
+    assert g["fabric"] == "knit"
     return g["id"]
 
 
@@ -119,6 +124,49 @@ def test_exact_drape_is_queued_then_served(client: TestClient, gid: str, model, 
     assert any(drapes.rglob("*.npy"))
     assert client.delete(f"/v1/customers/{cid}", headers=auth).status_code == 204
     assert not drapes.exists()
+
+
+def test_an_outfit_of_exact_drapes(client: TestClient, gid: str, validate_glb) -> None:
+    """outfit.glb?drape=exact: every garment's drape queued at the first request (202 with the
+    first job while any waits), then the layered outfit of the drapes; a garment whose drape
+    failed is worn from its basis."""
+    ctx = client.app.state.context
+    jeans = _demo(client, "mens-jeans")["id"]
+    cust = _customer(client, height_cm=180, weight_kg=85)
+    cid, auth = cust["id"], bearer(cust)
+    url = f"/v1/customers/{cid}/outfit.glb"
+    params = {"garments": f"{jeans},{gid}"}
+    basis = client.get(url, params=params, headers=auth)
+    assert basis.status_code == 200
+    assert_422(client.get(url, params={**params, "drape": "tight"}, headers=auth), ["query", "drape"])
+    r = client.get(url, params={**params, "drape": "exact"}, headers=auth)
+    assert r.status_code == 202 and r.json()["id"].startswith("drape-") and r.headers["location"] == r.json()["url"]
+    assert ctx.queue.queue.count == 2  # both garments' drapes, at once
+    again = client.get(url, params={**params, "drape": "exact"}, headers=auth)
+    assert again.status_code == 202 and again.json()["id"] == r.json()["id"] and ctx.queue.queue.count == 2
+    _work(client)
+    r = client.get(url, params={**params, "drape": "exact"}, headers=auth)
+    assert r.status_code == 200 and r.headers["etag"] != basis.headers["etag"]
+    exact, tried = valid_glb(validate_glb, r.content), read_glb(basis.content)
+    assert [m["name"] for m in exact["meshes"]] == [m["name"] for m in tried["meshes"]]
+    # each garment is its drape (the one garment's exact GLB), layered: the shirt over the jeans
+    shirt = read_glb(client.get(_url(cid, gid), params={"drape": "exact"}, headers=auth).content)
+    (i,) = [k for k, m in enumerate(exact["meshes"]) if m["positions"].shape == shirt["positions"].shape]
+    moved = np.linalg.norm(exact["meshes"][i]["positions"] - tried["meshes"][i]["positions"], axis=1)
+    assert np.median(moved) > 1e-4, np.median(moved)
+    assert r.headers["etag"] == client.get(url, params={**params, "drape": "exact"}, headers=auth).headers["etag"]
+    # a garment that cannot be draped on a body is worn from its basis in the exact outfit
+    other = _customer(client, height_cm=170, weight_kg=64)
+    cid2, auth2 = other["id"], bearer(other)
+    url2 = f"/v1/customers/{cid2}/outfit.glb"
+    assert client.get(url2, params={**params, "drape": "exact"}, headers=auth2).status_code == 202
+    with mock.patch("service.application.drapes.precompute", side_effect=DrapeError("the cloth tore (test)")):
+        _work(client)
+    r = client.get(url2, params={**params, "drape": "exact"}, headers=auth2)
+    plain = client.get(url2, params=params, headers=auth2)
+    assert r.status_code == 200 and r.headers["etag"] != plain.headers["etag"]
+    for a, b in zip(read_glb(r.content)["meshes"], read_glb(plain.content)["meshes"]):
+        np.testing.assert_array_equal(a["positions"], b["positions"])
 
 
 def test_a_changed_body_is_draped_again(client: TestClient, gid: str) -> None:

@@ -4,7 +4,7 @@ sliders, poses, the catalogue (the shopper's gender first, "Show all"), bodies a
 height on screen, five bodies (and a 208 cm one) in two outfits seen from the front, side and
 back, two dressed bodies on a phone (screenshots under tests/artifacts/web_client/, printed),
 the layout at 1280x800 and on a phone (the measurements before the catalogue), the privacy line
-and "Delete my data", sizes (a picker, the fit in words, the fit map: when the server lists
+and "Delete my data", the exact drape ("Draped on you": outfit.glb?drape=exact), sizes (a picker, the fit in words, the fit map: when the server lists
 garments in sizes; hidden for one-size garments), a clothed scan edited live over the WebSocket."""
 from __future__ import annotations
 
@@ -106,6 +106,13 @@ def test_customer_page_end_to_end(tmp_path: Path, model) -> None:
         for influences in got.values():
             assert {"pose:a-pose", "pose:walking", "pose:arms-down", "pose:hands-on-hips"} <= set(influences)
             assert influences == {k: float(k == f"pose:{pose}") for k in influences}, (key, influences)
+    # the exact drape: on by default; "Draped on you" swaps in the outfit as draped on the body
+    # (outfit.glb?drape=exact) after the instant try-on; "Instant" goes back to the basis
+    d = out["drape"]
+    assert out["drapeDefault"] == "exact" and d["visible"] and d["pressed"] == "true", d
+    assert "drape=exact" in d["glb"] and "/outfit.glb?" in d["glb"] and d["loads"] >= 2, d
+    assert d["status"] == "Draped on your body." and "draped on that body" in d["privacy"], d
+    assert "drape=exact" not in d["after"] and d["hiddenAfter"] == "", d
     # the privacy line tells the truth: nothing before the first save / garment, then what is
     # stored (measurements, shape weights), where the key is (this browser's localStorage) and
     # for how long (the service has no customer expiry: until deleted)

@@ -73,6 +73,10 @@ try {
   page.on('pageerror', (e) => out.console.push(`pageerror: ${e.message}`));
   await page.goto(base + '/');
   await page.waitForFunction(() => window.__tryon && window.__tryon.ready, null, { timeout: 60000 });
+  // the instant try-on only until the exact drape's own section below (a drape arriving later
+  // would count as a load of whatever step came next)
+  out.drapeDefault = await page.evaluate(() => document.querySelector('#drape button[aria-pressed="true"]').dataset.drape);
+  await page.evaluate(() => window.__tryon.setDrape('basis'));
 
   // the layout at 1280x800: the viewer and the catalogue side by side, nothing to scroll, the
   // measurements above the catalogue
@@ -274,6 +278,26 @@ try {
     }
     out.sizes.sized = rec;
     await wear(page, outfits[0].map((x) => x.id));
+  }
+
+  // the exact drape: "Draped on you" swaps in the outfit as draped on this body by the cloth
+  // engine (outfit.glb?drape=exact: 202 while the drapes are computed) after the instant try-on
+  {
+    const before = await page.evaluate(() => window.__tryon.drapes);
+    const n0 = await loadsNow(page);
+    out.drape = { visible: await page.isVisible('#drape') };
+    await page.click('#drape button[data-drape="exact"]');
+    await page.waitForFunction((d) => window.__tryon.drapes > d, before, { timeout: 240000 });
+    Object.assign(out.drape, { glb: await page.evaluate(() => window.__tryon.lastGlb),
+      status: await page.textContent('#drape-status'), loads: (await loadsNow(page)) - n0,
+      pressed: await page.getAttribute('#drape button[data-drape="exact"]', 'aria-pressed'),
+      privacy: await page.textContent('#customer-status') });
+    await shot(page, 'drape-01-exact');
+    const n1 = await loadsNow(page);
+    await page.click('#drape button[data-drape="basis"]');
+    await waitLoad(page, n1);
+    out.drape.after = await page.evaluate(() => window.__tryon.lastGlb);
+    out.drape.hiddenAfter = await page.textContent('#drape-status');
   }
 
   // five bodies (and a 208 cm one), two outfits each, front / side / back. The camera keeps

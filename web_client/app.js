@@ -45,6 +45,7 @@ const state = {
   sizes: {},               // garment id -> the size label the shopper picked
   fits: new Map(),         // `${customer}|${garment}` -> GET .../fit answer, or null (404: no sizes there)
   fitmap: 'off',           // 'off' | 'strain' | 'ease': vertex colours on the garments (?fitmap=)
+  drape: 'exact',          // 'exact': after the instant try-on, the garments as draped on this body (?drape=exact) | 'basis'
 };
 
 // ---- three.js scene -----------------------------------------------------------------------
@@ -958,16 +959,17 @@ function setCustomer(id, token) {
 }
 
 // What the service keeps about the shopper, said as it is: nothing until they save or try a
-// garment on; then their measurements and the body shape made from them (the shape weights)
-// under a random id, with a token that only this browser keeps (localStorage; the service keeps
+// garment on; then their measurements and the body shape made from them (the shape weights),
+// and the garments' drapes on that body (?drape=exact), under a random id, with a token that only this browser keeps (localStorage; the service keeps
 // a hash of it), until they delete it (the service has no expiry for customers).
 function privacyText() {
   const p = $('#customer-status');
   const what = state.scan
     ? `your scan${state.scan.editable ? ' (the uploaded mesh)' : ''}, the measurements and body shape (shape weights) fitted to it`
     : 'your measurements and the body shape made from them (shape weights)';
+  const draped = state.scan ? '' : ', and the clothes as draped on that body';
   p.textContent = state.customerId
-    ? `Stored on our server: ${what}, under the random id ${state.customerId}, until you delete it. `
+    ? `Stored on our server: ${what}${draped}, under the random id ${state.customerId}, until you delete it. `
       + 'The key to it (a token) is kept only in this browser (localStorage); anyone with it can see your body. '
       + '"Delete my data" removes both.'
     : 'Nothing is stored yet: your avatar is made and forgotten. When you try on clothes or press "Save me", '
@@ -1009,6 +1011,8 @@ async function refresh() {
     await showGlb(buf);
     showFits();
     hook.ready = true;
+    showDrape();
+    if (state.worn.length && state.drape === 'exact') refineDrape(gen, hook.lastGlb);
   } catch (err) {
     if (gen !== generation) return;
     if (err instanceof ApiError && err.status === 404 && state.customerId) setCustomer(null); // forgotten server-side
@@ -1018,6 +1022,53 @@ async function refresh() {
     if (gen === generation) { hook.busy = timer !== null; $('#loading').hidden = true; } // another refresh due?
   }
 }
+
+// ---- the exact drape ----------------------------------------------------------------------
+// The instant try-on (the clothing basis, milliseconds) shows first; then the same outfit with
+// each garment draped on this body by the cloth simulation at its own size (outfit.glb?drape=exact:
+// 202 while the drapes are computed, a few seconds a garment, then the scene), swapped in unless
+// the shopper has moved on. A drape that cannot be had leaves the instant try-on, and says so.
+const DRAPE_POLL_MS = 700;
+const DRAPE_WAIT_MS = 120000;
+function showDrape(text = '') {
+  $('#drape').hidden = !state.worn.length || Boolean(state.scan);
+  document.querySelectorAll('#drape button').forEach((b) => b.setAttribute('aria-pressed', String(b.dataset.drape === state.drape)));
+  $('#drape-status').textContent = text;
+}
+async function refineDrape(gen, url) {
+  const exact = `${url}&drape=exact`;
+  hook.draping = true;
+  showDrape('Draping the cloth on your body…');
+  const t0 = performance.now();
+  try {
+    for (;;) {
+      if (gen !== generation || state.drape !== 'exact') return;
+      const r = await fetch(exact, asCustomer());
+      if (r.status === 202) {
+        if (performance.now() - t0 > DRAPE_WAIT_MS) { showDrape('The cloth is taking long: showing the instant try-on.'); return; }
+        await new Promise((res) => { setTimeout(res, DRAPE_POLL_MS); });
+        continue;
+      }
+      if (!r.ok) { showDrape(r.status === 429 ? 'Busy: showing the instant try-on.' : 'Showing the instant try-on.'); return; }
+      const buf = await r.arrayBuffer();
+      if (gen !== generation || state.drape !== 'exact') return;
+      await showGlb(buf);
+      hook.lastGlb = exact;
+      hook.drapes += 1;
+      showDrape('Draped on your body.');
+      return;
+    }
+  } catch {
+    if (gen === generation) showDrape('Showing the instant try-on.');
+  } finally {
+    if (gen === generation) hook.draping = false;
+  }
+}
+hook.drapes = 0;
+hook.setDrape = (mode) => { state.drape = mode; showDrape(); };
+document.querySelectorAll('#drape button').forEach((b) => b.addEventListener('click', () => {
+  state.drape = b.dataset.drape; showDrape(); refresh();
+}));
 
 // ---- catalogue ----------------------------------------------------------------------------
 function cssColor(c) {

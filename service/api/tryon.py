@@ -56,16 +56,23 @@ def try_on_glb(cid: str, gid: str, tryon: TryOnDep, drapes: DrapesDep, creds: Cr
                                             fitmap))
 
 
+OutfitDrape = Annotated[Literal["basis", "exact"], Query(description=(
+    "basis (default): the garments from their clothing bases, in milliseconds. exact: each garment draped on "
+    "this customer's own body (as `drape=exact` on one garment), then layered: 202 with a job while any "
+    "garment's drape is queued or running (each missing drape is queued at the first request; poll the job, "
+    "then ask again), then the outfit; a garment whose drape failed is worn from its basis"))]
+
+
 @router.get("/v1/customers/{cid}/outfit.glb", response_class=Response, dependencies=[Expensive],
-            responses=R.CUSTOMER_SCENE_RESPONSE)
-def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
+            responses={**R.CUSTOMER_SCENE_RESPONSE, 202: EXACT_DRAPE_RESPONSES[202], 429: EXACT_DRAPE_RESPONSES[429]})
+def outfit_glb(cid: str, tryon: TryOnDep, drapes: DrapesDep, creds: CredentialsDep, if_none_match: IfNoneMatchDep,
                garments: Annotated[str, Query(description="Comma-separated garment ids")] = "",
                compression: Compression = None, hair: Hair = None, underwear: Underwear = True,
                pose_correctives: PoseCorrectives = False,
                sizes: Annotated[str | None, Query(max_length=2000, description=(
                    "Comma-separated size labels, one per garment in the order of `garments` (empty: the "
                    "recommended size); default: each garment's recommended size"))] = None,
-               fitmap: FitMap = None) -> Response:
+               fitmap: FitMap = None, drape: OutfitDrape = "basis") -> Response:
     """The customer's avatar wearing the garments (one scene, one skeleton), layered: inner
     garments (lower layer) first, each outer one pushed over the ones below. The avatar as in
     ``avatar.glb`` (nodes ``avatar``, ``eyes``, ``eyebrows``, ``hair``, ``underwear``; the same
@@ -74,10 +81,14 @@ def outfit_glb(cid: str, tryon: TryOnDep, creds: CredentialsDep, if_none_match: 
     asks for them: it sets the current pose's target influence), and the ``avatar`` node gets
     ``pose:<name>`` targets too where skin would show through the posed clothes (pulled under
     them). The body under opaque garments is left out of the ``avatar`` mesh (its vertices
-    stay)."""
-    return R.private_glb(*tryon.outfit_glb(cid, garments.split(","), creds, compression, if_none_match,
-                                           hair, underwear, pose_correctives,
-                                           None if sizes is None else sizes.split(","), fitmap))
+    stay). ``drape=exact``: each garment as the customer's own drape (202 with a job until
+    they are all done or failed)."""
+    out = tryon.outfit_glb(cid, garments.split(","), creds, compression, if_none_match, hair, underwear,
+                           pose_correctives, None if sizes is None else sizes.split(","), fitmap,
+                           worn=drapes.outfit_worn if drape == "exact" else None)
+    if isinstance(out, JobRefRecord):
+        return JSONResponse(out.model_dump(), status_code=202, headers={"Location": out.url})
+    return R.private_glb(*out)
 
 
 @router.get("/v1/customers/{cid}/garments/{gid}/fit", response_model=FitResponse,

@@ -114,6 +114,33 @@ class ExactDrapes:
                                  poses=self.tryon.page_poses(record, pose_correctives), fitmap=fitmap,
                                  worn=[draped]), tag
 
+    def outfit_worn(self, record: Customer, layered: list[tuple[Garment, GarmentBasis]]
+                    ) -> tuple[list[np.ndarray | None], str] | JobRef:
+        """An outfit's garments as the customer's exact drapes (``TryOnService.outfit_glb``'s
+        ``worn``): each garment's drape when it is done, None (its basis try-on) where the drape
+        failed; while any drape is queued or running, the first such job instead (each missing
+        drape is queued at the first request). Also the ETag part naming the drapes used."""
+        worn: list[np.ndarray | None] = []
+        keys: list[str] = []
+        pending: JobRef | None = None
+        for garment, basis in layered:
+            key = self._key(record, garment, basis, self.settings.drape_iterations)
+            draped = self.store.load(record.id, garment.id, key)
+            if draped is not None and draped.shape == (basis.n_vertices, 3):
+                worn.append(draped)
+                keys.append(key)
+                continue
+            try:
+                ref = self._job(record, garment, basis, key)
+            except Conflict:  # this garment cannot be draped on this body: its basis try-on
+                worn.append(None)
+                keys.append("basis")
+                continue
+            pending = pending or ref
+        if pending is not None:
+            return pending
+        return worn, "|exact:" + ",".join(keys)
+
     def _job(self, record: Customer, garment: Garment, basis: GarmentBasis, key: str) -> JobRef:
         """The drape's job: the one queued or running, else a new one (a done job whose result
         is missing is replaced). A failed one: 409 with its reason, until the customer's shape

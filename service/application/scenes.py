@@ -233,7 +233,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     same layers were layered on the same body before (:func:`layered_outfit`; False: always
     layered, for benchmarks). ``fitmap``: ``strain`` or ``ease``: each garment coloured by
     :func:`fitmap_colors` (COLOR_0). ``worn``: each garment's vertices (M_i, 3) on this body
-    from elsewhere (a per-customer drape) instead of its basis try-on, normals from its mesh. ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
+    from elsewhere (a per-customer drape) instead of its basis try-on, normals from its mesh
+    (None for a garment: its basis try-on). ``poses`` ({name: (17, 3) axis-angle}, the page's poses for this
     body): each garment also gets one pose-corrective morph target per pose
     (:func:`add_pose_correctives`); or a function returning them, called once the outfit is
     layered (the poses' adaptation may be under way in another server process meanwhile)."""
@@ -246,9 +247,12 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
     if worn is None:
         worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
         normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
-    else:
-        worn = [np.asarray(v, np.float32) for v in worn]
-        normals = [basis.normals(v) for v, (_, basis) in zip(worn, garments)]
+    else:  # None: that garment's basis try-on
+        given = worn
+        worn = [np.asarray(try_on(basis, body, layer=rank)[0] if v is None else v, np.float32)
+                for rank, (v, (_, basis)) in enumerate(zip(given, garments))]
+        normals = [basis.normals(v, body.weights) if g is None else basis.normals(v)
+                   for g, v, (_, basis) in zip(given, worn, garments)]
     # the look's base layer is the innermost layer: a bra never shows through a blouse
     under = next((m for m in meshes if m.get("name") == "underwear"), None) if worn else None
     layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \

@@ -3,10 +3,13 @@ trip (the customer and the garments together), then in-process caches: the custo
 (per weights) and the garments' memory-mapped bases (per etag)."""
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 from service.model.body.model import BodyModel
 from service.model.garments import sizing as SZ
 from service.model.garments.tryon import GarmentBasis
-from service.records import Garment
+from service.records import Customer, Garment, JobRef
 from service.storage.records import CustomerRepo, GarmentRepo, fetch
 
 from . import look as looks
@@ -120,11 +123,16 @@ class TryOnService:
     def outfit_glb(self, cid: str, gids: list[str], creds: Credentials, compression: str | None,
                    if_none_match: list[str] | None = None, hair: str | None = None,
                    underwear: bool = True, pose_correctives: bool = False,
-                   sizes: list[str] | None = None, fitmap: str | None = None) -> tuple[bytes | None, str]:
+                   sizes: list[str] | None = None, fitmap: str | None = None,
+                   worn: Callable[[Customer, list[tuple[Garment, GarmentBasis]]], Any] | None = None
+                   ) -> tuple[bytes | None, str] | JobRef:
         """The customer's avatar wearing its look (``hair``, ``underwear``: see
         ``CustomerService.avatar_glb``) and the garments (one scene, one skeleton), layered:
         inner garments (lower layer) first, each outer one pushed over the ones below; and its
-        ETag. ``pose_correctives``: each garment with one morph target per page pose."""
+        ETag. ``pose_correctives``: each garment with one morph target per page pose.
+        ``worn(record, layered)``: the garments' vertices from elsewhere (a customer's exact
+        drapes: ``ExactDrapes.outfit_worn``) as (list of (M_i, 3) or None for the basis try-on,
+        an ETag part), or a job to answer instead (202) while one is being computed."""
         given = [g.strip() for g in gids if g.strip()]
         ids = list(dict.fromkeys(given))
         if len(ids) > MAX_OUTFIT_GARMENTS:
@@ -147,9 +155,16 @@ class TryOnService:
         look = looks.resolve(looks.gender_of(record.measurements), hair, underwear)
         order = sorted(range(len(loaded)), key=lambda i: (loaded[i][0].layer, i))
         layered: list[tuple[Garment, GarmentBasis]] = [loaded[i] for i in order]
-        tag = self._etag(f"outfit|{look.key}" + ("|poses" if pose_correctives else "")
+        vertices, part = None, ""
+        if worn is not None:
+            got = worn(record, layered)
+            if isinstance(got, JobRef):
+                return got
+            vertices, part = got
+        tag = self._etag(f"outfit|{look.key}" + part + ("|poses" if pose_correctives else "")
                          + (f"|fitmap:{fitmap}" if fitmap else ""), record, layered, compression)
         if scenes.etag_matches(tag, if_none_match):
             return None, tag
         return scenes.outfit_glb(self.model, self.customers.body(record), layered, compression,
-                                 look=look, poses=self.page_poses(record, pose_correctives), fitmap=fitmap), tag
+                                 look=look, poses=self.page_poses(record, pose_correctives), fitmap=fitmap,
+                                 worn=vertices), tag
