@@ -25,7 +25,11 @@ Rows (goals from issue 43):
   II people the body model never saw; 20, or ``--limit``) vs the garment draped directly on each
   from its warp fit there (goal mean <= 3 mm, p99 <= 12 mm); beside it the central-difference
   basis of the 65 example drapes alone (the paper's);
-- ``whole_build_s``: that build (129 drapes + the basis), 2 cores (goal <= 5 min).
+- ``whole_build_s``: that build (129 drapes + the basis), 2 cores (goal <= 5 min);
+- ``ease_vs_newton_mm`` / ``hem_vs_newton_cm``: that T-shirt draped from its warp fit on 5 held-out
+  people here and by Newton VBD on CPU (2 simulated seconds, damped): the largest difference of
+  ease at any girth region it has (chest, waist, shoulders), and of the hem height (goals 5 mm,
+  1 cm).
 """
 from __future__ import annotations
 
@@ -33,6 +37,9 @@ import time
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+NEWTON_BODIES = 5  # held-out people the reference drapes the catalogue garment on
+NEWTON_SECONDS = 2.0  # simulated seconds of the reference's damped settle
 
 
 def self_intersections(V: np.ndarray, F: np.ndarray) -> int:
@@ -241,6 +248,37 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
     rows["whole_build_s"] = {"value": build_s, "goal": 300.0, "drapes": len(dfits.drapes),
                              "n_vertices": len(s_rest),
                              "median_drape_s": float(np.median([st["seconds"] for st in dfits.stats]))}
+
+    # 8. a catalogue garment on 5 held-out bodies vs Newton VBD: ease at each girth region, hem height
+    if newton and why is None:
+        from service.model.garments import sizing as SZ
+        from tests.bench.drape_newton import garment_on_body
+
+        knit = FABRICS["knit"]
+        sec = SZ.GarmentSections(sF, len(s_rest))
+        ease_diff: list[np.ndarray] = []
+        hem_diff, newton_s, speeds = [], [], []
+        for X in heldout_avatars(m)[: NEWTON_BODIES]:
+            BVh = m.body_vertices(X).astype(np.float64)
+            init = shirt.binding.fit(X).astype(np.float64)
+            ours = shirt_draper.solve(BVh, m.body_faces, init).vertices.astype(np.float64)
+            ref = garment_on_body(s_rest, sF, init, BVh, m.body_faces, knit.density_kg_per_m2,
+                                  knit.stretch_stiffness_n_per_m, knit.bending_stiffness_nm, knit.friction,
+                                  seconds=NEWTON_SECONDS)
+            regs = SZ.region_spec(m).regions(X)
+            ease_diff.append(SZ.garment_girths(sec, ours, regs) - SZ.garment_girths(sec, ref["vertices"], regs))
+            hem_diff.append(100 * abs(ours[:, 1].min() - ref["vertices"][:, 1].min()))
+            newton_s.append(ref["seconds"])
+            speeds.append(ref["max_speed_m_s"])
+        D = np.abs(np.array(ease_diff))  # (bodies, regions) cm, NaN where the shirt has no such region
+        per = {r: float(10 * np.nanmax(D[:, i])) for i, r in enumerate(SZ.GIRTH_REGIONS) if np.isfinite(D[:, i]).any()}
+        rows["ease_vs_newton_mm"] = {"value": max(per.values()), "goal": 5.0, "bodies": len(D), "garment": "mens-tshirt",
+                                     **{f"{r}_max_mm": v for r, v in per.items()},
+                                     "newton_s_median": float(np.median(newton_s)),
+                                     "newton_max_speed_m_s": float(max(speeds)), "newton_seconds_simulated": NEWTON_SECONDS}
+        rows["hem_vs_newton_cm"] = {"value": float(max(hem_diff)), "goal": 1.0}
+    else:
+        rows["ease_vs_newton_mm"] = {"value": None, "goal": 5.0, "skipped": why or "skipped (--no-newton)"}
 
     rows["inside_vertices"] = {"value": inside, "goal": 0}
     rows["self_intersections"] = {"value": selfx, "goal": 0}

@@ -12,8 +12,10 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
 - monotonic: at every girth region of every (person, garment), ease grows and strain falls with size;
 - timings in process: the fit report of one garment, the customer's girths (once per body),
   grading, one size's example fits (the build's unit of work), the try-on of one size;
-- basis vs direct drape: needs the drape engine (issue 43); reported as not measured until it
-  is merged.
+- per-size basis try-on vs direct drape: the first garment's XS basis (as built with
+  ``TRYON_DRAPE`` off: warp fits) tried on held-out customers (10, or ``--limit``) vs that size's
+  rest shape draped directly on each (the drape engine, from the try-on, as the exact drape job);
+  vertex distance and the strain maps' difference (percentage points).
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from service.model.garments import sizing as S
 from service.model.body.model import load_body_model
 from service.model.garments.catalogue import load_catalogue
 from service.model.body.shape import avatar_from_measurements
+from service.model.drape import edge_strain, precompute
 from service.model.garments.tryon import build_garment_basis, customer_body, example_set, try_on
 from tests.bench.common import median_ms, read_ansur
 from tests.bench.drape import _subdivide
@@ -33,6 +36,7 @@ from tests.bench.drape import _subdivide
 # (catalogue id, gender, fabric): tops of both genders, a knit and a woven
 GARMENTS = (("womens-tshirt", "female", "knit"), ("mens-tshirt", "male", "knit"), ("striped-shirt", "male", "woven"))
 ROUND_TRIP_EASE_CM = 1.0
+DRAPE_CUSTOMERS = 10  # held-out customers the per-size basis try-on is checked on against direct drapes
 CHARTED = ("chest", "waist", "hip")
 
 
@@ -130,6 +134,23 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     body = customer_body(model, model.project(bodies_cache[0][1].vertices))
     try_on(basis, body)
     tryon_ms = median_ms(lambda: try_on(basis, body), repeats)
+    # the size's basis try-on (as served: synthesis + push-out) vs that size draped directly on the
+    # customer's body by the drape engine (its rest shape, started from the try-on, as the exact
+    # drape job does); the strain maps (per-vertex stretch against the size's rest shape) of both
+    rest0 = np.asarray(g0["rests"][0], np.float64)
+    draper = precompute(rest0, g0["faces"], GARMENTS[0][2])
+    errs, strain_pts = [], []
+    for _, cust in bodies_cache[: min(len(bodies_cache), limit or DRAPE_CUSTOMERS)]:
+        cb = customer_body(model, model.project(cust.vertices))
+        tried = np.asarray(try_on(basis, cb)[0], np.float64)
+        draped = draper.solve(model.body_vertices(cb.vertices).astype(np.float64), model.body_faces, tried).vertices
+        errs.append(np.linalg.norm(tried - draped, axis=1))
+        strain_pts.append(100 * np.abs(edge_strain(rest0, g0["faces"], tried) - edge_strain(rest0, g0["faces"], draped)))
+    e, sp = 1000 * np.concatenate(errs), np.concatenate(strain_pts)
+    basis_vs_drape = {"garment": GARMENTS[0][0], "size": chart.labels[0], "customers": len(errs),
+                      "mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99)),
+                      "strain_mean_pts": float(sp.mean()), "strain_p99_pts": float(np.percentile(sp, 99)),
+                      "basis": "warp (TRYON_DRAPE off)"}
     # the same size subdivided (each face into four) until it has 10k vertices or more
     faces10, fits10 = np.asarray(g0["faces"], np.int64), np.asarray(fits)
     while fits10.shape[1] < 10_000:
@@ -149,7 +170,7 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
         "ansur_heldout": {"people": sum(len(v) for v in picked.values()), "recommendations": tot, "hit": hit,
                           "share": hit / max(tot, 1), "misses": misses[:20]},
         "monotonic": {"ok": mono_ok, "total": mono_tot, "share": mono_ok / max(mono_tot, 1)},
-        "basis_vs_drape": None,
+        "basis_vs_drape": basis_vs_drape,
         "timings": {"fit_report_ms": report_ms, "customer_girths_ms": 1000 * float(np.median(t_girths)),
                     "grading_5_sizes_s": float(np.median(t_grade)), "one_size_example_fits_s": t_fits,
                     "one_size_try_on_ms": tryon_ms, "try_on_vertices": int(basis.n_vertices),
@@ -170,8 +191,11 @@ def format_result(r: dict) -> str:
          f"({100 * r['ansur_heldout']['share']:.1f} %), {r['ansur_heldout']['people']} people", ">= 95 %"),
         ("monotonic: ease grows, strain falls with size", f"{r['monotonic']['ok']}/{r['monotonic']['total']} "
          f"({100 * r['monotonic']['share']:.0f} %)", "100 %"),
-        ("per-size basis try-on vs direct drape", "not measured: needs the drape engine (issue 43)",
-         "mean <= 3 mm, p99 <= 12 mm"),
+        *([(f"per-size basis try-on vs direct drape ({r['basis_vs_drape']['garment']} "
+            f"{r['basis_vs_drape']['size']}, {r['basis_vs_drape']['customers']} customers)",
+            f"mean {r['basis_vs_drape']['mean_mm']:.1f} mm, p99 {r['basis_vs_drape']['p99_mm']:.1f} mm; strain map "
+            f"{r['basis_vs_drape']['strain_mean_pts']:.1f} points mean, p99 {r['basis_vs_drape']['strain_p99_pts']:.1f}",
+            "mean <= 3 mm, p99 <= 12 mm; strain within 2 points")] if r.get("basis_vs_drape") else []),
         ("fit report per garment, in process", f"{t['fit_report_ms']:.3f} ms (+ {t['customer_girths_ms']:.1f} ms "
          "once per customer body)", "<= 5 ms"),
         (f"try-on of one size, {t['try_on_vertices']} vertices, in process", f"{t['one_size_try_on_ms']:.2f} ms",

@@ -407,6 +407,10 @@ class Draper:
                 for _ in range(cfg.face_contact_passes):
                     if not body.push_faces(x, self.faces):
                         break
+                # a face pushed along one body vertex's normal may tilt another of its vertices
+                # into the body (in a concave fold: the armpit): the vertices outside again
+                body.refresh(x)
+                x, _ = body.project(x, None, None)
             d = body.signed_distance(x, exact=True)
             max_inside = float(max(0.0, -d.min()))
             if max_inside > cfg.max_inside_m:
