@@ -163,7 +163,7 @@ def test_readme_tour_runs_against_a_live_server(server, tmp_path: Path):
     assert "304" in lines and lines[-1] == "204"
     recommended, verdicts = ast.literal_eval(lines[lines.index("304") + 1])  # the fit report's line
     assert recommended in [label for label, _ in verdicts] and all(v in VERDICTS for _, v in verdicts), verdicts
-    for name in ("avatar.glb", "tryon.glb", "tryon-strain.glb", "outfit.glb"):
+    for name in ("avatar.glb", "tryon.glb", "tryon-strain.glb", "outfit.glb", "outfit-draped.glb"):
         assert (tmp_path / name).read_bytes()[:4] == b"glTF", name
     assert any("Women's T-shirt" in line and "ready" in line for line in lines)
 
