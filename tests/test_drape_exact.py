@@ -167,6 +167,20 @@ def test_an_outfit_of_exact_drapes(client: TestClient, gid: str, validate_glb) -
     assert r.status_code == 200 and r.headers["etag"] != plain.headers["etag"]
     for a, b in zip(read_glb(r.content)["meshes"], read_glb(plain.content)["meshes"]):
         np.testing.assert_array_equal(a["positions"], b["positions"])
+    # at the requester's cap of queued jobs: as many drapes as it allows, the rest at later requests
+    third = _customer(client, height_cm=175, weight_kg=75)
+    cid3, auth3 = third["id"], bearer(third)
+    url3 = f"/v1/customers/{cid3}/outfit.glb"
+    settings = ctx.limits.settings
+    ctx.limits.settings = settings.model_copy(update={"max_queued_client": 1})
+    try:
+        for _ in range(2):
+            r = client.get(url3, params={**params, "drape": "exact"}, headers=auth3)
+            assert r.status_code == 202 and ctx.queue.queue.count == 1, (r.status_code, ctx.queue.queue.count)
+            _work(client)
+        assert client.get(url3, params={**params, "drape": "exact"}, headers=auth3).status_code == 200
+    finally:
+        ctx.limits.settings = settings
 
 
 def test_a_changed_body_is_draped_again(client: TestClient, gid: str) -> None:

@@ -1044,12 +1044,12 @@ async function refineDrape(gen, url) {
     for (;;) {
       if (gen !== generation || state.drape !== 'exact') return;
       const r = await fetch(exact, asCustomer());
-      if (r.status === 202) {
+      if (r.status === 202 || r.status === 429) { // being draped, or this browser's other drapes first
         if (performance.now() - t0 > DRAPE_WAIT_MS) { showDrape('The cloth is taking long: showing the instant try-on.'); return; }
         await new Promise((res) => { setTimeout(res, DRAPE_POLL_MS); });
         continue;
       }
-      if (!r.ok) { showDrape(r.status === 429 ? 'Busy: showing the instant try-on.' : 'Showing the instant try-on.'); return; }
+      if (!r.ok) { showDrape('Showing the instant try-on.'); return; }
       const buf = await r.arrayBuffer();
       if (gen !== generation || state.drape !== 'exact') return;
       await showGlb(buf);

@@ -33,7 +33,7 @@ from service.storage.records import CustomerRepo, GarmentRepo
 from . import scenes
 from .auth import Credentials
 from .customers import CustomerService
-from .errors import Conflict, NotFound
+from .errors import Conflict, NotFound, TooManyRequests
 from .garments import GarmentService
 from .limits import Limits
 from .progress import MonotoneProgress, Progress
@@ -119,10 +119,12 @@ class ExactDrapes:
         """An outfit's garments as the customer's exact drapes (``TryOnService.outfit_glb``'s
         ``worn``): each garment's drape when it is done, None (its basis try-on) where the drape
         failed; while any drape is queued or running, the first such job instead (each missing
-        drape is queued at the first request). Also the ETag part naming the drapes used."""
+        drape is queued at the first request, as many as the requester's cap of queued jobs
+        allows, the rest at the requests after). Also the ETag part naming the drapes used."""
         worn: list[np.ndarray | None] = []
         keys: list[str] = []
         pending: JobRef | None = None
+        capped: TooManyRequests | None = None
         for garment, basis in layered:
             key = self._key(record, garment, basis, self.settings.drape_iterations)
             draped = self.store.load(record.id, garment.id, key)
@@ -136,9 +138,14 @@ class ExactDrapes:
                 worn.append(None)
                 keys.append("basis")
                 continue
+            except TooManyRequests as exc:  # at the requester's cap: queued when one of the others is done
+                capped = capped or exc
+                continue
             pending = pending or ref
         if pending is not None:
             return pending
+        if capped is not None:
+            raise capped
         return worn, "|exact:" + ",".join(keys)
 
     def _job(self, record: Customer, garment: Garment, basis: GarmentBasis, key: str) -> JobRef:
