@@ -29,7 +29,11 @@ Rows (goals from issue 43):
 - ``ease_vs_newton_mm`` / ``hem_vs_newton_cm``: that T-shirt draped from its warp fit on 5 held-out
   people here and by Newton VBD on CPU (2 simulated seconds, damped): the largest difference of
   ease at any girth region it has (chest, waist, shoulders), and of the hem height (goals 5 mm,
-  1 cm).
+  1 cm);
+- ``walking_step_stretch``: the catalogue's bottoms (skirts, trousers) as plain GLBs posed by
+  their skin weights alone in the page's four poses on five bodies (``tryon bench tryon``'s
+  pose-stretch measure): the 99.9th-percentile edge stretch of the worst garment, body and pose
+  (the walking step for all of them; goal <= 1.5).
 """
 from __future__ import annotations
 
@@ -279,6 +283,16 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
         rows["hem_vs_newton_cm"] = {"value": float(max(hem_diff)), "goal": 1.0}
     else:
         rows["ease_vs_newton_mm"] = {"value": None, "goal": 5.0, "skipped": why or "skipped (--no-newton)"}
+
+    # 9. the plain GLB posed by skinning alone: the catalogue's bottoms in the page's poses
+    from tests.bench.tryon import bench_pose_stretch, catalogue_bases
+
+    bottoms = {k: v for k, v in catalogue_bases(m, ex, E).items() if v[1] == "bottom"}
+    ps = bench_pose_stretch(m, bottoms)["per_garment"]
+    worst = max(ps, key=lambda k: ps[k]["after"])
+    rows["walking_step_stretch"] = {"value": float(ps[worst]["after"]), "goal": 1.5, "garment": worst,
+                                    "where": ps[worst]["worst"], "percentile": 99.9,
+                                    **{f"{k}": round(float(v["after"]), 3) for k, v in ps.items()}}
 
     rows["inside_vertices"] = {"value": inside, "goal": 0}
     rows["self_intersections"] = {"value": selfx, "goal": 0}

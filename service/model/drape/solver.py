@@ -445,13 +445,11 @@ class Draper:
             wa, wb = inv_mass[a], inv_mass[b]
             wsum = np.maximum(wa + wb, 1e-12)
             corr = ((length[over] - self.edge_max[over]) / length[over])[:, None] * d[over]
-            acc = np.zeros((self.n, 3))
-            cnt = np.zeros(self.n)
-            np.add.at(acc, a, (wa / wsum)[:, None] * corr)
-            np.add.at(acc, b, -(wb / wsum)[:, None] * corr)
-            np.add.at(cnt, a, 1.0)
-            np.add.at(cnt, b, 1.0)
-            x += acc / np.maximum(cnt, 1.0)[:, None]
+            ends = np.concatenate([a, b])
+            moves = np.concatenate([(wa / wsum)[:, None] * corr, -(wb / wsum)[:, None] * corr])
+            cnt = np.bincount(ends, minlength=self.n)
+            acc = np.stack([np.bincount(ends, moves[:, c], minlength=self.n) for c in range(3)], axis=1)
+            x += acc / np.maximum(cnt, 1)[:, None]
         return first
 
     def _self_contact(self, x: np.ndarray, refresh: bool) -> int:
@@ -484,8 +482,9 @@ class Draper:
         i, j, d, dist, gap = i[close], j[close], d[close], dist[close], self._pair_gap[close]
         u = d / np.maximum(dist, 1e-12)[:, None]
         push = 0.5 * (gap - dist)[:, None] * u
-        np.add.at(x, i, -push)
-        np.add.at(x, j, push)
+        ends = np.concatenate([i, j])
+        moves = np.concatenate([-push, push])
+        x += np.stack([np.bincount(ends, moves[:, c], minlength=len(x)) for c in range(3)], axis=1)
         return int(close.sum())
 
 
