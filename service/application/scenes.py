@@ -244,15 +244,11 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
         hidden = tuple(basis.hidden_body(model) for rec, basis in garments
                        if basis.material is not None or _opaque(rec))
         meshes = avatar_meshes(model, body.vertices, body.normals, look, template, hidden)
-    if worn is None:
-        worn = [np.asarray(try_on(basis, body, layer=rank)[0], np.float32) for rank, (_, basis) in enumerate(garments)]
-        normals = [basis.normals(v, body.weights) for v, (_, basis) in zip(worn, garments)]
-    else:  # None: that garment's basis try-on
-        given = worn
-        worn = [np.asarray(try_on(basis, body, layer=rank)[0] if v is None else v, np.float32)
-                for rank, (v, (_, basis)) in enumerate(zip(given, garments))]
-        normals = [basis.normals(v, body.weights) if g is None else basis.normals(v)
-                   for g, v, (_, basis) in zip(given, worn, garments)]
+    given = worn if worn is not None else [None] * len(garments)  # None: that garment's basis try-on
+    worn = [np.asarray(try_on(basis, body, layer=rank)[0] if v is None else v, np.float32)
+            for rank, (v, (_, basis)) in enumerate(zip(given, garments))]
+    normals = [basis.normals(v, body.weights) if g is None else basis.normals(v)
+               for g, v, (_, basis) in zip(given, worn, garments)]
     # the look's base layer is the innermost layer: a bra never shows through a blouse
     under = next((m for m in meshes if m.get("name") == "underwear"), None) if worn else None
     layers = ([(np.asarray(under["vertices"], np.float32), np.asarray(under["faces"]))] if under is not None else []) \
