@@ -177,6 +177,11 @@ def _normals(x: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix) -> np.n
     return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-30)
 
 
+def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3): the sum of the rows of ``values`` (K, 3) at each of their ``index`` (K,)."""
+    return np.stack([np.bincount(index, values[:, c], minlength=n) for c in range(3)], axis=1)
+
+
 def _polar(Fm: np.ndarray) -> np.ndarray:
     """The closest rotations (T, 3, 2) (orthonormal columns, U V^T of the thin SVD) to
     deformation gradients (T, 3, 2), in closed form: R = F (F^T F)^(-1/2), the 2 x 2 square root
@@ -446,10 +451,9 @@ class Draper:
             wsum = np.maximum(wa + wb, 1e-12)
             corr = ((length[over] - self.edge_max[over]) / length[over])[:, None] * d[over]
             ends = np.concatenate([a, b])
-            moves = np.concatenate([(wa / wsum)[:, None] * corr, -(wb / wsum)[:, None] * corr])
-            cnt = np.bincount(ends, minlength=self.n)
-            acc = np.stack([np.bincount(ends, moves[:, c], minlength=self.n) for c in range(3)], axis=1)
-            x += acc / np.maximum(cnt, 1)[:, None]
+            acc = _scatter_add(ends, np.concatenate([(wa / wsum)[:, None] * corr, -(wb / wsum)[:, None] * corr]),
+                               self.n)
+            x += acc / np.maximum(np.bincount(ends, minlength=self.n), 1)[:, None]
         return first
 
     def _self_contact(self, x: np.ndarray, refresh: bool) -> int:
@@ -482,9 +486,7 @@ class Draper:
         i, j, d, dist, gap = i[close], j[close], d[close], dist[close], self._pair_gap[close]
         u = d / np.maximum(dist, 1e-12)[:, None]
         push = 0.5 * (gap - dist)[:, None] * u
-        ends = np.concatenate([i, j])
-        moves = np.concatenate([-push, push])
-        x += np.stack([np.bincount(ends, moves[:, c], minlength=len(x)) for c in range(3)], axis=1)
+        x += _scatter_add(np.concatenate([i, j]), np.concatenate([-push, push]), len(x))
         return int(close.sum())
 
 
@@ -504,6 +506,7 @@ class _Body:
         inc = sp.csr_matrix((np.ones(F.size), (F.reshape(-1), np.repeat(np.arange(len(F)), 3))), shape=(len(V), len(F)))
         self.normals = _normals(V, F, inc)
         self.q = self.n = None
+        self.face_pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # refresh_faces
 
     def refresh_faces(self, x: np.ndarray, faces: np.ndarray, near_m: float) -> None:
         """Body vertices within ``near_m`` of the garment (x (N, 3), faces (F, 3)) whose closest
@@ -527,7 +530,7 @@ class _Body:
         three vertices move out along that normal, each by its barycentric share (PBD's
         point-triangle constraint, Mueller et al. 2007 Sec. 4.4), the largest move per vertex.
         In place; returns the number of pairs pushed."""
-        if getattr(self, "face_pairs", None) is None:
+        if self.face_pairs is None:
             return 0
         b, f, w = self.face_pairs
         p, n = self.V[b], self.normals[b]
@@ -545,16 +548,13 @@ class _Body:
         if not hit.any():
             return 0
         tri, w, n, depth = tri[hit], w[hit], n[hit], depth[hit]
-        scale = depth / (w ** 2).sum(1)  # the face point moves by depth when each vertex moves w_i * scale
+        # the face point moves by depth when each vertex moves w_i depth / sum(w^2)
+        amount = w * (depth / (w ** 2).sum(1))[:, None]  # (H, 3)
         move = np.zeros(len(x))
+        np.maximum.at(move, tri.ravel(), amount.ravel())
         dirs = np.zeros((len(x), 3))
-        for k in range(3):
-            amount = w[:, k] * scale
-            np.maximum.at(move, tri[:, k], amount)
-        for k in range(3):  # direction: the normal of the deepest pair of each vertex
-            amount = w[:, k] * scale
-            best = amount >= move[tri[:, k]] - 1e-15
-            dirs[tri[best, k]] = n[best]
+        best = amount >= move[tri] - 1e-15  # each vertex along the normal of its deepest pair
+        dirs[tri[best]] = np.repeat(n[:, None, :], 3, axis=1)[best]
         x += move[:, None] * dirs
         return int(hit.sum())
 
