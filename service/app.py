@@ -27,7 +27,7 @@ from service.model.body import shape
 from service.model.body.model import load_body_model
 from service.settings import SERVE_PID_ENV, Settings, get_settings
 from service.storage.redis import die_with_parent
-from service.storage.supervise import EmbeddedWorker
+from service.storage.supervise import DemoDrape, EmbeddedWorker
 
 log = logging.getLogger("tryon")
 
@@ -63,12 +63,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.body_model = model
         app.state.context = ctx
         worker = EmbeddedWorker.start(settings) if settings.runs_embedded_worker() else None
+        demo_drape = None
         try:
             ids = ctx.garments.ensure_demo()
             log.info("storage ready (%s); demo garments: %s",
                      settings.redis_url or f"embedded redis under {settings.data_dir}", ", ".join(ids))
+            if settings.runs_demo_drape() and ctx.garments.demo_to_drape():
+                demo_drape = DemoDrape.start(settings)
             yield
         finally:
+            if demo_drape is not None:
+                demo_drape.stop()
             if worker is not None:
                 worker.stop()
             app.state.context = None

@@ -1,4 +1,4 @@
-"""The ``tryon`` command line: serve, worker, build-body-model, build-catalogue, bench, bench-report,
+"""The ``tryon`` command line: serve, worker, drape-demo, build-body-model, build-catalogue, bench, bench-report,
 openapi."""
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ PASS_THROUGH = {
     "build-body-model": "Compile the body model (needs the `build` extra: torch, anny).",
     "build-catalogue": "Compile the demo catalogue and avatar assets from ../shared/data (Pillow).",
     "bench": "Run a benchmark suite: tryon bench <suite> [--json] [--save] [...].",
+    "drape-demo": "Drape the stored demo catalogue, then exit (what `tryon serve` runs in the background).",
     "bench-report": "Write docs/benchmarks.md from the results saved by `tryon bench <suite> --save`.",
 }
 
@@ -163,6 +164,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         command, rest = args_list[0], args_list[1:]
         if command == "build-body-model":
             return _run_module("worker.build.body_model", "tryon build-body-model", rest)
+        if command == "drape-demo":
+            return _run_module("worker.demo_drape", "tryon drape-demo", rest)
         if command == "build-catalogue":
             return _run_module("worker.build.catalogue", "tryon build-catalogue", rest)
         if command == "bench-report":

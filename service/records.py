@@ -137,6 +137,10 @@ class Garment(Record):
     base_size: str | None = None
     fabric: str = Field(default="woven", description="the cloth the drape uses: woven, knit or stretch")
     fit: dict | None = Field(default=None, description="sizing.SizeFit.to_meta(): the girths of every size")
+    example_fits: Literal["drape", "warp", "meshes"] | None = Field(
+        default=None, description="how its fits to the example avatars (its clothing basis) were made: 'drape' (the "
+                                  "cloth drape engine: the garment keeps its size on every body), 'warp' (carried with "
+                                  "the body: it follows the body, as if made to measure), 'meshes' (the retailer's own)")
 
     def size_labels(self) -> list[str]:
         """The garment's size labels in chart order (one size without a chart)."""

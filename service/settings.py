@@ -71,18 +71,27 @@ class Settings(BaseSettings):
         description="Seconds a body-fitting job may run before the worker kills it (then retried).",
     )
     garment_timeout: int = Field(
-        default=900,
+        default=3600,
         validation_alias="TRYON_GARMENT_TIMEOUT",
         gt=0,
         description="Seconds a garment build job (one draped garment carried to every example avatar) "
         "may run before the worker kills it (then retried).",
     )
     drape: bool = Field(
-        default=False,
+        default=True,
         validation_alias="TRYON_DRAPE",
         description="Garment builds (draped `garment`, `.mhclo`, demo catalogue) settle the garment at its own "
         "size on every example avatar with the cloth drape engine (service.model.drape) instead of carrying "
-        "it with the body. Off by default until a build fits the time budget (see docs/drape.md).",
+        "it with the body (off: the warp's fits, the garment follows the body). A `.mhclo` upload is then "
+        "built by a queued job (202), and the demo catalogue, built through its binding at the first start, "
+        "is draped in the background (TRYON_DRAPE_DEMO; see docs/drape.md).",
+    )
+    drape_demo: bool = Field(
+        default=True,
+        validation_alias="TRYON_DRAPE_DEMO",
+        description="With TRYON_DRAPE on: `tryon serve` re-builds the demo catalogue through the drape in a "
+        "background process at the lowest CPU priority (`tryon drape-demo`), garment by garment, after the "
+        "first start; off: the demo keeps its binding's fits (it follows the body).",
     )
     drape_population: int = Field(
         default=64,
@@ -219,6 +228,11 @@ class Settings(BaseSettings):
     def cors_origin_list(self) -> list[str]:
         """``TRYON_CORS_ORIGINS`` as a list (trailing slashes dropped)."""
         return [o.strip().rstrip("/") for o in self.cors_origins.split(",") if o.strip()]
+
+    def runs_demo_drape(self) -> bool:
+        """Whether the API process starts the demo catalogue's background drape: ``TRYON_DRAPE``
+        and ``TRYON_DRAPE_DEMO`` on, and a demo catalogue to drape."""
+        return self.drape and self.drape_demo and bool(self.demo_items.strip())
 
     def runs_embedded_worker(self) -> bool:
         """Whether the API process starts a worker: ``TRYON_EMBEDDED_WORKER`` (default true)

@@ -23,6 +23,9 @@ REPO = Path(__file__).resolve().parent.parent
 # test apps build their demo garments in one size (seconds, not minutes) unless a test asks for
 # sizes (``TRYON_DEMO_SIZES=True`` in its Settings, or in run_server's environment)
 os.environ.setdefault("TRYON_DEMO_SIZES", "false")
+# ... and through the warp: the drape (on by default, minutes a garment) only where a test turns it
+# on (``TRYON_DRAPE=True``): CI does not spend its time draping
+os.environ.setdefault("TRYON_DRAPE", "false")
 VALIDATE_SCRIPT = REPO / "tests" / "gltf_validate.mjs"
 
 

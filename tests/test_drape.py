@@ -140,3 +140,28 @@ def test_drape_examples_keeps_the_garment_size_on_each_body():
         assert Rb / Rg - 1 - 0.002 < hoop < circumscribed + 0.002, (hoop, Rb / Rg - 1, circumscribed)
     with pytest.raises(DrapeError, match="example avatar 1"):
         drape_examples(V, F, np.stack([inits[0], inits[1] * np.nan]), np.stack(bodies), BF, "knit")
+
+
+def test_compiled_local_step_and_strain_limit_match_numpy(monkeypatch):
+    """The compiled membrane, normals and strain-limit loops (geometry.kernels) against the
+    numpy and sparse-product path they replace, on a small randomly deformed tube."""
+    from service.model.drape import solver
+    from service.model.geometry import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+    V, F = tube(0.15, 0.3, 24, 8, y0=0.1)
+    d = precompute(V, F, "knit", pinned=np.array([0, 5]))
+    x = V + 0.01 * np.random.default_rng(0).standard_normal(V.shape)
+    out = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(solver, "COMPILED", compiled)
+        rhs, e = d._local(x, 0.3)
+        y = 1.1 * x
+        n_over = d._strain_limit(y)
+        out[compiled] = rhs, e, y, n_over
+    (r1, e1, y1, n1), (r2, e2, y2, n2) = out[True], out[False]
+    assert np.allclose(r1, r2, rtol=0, atol=1e-12 * np.abs(r2).max())
+    assert e1 == pytest.approx(e2, rel=1e-12)
+    assert n1 == n2 > 0 and np.allclose(y1, y2, rtol=0, atol=1e-14)
+    assert np.array_equal(y1[[0, 5]], 1.1 * x[[0, 5]])  # pinned vertices stay

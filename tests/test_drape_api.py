@@ -1,6 +1,8 @@
-"""The drape in the garment build (issue 43), end to end in process: with ``TRYON_DRAPE`` on, a
-``.mhclo`` upload is draped at its own size (as bound to the mean example avatar) on every example
-avatar before its basis is built; the record carries its fabric. Slow: 65 drapes."""
+"""The drape in the garment build (issue 43), end to end in process: with ``TRYON_DRAPE`` on (the
+default), a ``.mhclo`` upload is checked, answered 202 with a queued build job, and draped at its
+own size (as bound to the mean example avatar) on every example avatar before its basis is built;
+the record carries its fabric and ``example_fits``. The demo catalogue, built through its
+binding at the start, is draped by ``drape_demo`` (``tryon drape-demo``). Slow: 65 drapes each."""
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -35,12 +37,23 @@ def test_mhclo_upload_is_draped_on_every_example(client: TestClient) -> None:
     files = {"mhclo": ("fedora.mhclo", (HAT / "fedora.mhclo").read_bytes()),
              "obj": ("fedora.obj", (HAT / "fedora.obj").read_bytes())}
     r = client.post("/v1/garments", data={"name": "Hat", "fabric": "woven", "layer": "2"}, files=files, headers=KEY)
-    assert r.status_code == 201, r.text
-    hat = r.json()
+    assert r.status_code == 202, r.text
+    queued = r.json()
+    assert queued["status"] == "building" and queued["job"]["status"] == "queued"
+    assert r.headers["Location"] == queued["job"]["url"]
+    # a binding that does not sit on the bodies is refused before any job
+    bad = client.post("/v1/garments", data={"name": "Hat"}, headers=KEY,
+                      files={**files, "mhclo": ("fedora.mhclo", _far_mhclo(files["mhclo"][1], 20.0))})
+    assert bad.status_code == 422, bad.text
+    ctx = client.app.state.context
+    seen: list[float] = []
+    assert ctx.garments.run_build(queued["id"], lambda f, m: seen.append(f))["status"] == "done"
+    assert seen == sorted(seen) and seen[-1] == 1.0
+    hat = client.get(f"/v1/garments/{queued['id']}").json()
     assert hat["fabric"] == "woven" and hat["status"] == "ready" and hat["n_components"] == 32
+    assert hat["example_fits"] == "drape"
     # the basis was built from draped examples: the mean garment is not the bound one (the hat,
     # modelled floating over the head, settles onto it under gravity), and it stays outside
-    ctx = client.app.state.context
     basis = ctx.bases.load(hat["id"], hat["etag"])
     ex = ctx.garments.examples
     from service.application.uploads import read_mhclo_layout
@@ -55,3 +68,58 @@ def test_mhclo_upload_is_draped_on_every_example(client: TestClient) -> None:
     assert (winding_numbers(np.asarray(basis.g, np.float64), body, ctx.model.body_faces) < 0.5).mean() > 0.99
     glb = read_glb(client.get(f"/v1/garments/{hat['id']}/basis.glb").content)
     assert glb["meshes"][0]["name"] == "Hat"
+
+
+def _far_mhclo(mhclo: bytes, factor: float) -> bytes:
+    """The binding with every vertex's offset from its body triangle scaled (a garment that no
+    longer sits on the body)."""
+    out, verts = [], False
+    for line in mhclo.decode().splitlines():
+        parts = line.split()
+        if verts and len(parts) == 9:
+            line = " ".join(parts[:6] + [str(float(t) * factor) for t in parts[6:]])
+        verts = verts or line.startswith("verts")
+        out.append(line)
+    return "\n".join(out).encode()
+
+
+def test_demo_catalogue_is_draped_in_the_background(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The demo catalogue at the start: built through its binding (``example_fits: warp``), then
+    ``drape_demo`` (what ``tryon drape-demo`` runs) re-builds it through the drape in place: same
+    id, new ETag, ``example_fits: drape``; a second run has nothing to do."""
+    with redis_db() as db:
+        settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("demo-drape"), REDIS_URL=redis_url(db),
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="fedora", TRYON_DRAPE=True,
+                            TRYON_DRAPE_POPULATION=0, TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
+        assert settings.runs_demo_drape()
+        with TestClient(create_app(settings), raise_server_exceptions=True) as c:
+            before = c.get("/v1/garments").json()
+            assert [g["example_fits"] for g in before] == ["warp"]
+            garments = c.app.state.context.garments
+            assert [rec.id for _, rec in garments.demo_to_drape()] == [before[0]["id"]]
+            assert garments.drape_demo() == [before[0]["id"]]
+            after = c.get("/v1/garments").json()
+            assert after[0]["id"] == before[0]["id"] and after[0]["etag"] != before[0]["etag"]
+            assert after[0]["example_fits"] == "drape" and garments.demo_to_drape() == []
+            assert garments.drape_demo() == []
+            assert c.get(f"/v1/garments/{after[0]['id']}/basis.glb").status_code == 200
+
+
+def test_tryon_serve_drapes_the_demo_in_a_background_process() -> None:
+    """``tryon serve`` with the drape on (the default): healthy with the demo built through its
+    binding, then its background ``tryon drape-demo`` process (at nice 19) drapes it and exits;
+    the garment answers try-ons all along."""
+    import time
+
+    from tests.harness import run_server
+
+    with run_server(None, TRYON_DRAPE="true", TRYON_DEMO_ITEMS="fedora", TRYON_DRAPE_POPULATION="0") as s:
+        first = s.client.get("/v1/garments").json()
+        assert [g["example_fits"] for g in first] in (["warp"], ["drape"])
+        deadline = time.monotonic() + 300
+        while s.client.get("/v1/garments").json()[0]["example_fits"] != "drape":
+            assert time.monotonic() < deadline, s.log_path.read_text()[-3000:]
+            assert s.client.get(f"/v1/garments/{first[0]['id']}/basis.glb").status_code == 200
+            time.sleep(2)
+        log = s.log_path.read_text()
+        assert "demo garment fedora draped" in log and "demo catalogue: 1 garments draped" in log

@@ -33,3 +33,4 @@ def drape_garment(customer_id: str, garment_id: str, size: str | None, iteration
     """Drape a garment on a customer's body (``?drape=exact``). Returns ``{"status": "done"|
     "failed"|"deleted"|"stale", "customer_id", "garment_id", ...}``."""
     return worker_context().drapes.run(customer_id, garment_id, size, iterations, key, report_progress)
+

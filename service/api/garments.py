@@ -24,9 +24,10 @@ def list_garments(garments: GarmentsDep) -> list[Garment]:
 
 
 @router.post("/v1/garments", status_code=201, response_model=GarmentResponse, dependencies=[RateLimited],
-             responses={202: {"description": "A draped garment was accepted: it is listed with status 'building' "
-                                             "until its job (job.url, also the Location header) has fitted it to "
-                                             "every example avatar", "model": GarmentResponse},
+             responses={202: {"description": "A draped garment (or, with the drape on, a MakeHuman garment) was "
+                                             "accepted: it is listed with status 'building' until its job (job.url, "
+                                             "also the Location header) has draped it on every example avatar",
+                                  "model": GarmentResponse},
                         401: {"description": "Missing X-API-Key"}, 403: {"description": "Unknown API key"},
                         **R.UPLOAD, **R.RATE_LIMITED, 422: {"description": "Invalid upload"}})
 async def create_garment(
@@ -70,10 +71,11 @@ async def create_garment(
     color: Annotated[str | None, Form(pattern=r"^#?[0-9a-fA-F]{6}$", description="sRGB colour #rrggbb")] = None,
     layer: Annotated[int, Form(ge=0, le=9, description="Outfit layer (0 innermost)")] = DEFAULT_LAYER,
 ) -> Garment:
-    """Upload a garment: ``meshes`` (fitted to each example avatar), a MakeHuman ``mhclo`` +
-    ``obj`` pair (201: its clothing basis is built and stored now), or one ``garment`` draped on
-    an example avatar (``on``) or on your own ``avatar`` (202: a job fits it to every example
-    avatar; poll ``job.url`` or the garment's ``status`` and ``progress``)."""
+    """Upload a garment: ``meshes`` (fitted to each example avatar: 201, its clothing basis is
+    built and stored now), a MakeHuman ``mhclo`` + ``obj`` pair, or one ``garment`` draped on an
+    example avatar (``on``) or on your own ``avatar`` (202: a job drapes it on every example
+    avatar; poll ``job.url`` or the garment's ``status`` and ``progress``). A ``mhclo`` is 201,
+    built now, where the server runs with the drape off (``TRYON_DRAPE=false``)."""
     has_meshes = bool(meshes)
     garment_files = list(garment or [])
     ways = [has_meshes, mhclo is not None or obj is not None, bool(garment_files)]
@@ -108,7 +110,11 @@ async def create_garment(
         raise invalid(("body", missing), f"a MakeHuman garment needs both files 'mhclo' and 'obj'; '{missing}' is "
                                          "missing")
     mh_data, obj_data = await mhclo.read(), await obj.read()
-    return await run_in_threadpool(lambda: garments.create_from_mhclo(mh_data, obj_data, **common))
+    record = await run_in_threadpool(lambda: garments.create_from_mhclo(mh_data, obj_data, **common))
+    if record.job is not None:  # with the drape on: a queued build
+        response.status_code = 202
+        response.headers["Location"] = record.job.url
+    return record
 
 
 @router.get("/v1/garments/{gid}", response_model=GarmentResponse, responses={404: {"description": "Unknown garment"}})

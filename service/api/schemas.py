@@ -277,6 +277,11 @@ class GarmentResponse(BaseModel):
     fabric: Literal["woven", "knit", "stretch"] = Field(
         default="woven", description="The cloth it is draped as: woven (barely stretches), knit (jersey) or "
                                      "stretch (elastane); see docs/drape.md and docs/sizes.md")
+    example_fits: Literal["drape", "warp", "meshes"] | None = Field(
+        default=None, description="How its fits to the example avatars (its clothing basis) were made: 'drape' "
+                                  "(the cloth drape engine: it keeps its size on every body), 'warp' (carried with the "
+                                  "body: it follows the body, as if made to measure; the demo catalogue until its "
+                                  "background drape reaches it), 'meshes' (your own fits); none while building")
 
     @model_validator(mode="before")
     @classmethod

@@ -36,7 +36,7 @@ from .demo import DemoCatalogue
 from .examples import Examples
 from .limits import Limits
 from .progress import MonotoneProgress, Progress
-from .uploads import (GARMENT_UPS, DrapedGarment, clean_name, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
+from .uploads import (GARMENT_UPS, DrapedGarment, MhcloUpload, clean_name, is_textured, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
                       read_garment_mesh, read_mhclo_layout, read_texture, upload_memory)
 
 
@@ -201,58 +201,82 @@ class GarmentService(DemoCatalogue):
         """A MakeHuman garment, fitted to every example avatar through its binding; the OBJ's
         texture coordinates and the optional ``texture`` (bytes, filename) give its look. With a
         size ``chart``: the garment as bound to the mean avatar is the base size, graded to
-        every size of the chart (:meth:`_create_graded`)."""
+        every size of the chart. Built now (``TRYON_DRAPE`` off: the binding's fits, seconds),
+        or with the drape on checked now and built by a queued job (:meth:`run_build`: the
+        record is listed with ``status: building``)."""
         name = clean_name(name)
         rgba = parse_color(color, scenes.DEFAULT_GARMENT_COLOR)
         tex = read_texture(*texture) if texture is not None else None
         binding, faces, layout = read_mhclo_layout(self.model, mhclo, obj)
         material = _upload_material(tex, rgba, color, layout)
-        if chart is not None and chart.sizes:
-            return self._create_graded(binding, faces, layout, material, chart, name=name, owner=owner,
-                                       source="mhclo", color=rgba, layer=layer)
-        return self._create_from_binding(binding, faces, layout, material, name=name, owner=owner, source="mhclo",
-                                         color=rgba, layer=layer, fabric=chart.fabric if chart else SZ.DEFAULT_FABRIC)
+        fits = self._bound_fits(binding)  # 422 now when it does not sit on the example avatars
+        record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source="mhclo",
+                         color=[float(c) for c in rgba], layer=int(layer), textured=is_textured(material, layout),
+                         n_vertices=int(fits.shape[1]), n_faces=int(len(faces)),
+                         **(chart.record_fields() if chart is not None and chart.sizes
+                            else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}))
+        if self.settings.drape:  # draping on every example takes minutes: a queued build job
+            self.limits.check_jobs()
+            return self._queue_build(record.model_copy(update={"status": "building"}),
+                                     MhcloUpload(mhclo, obj, texture, color).to_bytes())
+        built = self._from_binding(record, binding, faces, layout, material, drape=False)
+        self._publish_built(built)
+        return built
 
-    def _create_graded(self, binding: Any, faces: np.ndarray, layout: RenderLayout | None, material: Material | None,
-                       chart: Chart, **record: Any) -> Garment:
-        """A bound garment (``.mhclo``, the demo catalogue) in the sizes of ``chart``: its fit
-        to the mean avatar is the base size, graded to the chart's bodies, each size fitted to
-        every example avatar and its basis built; all stored, then the record published."""
-        source = np.asarray(self.examples.vertices[0], np.float64)
-        g0 = np.asarray(binding.fit(source), np.float64)
-        if not np.all(np.isfinite(g0)):
+    def _from_binding(self, record: Garment, binding: Any, faces: np.ndarray, layout: RenderLayout | None,
+                      material: Material | None, drape: bool, progress: Progress | None = None) -> Garment:
+        """A garment bound to the body mesh (``.mhclo``, the demo catalogue): its example fits
+        by its binding (with ``drape``: then draped at its own size, its fit to the mean example
+        avatar), in the sizes of its chart (graded: :meth:`_store_sizes`) or one; the bases
+        stored, the record with its counts returned (not yet published). Raises ``Invalid``
+        (it does not sit on the bodies) or ``DrapeError``."""
+        mean = self.examples.index("mean") or 0
+        if record.sizes and len(record.sizes) > 1:
+            chart = Chart([sz.model_dump() for sz in record.sizes], record.base_size or "", record.fabric)
+            source = np.asarray(self.examples.vertices[mean], np.float64)
+            g0 = np.asarray(binding.fit(source), np.float64)
+            if not np.all(np.isfinite(g0)):
+                raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
+            rests, on, bodies = sizing.graded(self.model, g0, faces, source, chart, record.gender)
+            return self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, layout, material,
+                                     progress, bound=binding.fit, drape=drape)
+        fits = self._bound_fits(binding)
+        rest = None
+        if drape:  # its size: the garment as bound to the mean example avatar
+            rest = fits[mean]
+            fits = self.drape_to_examples(rest, faces, fits, record.fabric, progress)
+        return self._store_one_size(record, fits, faces, layout, material, rest=rest, drape=drape)
+
+    def _bound_fits(self, binding: Any) -> np.ndarray:
+        """(E, N, 3) a bound garment's fit to every example avatar, checked (``Invalid``)."""
+        fits = np.stack([binding.fit(E) for E in self.examples.vertices])
+        if not np.all(np.isfinite(fits)):
             raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
-        rests, on, bodies = sizing.graded(self.model, g0, faces, source, chart, record.get("gender"))
-        gid = new_id()
-        rec = Garment(id=gid, body_model=self.model.version, textured=_textured(material, layout),
-                      **chart.record_fields(), **record)
-        try:
-            rec = self._store_sizes(rec, rests, faces, on, bodies[chart.base], chart, layout, material,
-                                    bound=binding.fit)
-        except DrapeError as exc:
-            raise Invalid(("body", "mhclo"), f"the garment cannot be draped: {exc}") from None
-        try:
-            self.repo.publish(rec)
-        except BaseException:
-            self.bases.delete(gid)
-            raise
-        return rec
+        self._check_near_bodies(fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
+        return fits
 
     def _store_sizes(self, record: Garment, rests: np.ndarray, faces: np.ndarray, bodies_on: np.ndarray,
                      base_body: np.ndarray, chart: Chart, layout: RenderLayout | None, material: Material | None,
-                     progress: Progress | None = None, bound: Callable[[np.ndarray], np.ndarray] | None = None
-                     ) -> Garment:
+                     progress: Progress | None = None, bound: Callable[[np.ndarray], np.ndarray] | None = None,
+                     drape: bool = False) -> Garment:
         """Every size's example fits and basis, stored together; the record with its counts,
         combined ETag and girths per size (``fit``). The example fits: carried by the warp
         (``sizes.size_example_fits``), or for a garment bound to the body (``bound``: its
         binding's fit, avatar -> garment) by its binding (``sizing.bound_size_fits``,
-        milliseconds a size)."""
+        milliseconds a size); with ``drape`` each size then keeps its own size: its rest shape
+        settled on every example (:meth:`drape_to_examples`)."""
+        progress = MonotoneProgress(progress or (lambda f, m: None))
         if bound is not None:
             fits = SZ.bound_size_fits(bound, self.examples.vertices, rests, bodies_on)
         else:
-            fits = sizing.per_size_fits(self.model, rests, faces, bodies_on, progress)
-        if self.settings.drape:  # each size keeps its own size: its rest shape settled on every example
-            fits = [self.drape_to_examples(rests[s], faces, f, chart.fabric) for s, f in enumerate(fits)]
+            fits = sizing.per_size_fits(self.model, rests, faces, bodies_on,
+                                        progress.scaled(0.0, 0.1 if drape else 0.9))
+        if drape:
+            n = len(fits)
+            fits = [self.drape_to_examples(rests[s], faces, f, chart.fabric,
+                                           progress.scaled(0.1 + 0.8 * s / n, 0.8 / n, f"size {chart.labels[s]}: "))
+                    for s, f in enumerate(fits)]
+        progress(0.9, "building the clothing bases")
         bases = []
         for s, f in enumerate(fits):
             meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
@@ -267,24 +291,7 @@ class GarmentService(DemoCatalogue):
         b0 = bases[chart.base]
         return record.model_copy(update={"n_vertices": int(b0.meta["n_vertices"]), "n_faces": int(b0.meta["n_faces"]),
                                          "n_components": int(b0.meta["n_components"]), "etag": etag,
-                                         "fit": fit.to_meta()})
-
-    def _create_from_binding(self, binding: Any, faces: np.ndarray, layout: RenderLayout | None,
-                             material: Material | None, **record: Any) -> Garment:
-        """A garment bound to the body mesh (MakeHuman ``.mhclo``): fitted to every example
-        avatar through its binding, checked, its basis built and stored."""
-        fits = np.stack([binding.fit(E) for E in self.examples.vertices])
-        if not np.all(np.isfinite(fits)):
-            raise Invalid(("body", "mhclo"), "the binding gives non-finite vertex positions")
-        self._check_near_bodies(fits, ["the fitted garment"] * len(fits), [("body", "mhclo")] * len(fits))
-        if self.settings.drape:
-            # its size: the garment as bound to the mean example avatar
-            rest = fits[self.examples.index("mean") or 0]
-            try:
-                fits = self.drape_to_examples(rest, faces, fits, record.get("fabric", "woven"))
-            except DrapeError as exc:
-                raise Invalid(("body", "mhclo"), f"the garment cannot be draped: {exc}") from None
-        return self._build_and_store(fits, faces, layout=layout, material=material, **record)
+                                         "fit": fit.to_meta(), "example_fits": "drape" if drape else "warp"})
 
     def drape_to_examples(self, rest: np.ndarray, faces: np.ndarray, warp_fits: np.ndarray, fabric: str,
                           progress: Progress | None = None) -> np.ndarray:
@@ -382,27 +389,57 @@ class GarmentService(DemoCatalogue):
         """Build the clothing basis, store its files, then publish the record (nothing is
         visible until the basis is complete; on failure nothing is left behind). ``extra``:
         further record fields (catalogue metadata)."""
-        gid = new_id()
-        record = Garment(id=gid, body_model=self.model.version, owner=owner, name=name, source=source,  # type: ignore[arg-type]
+        record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source=source,  # type: ignore[arg-type]
                          color=[float(c) for c in color], layer=int(layer), unit=unit,
-                         textured=_textured(material, layout), **extra)
-        meta = {"name": name, "owner": owner, "source": source, "color": record.color, "layer": record.layer,
-                "created": record.created, "id": gid, "body_model": self.model.version}
+                         textured=is_textured(material, layout), **extra)
+        record = self._store_one_size(record, fits, faces, layout, material,
+                                      example_fits="meshes" if source == "meshes" else "warp")
+        self._publish_built(record)
+        return record
+
+    def _store_one_size(self, record: Garment, fits: np.ndarray, faces: np.ndarray, layout: RenderLayout | None,
+                        material: Material | None, rest: np.ndarray | None = None, drape: bool = False,
+                        example_fits: str | None = None) -> Garment:
+        """A one-size garment's clothing basis from its example fits (E, N, 3) built and stored;
+        the record with its counts, ETag, girths (``fit``) and how its fits were made."""
+        meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
+                "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version}
         basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta, layout=layout,
-                                    material=material)
+                                    material=material, rest=rest)
         fit = SZ.sized_garment_fit(self.model, np.asarray(fits[0])[None], faces, self.examples.vertices[0],
                                    record.size_labels(), 0, self.examples.vertices[0], record.fabric)
-        record = record.model_copy(update={"n_vertices": int(basis.meta["n_vertices"]),
-                                           "n_faces": int(basis.meta["n_faces"]),
-                                           "n_components": int(basis.meta["n_components"]), "etag": basis.etag(),
-                                           "fit": fit.to_meta()})
-        self.bases.save(gid, basis)
+        self.bases.save(record.id, basis)
+        return record.model_copy(update={"n_vertices": int(basis.meta["n_vertices"]),
+                                         "n_faces": int(basis.meta["n_faces"]),
+                                         "n_components": int(basis.meta["n_components"]), "etag": basis.etag(),
+                                         "fit": fit.to_meta(),
+                                         "example_fits": example_fits or ("drape" if drape else "warp")})
+
+    def _publish_built(self, record: Garment) -> None:
+        """List a garment whose bases are stored (its files removed if that fails)."""
         try:
             self.repo.publish(record)
         except BaseException:
-            self.bases.delete(gid)
+            self.bases.delete(record.id)
             raise
-        return record
+
+    def _queue_build(self, record: Garment, upload: bytes) -> Garment:
+        """List a garment with ``status: building`` and its upload, and queue its build job
+        (:meth:`run_build`); the record as the API shows it (job queued, progress 0)."""
+        job_id = build_job_id(record.id)
+        record = record.model_copy(update={"status": "building", "job": JobRef(id=job_id, url=f"/v1/jobs/{job_id}")})
+        self.repo.publish(record, upload)
+        try:
+            self.queue.enqueue(BUILD_JOB, record.id, job_id=job_id, kind="garment",
+                               timeout=self.settings.garment_timeout, body_model=self.model.version,
+                               description=f"fit garment {record.id} to the example avatars",
+                               meta={"garment_id": record.id, "owner": record.owner})
+        except BaseException:
+            self.repo.delete(record.id)
+            raise
+        self.limits.track_job(job_id)
+        return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
+                                         "progress": 0.0})
 
     def create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
@@ -462,27 +499,13 @@ class GarmentService(DemoCatalogue):
         upload.layout, upload.texture = layout, tex
         if order is not None:
             upload.graded = self._read_graded(files, order, upload, v, faces)
-        gid = new_id()
-        job_id = build_job_id(gid)
-        record = Garment(id=gid, body_model=self.model.version, owner=owner, name=name, source="draped",
+        record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source="draped",
                          **(chart.record_fields() if chart is not None and chart.sizes
                             else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}),
-                         color=[float(c) for c in rgba], layer=int(layer), status="building", unit=unit,
-                         textured=_textured(_upload_material(tex, rgba, color, layout), layout),
-                         up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)),
-                         job=JobRef(id=job_id, url=f"/v1/jobs/{job_id}"))
-        self.repo.publish(record, upload.to_bytes())
-        try:
-            self.queue.enqueue(BUILD_JOB, gid, job_id=job_id, kind="garment",
-                                   timeout=self.settings.garment_timeout, body_model=self.model.version,
-                                   description=f"fit garment {gid} to the example avatars",
-                                   meta={"garment_id": gid, "owner": owner})
-        except BaseException:
-            self.repo.delete(gid)
-            raise
-        self.limits.track_job(job_id)
-        return record.model_copy(update={"job": record.job.model_copy(update={"status": "queued"}),  # type: ignore[union-attr]
-                                         "progress": 0.0})
+                         color=[float(c) for c in rgba], layer=int(layer), unit=unit,
+                         textured=is_textured(_upload_material(tex, rgba, color, layout), layout),
+                         up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)))
+        return self._queue_build(record, upload.to_bytes())
 
     def _read_graded(self, files: list[tuple[bytes, str | None]], order: list[int], upload: DrapedGarment,
                      v_base: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -519,8 +542,10 @@ class GarmentService(DemoCatalogue):
         raw = self.repo.get_upload(gid)
         if raw is None:
             return self._fail_build(record, "the uploaded garment expired before it was built; upload it again", progress)
-        upload = DrapedGarment.from_bytes(raw)
         progress = MonotoneProgress(progress)
+        if record.source == "mhclo":
+            return self._run_mhclo_build(record, MhcloUpload.from_bytes(raw), progress)
+        upload = DrapedGarment.from_bytes(raw)
         share = BUILD_SHARES
         garment, faces = upload.vertices, upload.faces
         if upload.avatar is not None:
@@ -557,27 +582,44 @@ class GarmentService(DemoCatalogue):
             # its size: the garment as uploaded on the body it was draped on (in the model's frame)
             progress(1.0 - share["basis"], "draping the garment on the example avatars")
             try:
-                fits = self.drape_to_examples(garment, faces, fits, record.fabric)
+                fits = self.drape_to_examples(garment, faces, fits, record.fabric,
+                                              progress.scaled(1.0 - share["basis"], 0.8 * share["basis"], "draping: "))
             except DrapeError as exc:
                 return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
         progress(1.0 - share["basis"], "building the clothing basis")
-        meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
-                "layer": record.layer, "created": record.created, "id": gid, "body_model": self.model.version}
         rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
         material = _upload_material(upload.texture, rgba, None, upload.layout)
-        basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta,
-                                    layout=upload.layout, material=material, rest=garment)
-        self.bases.save(gid, basis)
-        ready = record.model_copy(update={"status": "ready", "error": None, "progress": None,
-                                          "n_vertices": int(basis.meta["n_vertices"]),
-                                          "n_faces": int(basis.meta["n_faces"]),
-                                          "n_components": int(basis.meta["n_components"]), "etag": basis.etag()})
+        built = self._store_one_size(record, fits, faces, upload.layout, material, rest=garment,
+                                     drape=self.settings.drape)
+        return self._complete_build(built, progress)
+
+    def _run_mhclo_build(self, record: Garment, upload: MhcloUpload, progress: MonotoneProgress) -> dict[str, Any]:
+        """The build job of a MakeHuman garment uploaded with the drape on: its files read again,
+        draped on every example avatar at its own size (in its sizes), bases stored, the garment
+        marked ready (as :meth:`run_build`)."""
+        progress(0.01, "reading the MakeHuman garment")
+        try:
+            binding, faces, layout = read_mhclo_layout(self.model, upload.mhclo, upload.obj)
+            tex = read_texture(*upload.texture) if upload.texture is not None else None
+            rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
+            material = _upload_material(tex, rgba, upload.color, layout)
+            built = self._from_binding(record, binding, faces, layout, material, drape=self.settings.drape,
+                                       progress=progress.scaled(0.02, 0.98))
+        except (Invalid, DrapeError) as exc:
+            self.bases.delete(record.id)
+            return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
+        return self._complete_build(built, progress)
+
+    def _complete_build(self, built: Garment, progress: Progress) -> dict[str, Any]:
+        """A build job's garment, its bases stored, marked ready -- only if it still exists (a
+        delete during the build wins: its files are removed)."""
+        ready = built.model_copy(update={"status": "ready", "error": None, "progress": None})
         if not self.repo.complete(ready):
-            self.bases.delete(gid)
-            log.info("garment %s was deleted during its build: result dropped", gid)
-            return {"status": "deleted", "garment_id": gid}
+            self.bases.delete(ready.id)
+            log.info("garment %s was deleted during its build: result dropped", ready.id)
+            return {"status": "deleted", "garment_id": ready.id}
         progress(1.0, "done")
-        log.info("garment %s built from one draped mesh", gid)
+        log.info("garment %s built (%s)", ready.id, ready.source)
         return _build_outcome(ready)
 
     def _run_sized_build(self, record: Garment, upload: DrapedGarment, garment: np.ndarray, faces: np.ndarray,
@@ -600,17 +642,12 @@ class GarmentService(DemoCatalogue):
                 on = SZ.size_bodies_on(source, bodies, chart.base)
             rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
             material = _upload_material(upload.texture, rgba, None, upload.layout)
-            ready = self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, upload.layout, material,
-                                      progress.scaled(start + 0.05, 0.95 - start))
+            built = self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, upload.layout, material,
+                                      progress.scaled(start + 0.05, 0.95 - start), drape=self.settings.drape)
         except (ValueError, Invalid, DrapeError) as exc:
-            return self._fail_build(record, f"the garment could not be graded or fitted: {exc}", progress)
-        ready = ready.model_copy(update={"status": "ready", "error": None, "progress": None})
-        if not self.repo.complete(ready):
             self.bases.delete(record.id)
-            return {"status": "deleted", "garment_id": record.id}
-        progress(1.0, "done")
-        log.info("garment %s built in %d sizes", record.id, len(chart.sizes))
-        return _build_outcome(ready)
+            return self._fail_build(record, f"the garment could not be graded or fitted: {exc}", progress)
+        return self._complete_build(built, progress)
 
     def _fail_build(self, record: Garment, message: str, progress: Progress) -> dict[str, Any]:
         failed = record.model_copy(update={"status": "failed", "error": message, "progress": None})
@@ -679,11 +716,6 @@ def _upload_material(texture: Texture | None, rgba: tuple[float, ...], color: st
                                            "corner (export the garment with UVs)")
     factor = tuple(float(c) for c in rgba) if color else (1.0, 1.0, 1.0, 1.0)
     return Material(factor, texture, None, "OPAQUE", None, True, UPLOAD_METALLIC, UPLOAD_ROUGHNESS)  # type: ignore[arg-type]
-
-
-def _textured(material: Material | None, layout: RenderLayout | None) -> bool:
-    return bool(material is not None and layout is not None
-                and (material.base_color_texture is not None or material.normal_texture is not None))
 
 
 def _build_outcome(record: Garment) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from service.model.formats.frames import UNITS, UnitError, detect_unit, rotation
 from service.model.body.measurements import ATTRIBUTES
 from service.model.formats.mesh_io import Scan, ScanError
 from service.model.formats import gltf_read
-from service.model.garments.catalogue import RenderLayout, Texture, render_layout
+from service.model.garments.catalogue import Material, RenderLayout, Texture, render_layout
 from service.model.formats.declared_sizes import DeclaredSizeError, check_gltf, check_text_lines
 from service.model.formats.mhclo import Binding, MhcloError, parse_mhclo, parse_obj
 
@@ -360,6 +360,15 @@ def parse_gender(value: object) -> str | None:
 # -- a garment draped on one body --------------------------------------------------------------
 DRAPED_NEAR_MEDIAN_M = 0.08  # median distance of a draped garment to the body it claims
 DRAPED_FORMAT = 1
+
+
+def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """A stored upload's arrays as compressed ``.npz`` bytes."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
 # the up axes tried for a garment draped on an example avatar: as is (Y up), or Z up
 GARMENT_UPS = {"+y": np.eye(3), "+z": rotation_to_y(np.array([0.0, 0.0, 1.0]))}
 
@@ -395,9 +404,7 @@ class DrapedGarment:
         if self.texture is not None:
             arrays.update(texture=np.frombuffer(self.texture.data, np.uint8), texture_mime=np.array(self.texture.mime),
                           texture_name=np.array(self.texture.name))
-        buf = io.BytesIO()
-        np.savez_compressed(buf, **arrays)
-        return buf.getvalue()
+        return _npz_bytes(arrays)
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "DrapedGarment":
@@ -415,6 +422,43 @@ class DrapedGarment:
                        on=str(z["on"]) or None, unit=str(z["unit"]), up=str(z["up"]) or None, avatar=avatar,
                        layout=layout, texture=texture,
                        graded=np.asarray(z["graded"], np.float64) if "graded" in z.files else None)
+
+
+def is_textured(material: Material | None, layout: RenderLayout | None) -> bool:
+    """Whether a garment's look has a texture its render layout can show."""
+    return bool(material is not None and layout is not None
+                and (material.base_color_texture is not None or material.normal_texture is not None))
+
+
+MHCLO_FORMAT = 1  # MhcloUpload.to_bytes
+
+
+@dataclass
+class MhcloUpload:
+    """A MakeHuman garment's files (``.mhclo``, its ``.obj``, the optional texture and the
+    ``color`` as sent), checked at the upload, waiting for its build job (with the drape on)."""
+
+    mhclo: bytes
+    obj: bytes
+    texture: tuple[bytes, str | None] | None = None
+    color: str | None = None
+
+    def to_bytes(self) -> bytes:
+        arrays: dict[str, np.ndarray] = {"mhclo_format": np.array(MHCLO_FORMAT),
+                                         "mhclo": np.frombuffer(self.mhclo, np.uint8),
+                                         "obj": np.frombuffer(self.obj, np.uint8), "color": np.array(self.color or "")}
+        if self.texture is not None:
+            arrays.update(texture=np.frombuffer(self.texture[0], np.uint8), texture_name=np.array(self.texture[1] or ""))
+        return _npz_bytes(arrays)
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "MhcloUpload":
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            if "mhclo_format" not in z.files or int(z["mhclo_format"]) != MHCLO_FORMAT:
+                raise ValueError("not a stored MakeHuman garment upload")
+            texture = (z["texture"].tobytes(), str(z["texture_name"]) or None) if "texture" in z.files else None
+            return cls(mhclo=z["mhclo"].tobytes(), obj=z["obj"].tobytes(), texture=texture,
+                       color=str(z["color"]) or None)
 
 
 def place_on_body(vertices: np.ndarray, body_tree: cKDTree, loc: tuple) -> tuple[np.ndarray, str, str]:

@@ -105,6 +105,9 @@ def kill_process_tree(pid: int, sig: int = signal.SIGKILL) -> None:
             pass
 
 
+DEMO_DRAPE_NICE = 19  # the demo catalogue's background drape runs at the lowest CPU priority
+
+
 def settings_env(settings: Settings) -> dict[str, str]:
     """The environment of a subprocess that must see ``settings`` (a worker of this API)."""
     env = dict(os.environ)
@@ -119,6 +122,25 @@ def settings_env(settings: Settings) -> dict[str, str]:
     if settings.body_model_path:
         env["TRYON_BODY_MODEL"] = str(Path(settings.body_model_path).resolve())
     return env
+
+
+def _start_once(settings: Settings, lock_name: str, command: str, nice: int = 0
+                ) -> tuple[subprocess.Popen, Any] | None:
+    """``tryon <command> --parent-pid <this process>`` with ``settings``, in a process group of its
+    own (at ``nice``), unless another process of this data directory holds the file lock
+    ``TRYON_DATA_DIR/<lock_name>`` (then None). Returns (the process, the held lock file)."""
+    data_dir = Path(settings.data_dir).resolve()
+    data_dir.mkdir(parents=True, exist_ok=True)
+    lock_file = open(data_dir / lock_name, "w")
+    try:
+        fcntl.flock(lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock_file.close()
+        return None
+    cmd = [sys.executable, "-m", "service.cli", command, "--parent-pid", str(os.getpid())]
+    proc = subprocess.Popen(cmd, env=settings_env(settings), start_new_session=True,
+                            preexec_fn=(lambda: os.nice(nice)) if nice else None)
+    return proc, lock_file
 
 
 class EmbeddedWorker:
@@ -139,18 +161,11 @@ class EmbeddedWorker:
     @classmethod
     def start(cls, settings: Settings) -> "EmbeddedWorker | None":
         """Start the worker, or None when another process of this data directory runs it."""
-        data_dir = Path(settings.data_dir).resolve()
-        data_dir.mkdir(parents=True, exist_ok=True)
-        lock_file = open(data_dir / "embedded-worker.lock", "w")
-        try:
-            fcntl.flock(lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock_file.close()
+        started = _start_once(settings, "embedded-worker.lock", "worker")
+        if started is None:
             return None
-        cmd = [sys.executable, "-m", "service.cli", "worker", "--parent-pid", str(os.getpid())]
-        proc = subprocess.Popen(cmd, env=settings_env(settings), start_new_session=True)
-        log.info("embedded worker started (pid %d)", proc.pid)
-        return cls(proc, lock_file)
+        log.info("embedded worker started (pid %d)", started[0].pid)
+        return cls(*started)
 
     def stop(self, warm: float = EMBEDDED_WORKER_WARM_STOP, cold: float = EMBEDDED_WORKER_COLD_STOP) -> None:
         """SIGTERM (rq's warm shutdown: the running job may finish), after ``warm`` seconds a
@@ -175,3 +190,40 @@ class EmbeddedWorker:
         finally:
             self._lock_file.close()
         log.info("embedded worker stopped (exit status %s)", self.proc.returncode)
+
+
+class DemoDrape:
+    """The ``tryon drape-demo`` subprocess (``Settings.runs_demo_drape``): after the first start
+    it re-builds the demo catalogue through the cloth drape, garment by garment
+    (``GarmentService.drape_demo``), at the lowest CPU priority (``nice`` 19: the API and the
+    worker's jobs come first), and exits when done. One per data directory (the file lock
+    ``TRYON_DATA_DIR/demo-drape.lock``; the garments' Redis locks keep several hosts apart); it
+    dies with the API process, and a later start carries on where it stopped."""
+
+    def __init__(self, proc: subprocess.Popen, lock_file: Any):
+        self.proc = proc
+        self._lock_file = lock_file
+
+    @classmethod
+    def start(cls, settings: Settings) -> "DemoDrape | None":
+        started = _start_once(settings, "demo-drape.lock", "drape-demo", nice=DEMO_DRAPE_NICE)
+        if started is None:
+            return None
+        log.info("demo catalogue drape started in the background (pid %d)", started[0].pid)
+        return cls(*started)
+
+    def stop(self, wait: float = 5.0) -> None:
+        """SIGTERM (a garment half draped is dropped: its basis stays the binding's), then
+        SIGKILL after ``wait`` seconds."""
+        try:
+            if self.proc.poll() is None:
+                try:
+                    os.killpg(self.proc.pid, signal.SIGTERM)
+                    self.proc.wait(timeout=wait)
+                except ProcessLookupError:
+                    pass
+                except subprocess.TimeoutExpired:
+                    kill_process_tree(self.proc.pid)
+                    self.proc.wait()
+        finally:
+            self._lock_file.close()

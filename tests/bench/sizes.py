@@ -12,10 +12,12 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
 - monotonic: at every girth region of every (person, garment), ease grows and strain falls with size;
 - timings in process: the fit report of one garment, the customer's girths (once per body),
   grading, one size's example fits (the build's unit of work), the try-on of one size;
-- per-size basis try-on vs direct drape: the first garment's XS basis (as built with
-  ``TRYON_DRAPE`` off: warp fits) tried on held-out customers (10, or ``--limit``) vs that size's
-  rest shape draped directly on each (the drape engine, from the try-on, as the exact drape job);
-  vertex distance and the strain maps' difference (percentage points).
+- per-size basis try-on vs direct drape: the first garment's XS basis as the default build makes
+  it (``TRYON_DRAPE`` on: that size draped on the example avatars and 64 population bodies; and,
+  beside it, as built with the drape off: warp fits) tried on held-out customers (10, or
+  ``--limit``) vs that size's rest shape draped directly on each (the drape engine, from the
+  warp basis's try-on, as the exact drape job); vertex distance and the strain maps' difference
+  (percentage points).
 """
 from __future__ import annotations
 
@@ -29,7 +31,8 @@ from service.model.body.model import load_body_model
 from service.model.garments.catalogue import load_catalogue
 from service.model.body.shape import avatar_from_measurements
 from service.model.drape import edge_strain, precompute
-from service.model.garments.tryon import build_garment_basis, customer_body, example_set, try_on
+from service.model.garments.draped import draped_example_fits
+from service.model.garments.tryon import build_garment_basis, customer_body, example_set, example_vertices, try_on
 from tests.bench.common import median_ms, read_ansur
 from tests.bench.drape import _subdivide
 
@@ -37,7 +40,22 @@ from tests.bench.drape import _subdivide
 GARMENTS = (("womens-tshirt", "female", "knit"), ("mens-tshirt", "male", "knit"), ("striped-shirt", "male", "woven"))
 ROUND_TRIP_EASE_CM = 1.0
 DRAPE_CUSTOMERS = 10  # held-out customers the per-size basis try-on is checked on against direct drapes
+DRAPE_POPULATION = 64  # population bodies of the size's drape build (Settings.drape_population's default)
 CHARTED = ("chest", "waist", "hip")
+
+
+def _basis_vs_drapes(basis, drapes: list, rest: np.ndarray, faces: np.ndarray) -> dict:
+    """A size's basis try-on (as served: synthesis + push-out) on each customer body vs that
+    size draped directly there (``drapes``: (customer body, draped vertices)): vertex distance
+    (mm) and the strain maps' difference (per-vertex stretch against the rest shape, points)."""
+    errs, strain_pts = [], []
+    for cb, draped in drapes:
+        tried = np.asarray(try_on(basis, cb)[0], np.float64)
+        errs.append(np.linalg.norm(tried - draped, axis=1))
+        strain_pts.append(100 * np.abs(edge_strain(rest, faces, tried) - edge_strain(rest, faces, draped)))
+    e, sp = 1000 * np.concatenate(errs), np.concatenate(strain_pts)
+    return {"customers": len(drapes), "mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99)),
+            "strain_mean_pts": float(sp.mean()), "strain_p99_pts": float(np.percentile(sp, 99))}
 
 
 def _size_of(chest: float) -> str | None:
@@ -139,18 +157,27 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     # drape job does); the strain maps (per-vertex stretch against the size's rest shape) of both
     rest0 = np.asarray(g0["rests"][0], np.float64)
     draper = precompute(rest0, g0["faces"], GARMENTS[0][2])
-    errs, strain_pts = [], []
-    for _, cust in bodies_cache[: min(len(bodies_cache), limit or DRAPE_CUSTOMERS)]:
+    customers = bodies_cache[: min(len(bodies_cache), limit or DRAPE_CUSTOMERS)]
+    drapes = []
+    for _, cust in customers:
         cb = customer_body(model, model.project(cust.vertices))
         tried = np.asarray(try_on(basis, cb)[0], np.float64)
-        draped = draper.solve(model.body_vertices(cb.vertices).astype(np.float64), model.body_faces, tried).vertices
-        errs.append(np.linalg.norm(tried - draped, axis=1))
-        strain_pts.append(100 * np.abs(edge_strain(rest0, g0["faces"], tried) - edge_strain(rest0, g0["faces"], draped)))
-    e, sp = 1000 * np.concatenate(errs), np.concatenate(strain_pts)
-    basis_vs_drape = {"garment": GARMENTS[0][0], "size": chart.labels[0], "customers": len(errs),
-                      "mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99)),
-                      "strain_mean_pts": float(sp.mean()), "strain_p99_pts": float(np.percentile(sp, 99)),
-                      "basis": "warp (TRYON_DRAPE off)"}
+        drapes.append((cb, draper.solve(model.body_vertices(cb.vertices).astype(np.float64), model.body_faces,
+                                        tried).vertices))
+    basis_vs_drape_warp = {**_basis_vs_drapes(basis, drapes, rest0, g0["faces"]),
+                           "garment": GARMENTS[0][0], "size": chart.labels[0], "basis": "warp (TRYON_DRAPE=false)"}
+    # the size's basis as the default build makes it (TRYON_DRAPE on): its rest shape draped on the
+    # example avatars (from the warp fits) and on DRAPE_POPULATION population bodies
+    t = time.perf_counter()
+    ex = example_set(model)
+    d = draped_example_fits(model, ex, example_vertices(model, ex), rest0, g0["faces"], fits, GARMENTS[0][2],
+                            DRAPE_POPULATION)
+    t_drape_build = time.perf_counter() - t
+    basis_d = build_garment_basis(model, d.fits, g0["faces"], ex, rest=rest0)
+    basis_vs_drape = {**_basis_vs_drapes(basis_d, drapes, rest0, g0["faces"]),
+                      "garment": GARMENTS[0][0], "size": chart.labels[0],
+                      "basis": f"drape (TRYON_DRAPE on, {DRAPE_POPULATION} population bodies)",
+                      "build_s": t_drape_build, "drapes": len(d.drapes)}
     # the same size subdivided (each face into four) until it has 10k vertices or more
     faces10, fits10 = np.asarray(g0["faces"], np.int64), np.asarray(fits)
     while fits10.shape[1] < 10_000:
@@ -171,6 +198,7 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
                           "share": hit / max(tot, 1), "misses": misses[:20]},
         "monotonic": {"ok": mono_ok, "total": mono_tot, "share": mono_ok / max(mono_tot, 1)},
         "basis_vs_drape": basis_vs_drape,
+        "basis_vs_drape_warp": basis_vs_drape_warp,
         "timings": {"fit_report_ms": report_ms, "customer_girths_ms": 1000 * float(np.median(t_girths)),
                     "grading_5_sizes_s": float(np.median(t_grade)), "one_size_example_fits_s": t_fits,
                     "one_size_try_on_ms": tryon_ms, "try_on_vertices": int(basis.n_vertices),
@@ -196,6 +224,10 @@ def format_result(r: dict) -> str:
             f"mean {r['basis_vs_drape']['mean_mm']:.1f} mm, p99 {r['basis_vs_drape']['p99_mm']:.1f} mm; strain map "
             f"{r['basis_vs_drape']['strain_mean_pts']:.1f} points mean, p99 {r['basis_vs_drape']['strain_p99_pts']:.1f}",
             "mean <= 3 mm, p99 <= 12 mm; strain within 2 points")] if r.get("basis_vs_drape") else []),
+        *([("  ... the same size's basis built with the drape off (warp fits)",
+            f"mean {r['basis_vs_drape_warp']['mean_mm']:.1f} mm, p99 {r['basis_vs_drape_warp']['p99_mm']:.1f} mm; "
+            f"strain map {r['basis_vs_drape_warp']['strain_mean_pts']:.1f} points mean, p99 "
+            f"{r['basis_vs_drape_warp']['strain_p99_pts']:.1f}", "(baseline)")] if r.get("basis_vs_drape_warp") else []),
         ("fit report per garment, in process", f"{t['fit_report_ms']:.3f} ms (+ {t['customer_girths_ms']:.1f} ms "
          "once per customer body)", "<= 5 ms"),
         (f"try-on of one size, {t['try_on_vertices']} vertices, in process", f"{t['one_size_try_on_ms']:.2f} ms",

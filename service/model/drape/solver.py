@@ -44,7 +44,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry import mesh as geometry
+from service.model.geometry import kernels, mesh as geometry
 from service.model.geometry.solvers import factor_spd
 
 from .fabrics import Fabric, fabric as _fabric
@@ -52,6 +52,7 @@ from .fabrics import Fabric, fabric as _fabric
 GRAVITY_M_S2 = 9.81  # standard gravity
 FACE_CONTACT_MIN_COS = 0.5  # body-vertex / cloth-face contact only where both rest on skin facing within 60 degrees
 FACE_CONTACT_MAX_LATERAL_M = 0.004  # ... and where the cloth point is within this of the body vertex's normal line
+COMPILED = True  # the local step and the strain limit in compiled loops (geometry.kernels) where numba is there
 
 
 class DrapeError(ValueError):
@@ -123,10 +124,10 @@ def _check_rest(rest: np.ndarray, faces: np.ndarray, cfg: Config) -> None:
         raise DrapeError(f"{int((~used).sum())} garment vertices are on no face")
 
 
-def _strain_operator(rest: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+def _strain_operator(rest: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """G (2T, N): rows 2t and 2t+1 give the two columns of triangle t's deformation gradient
-    F_t = [x1 - x0, x2 - x0] D_t^-1 (D_t: the rest edges in the triangle's own 2D frame), and
-    the rest areas A_t (T,)."""
+    F_t = [x1 - x0, x2 - x0] D_t^-1 (D_t: the rest edges in the triangle's own 2D frame), the
+    rest areas A_t (T,), and G's entries per triangle C (T, 3 vertices, 2 columns)."""
     tri = rest[faces]
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     n = np.cross(e1, e2)
@@ -142,7 +143,7 @@ def _strain_operator(rest: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matrix
     rows = (2 * np.arange(T)[:, None, None] + np.arange(2)[None, None, :]).repeat(3, axis=1)
     cols = np.broadcast_to(faces[:, :, None], (T, 3, 2))
     G = sp.csr_matrix((C.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(2 * T, len(rest)))
-    return G, area
+    return G, area, np.ascontiguousarray(C)
 
 
 def _cotangent_laplacian(rest: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
@@ -211,12 +212,13 @@ class Draper:
         self.rest, self.faces, self.fabric, self.config = rest, faces, fab, cfg
         N = len(rest)
         self.n = N
-        G, area = _strain_operator(rest, faces)
+        G, area, self.C = _strain_operator(rest, faces)
         self.G, self.area = G, area
         self.vertex_area = np.bincount(faces.reshape(-1), np.repeat(area / 3.0, 3), minlength=N)
         self.mass = fab.density_kg_per_m2 * self.vertex_area  # (N,) kg, lumped
         ks = fab.stretch_stiffness_n_per_m
-        self.w_stretch = np.repeat(ks * area, 2)  # (2T,) per gradient column
+        self.w_triangle = ks * area  # (T,) membrane weight of each triangle (of each of its gradient's columns)
+        self.w_stretch = np.repeat(self.w_triangle, 2)  # (2T,) per gradient column
         self.edges = geometry.mesh_edges(faces)
         self.edge_rest = np.linalg.norm(rest[self.edges[:, 0]] - rest[self.edges[:, 1]], axis=1)
         self.edge_max = self.edge_rest * (1.0 + fab.stretch_limit_pct / 100.0)
@@ -279,7 +281,20 @@ class Draper:
 
     def _local(self, x: np.ndarray, level: float = 1.0) -> tuple[np.ndarray, float]:
         """The local step's projections folded into the global right-hand side (N, 3) (PD Eq. 10
-        right side, without the proximal term), and the energy E(x) (J) from the same residuals."""
+        right side, without the proximal term), and the energy E(x) (J) from the same residuals.
+        With ``COMPILED`` (and numba there) the membrane and the normals in compiled loops
+        (``geometry.kernels.membrane``, ``vertex_normals``: equal to ~1e-15 relative)."""
+        if COMPILED and kernels.AVAILABLE:
+            x = np.ascontiguousarray(x, np.float64)
+            rhs = np.zeros((self.n, 3))
+            e_s = kernels.membrane(x, self.faces, self.C, level * self.w_triangle, rhs)
+            n = np.empty((self.n, 3))
+            kernels.vertex_normals(x, self.faces, n)
+            pb = self.h0[:, None] * n
+            rhs += self.L.T @ (self.w_bend[:, None] * pb)
+            e = (e_s + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
+                 - float((self.gravity_force * x).sum()))
+            return rhs + self.gravity_force, e
         Gxr = self.G @ x  # (2T, 3)
         Gx = Gxr.reshape(-1, 2, 3).transpose(0, 2, 1)  # (T, 3, 2)
         R = _polar(Gx).transpose(0, 2, 1).reshape(-1, 3)
@@ -438,6 +453,14 @@ class Draper:
         inv_mass = np.ones(self.n)
         inv_mass[self.pinned] = 0.0
         e = self.edges
+        if COMPILED and kernels.AVAILABLE:
+            acc, count = np.empty((self.n, 3)), np.empty(self.n)
+            for k in range(self.config.limit_passes):
+                n_over = kernels.strain_limit_pass(x, e, self.edge_max, inv_mass, acc, count)
+                first = n_over if k == 0 else first
+                if not n_over:
+                    break
+            return first
         for k in range(self.config.limit_passes):
             d = x[e[:, 1]] - x[e[:, 0]]
             length = np.linalg.norm(d, axis=1)
@@ -505,7 +528,7 @@ class _Body:
         self.bounds = geometry.face_bounds(V, F)
         inc = sp.csr_matrix((np.ones(F.size), (F.reshape(-1), np.repeat(np.arange(len(F)), 3))), shape=(len(V), len(F)))
         self.normals = _normals(V, F, inc)
-        self.q = self.n = None
+        self.q = self.n = self.face = None
         self.face_pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # refresh_faces
 
     def refresh_faces(self, x: np.ndarray, faces: np.ndarray, near_m: float) -> None:
@@ -560,27 +583,32 @@ class _Body:
 
     def refresh(self, x: np.ndarray) -> None:
         """Closest points and normals of every vertex of x (N, 3)."""
-        self.q, self.n = self._query(x)
+        self.q, self.n, self.face = self._query(x)
         self.reach = np.abs(((x - self.q) * self.n).sum(1))  # how far each may move before its plane is stale
         self.x_at = x.copy()
 
     def refresh_near(self, x: np.ndarray, near_m: float, moved_m: float) -> None:
         """Refresh only the vertices that may be within ``near_m`` of the body (their distance
         at their last refresh minus how far they moved since: the others cannot reach it) and
-        have moved more than ``moved_m`` since (a resting vertex keeps its plane)."""
+        have moved more than ``moved_m`` since (a resting vertex keeps its plane). Each searches the
+        faces around its last closest face's vertices (it moved at most ``near_m`` since, about a
+        body face: a walk on the surface, no nearest-vertex search); :meth:`refresh` searches
+        afresh."""
         moved = np.linalg.norm(x - self.x_at, axis=1)
         idx = np.flatnonzero((self.reach - moved < near_m) & (moved > moved_m))
         if len(idx):
-            q, n = self._query(x[idx])
-            self.q[idx], self.n[idx] = q, n
+            q, n, face = self._query(x[idx], near=self.F[self.face[idx]])
+            self.q[idx], self.n[idx], self.face[idx] = q, n, face
             self.reach[idx] = np.abs(((x[idx] - q) * n).sum(1))
             self.x_at[idx] = x[idx]
 
-    def _query(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _query(self, x: np.ndarray, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closest body points (P, 3), interpolated unit normals there (P, 3) and faces (P,) of x
+        (P, 3); ``near``: candidate vertices (P, k) instead of the ``contact_k`` nearest."""
         face, q, bary = geometry.closest_points_on_mesh(x, self.V, self.F, k=self.cfg.contact_k, tree=self.tree,
-                                                        vert_faces=self.vf, bounds=self.bounds)
+                                                        vert_faces=self.vf, bounds=self.bounds, near=near)
         n = (self.normals[self.F[face]] * bary[:, :, None]).sum(1)
-        return q, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        return q, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30), face
 
     def signed_distance(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
         if exact:

@@ -4,7 +4,9 @@ numpy reference in ``service.model.geometry.mesh`` computes (the same float oper
 order, so the same results bit for bit; the tests compare them), one query point at a time with
 no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_rows`) compute
 what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with
-numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them).
+numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them); so do the
+cloth drape's (:func:`membrane`, :func:`vertex_normals`, :func:`strain_limit_pass`: what
+``drape.solver`` computes with numpy and sparse products).
 ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is set): callers
 then use the numpy path.
 
@@ -49,7 +51,9 @@ def _compiled() -> SimpleNamespace:
                 _compiled_kernels = SimpleNamespace(closest_faces=jit(_closest_faces), face_bounds=jit(_face_bounds),
                                                     winding_numbers=jit(_winding_numbers),
                                                     pose_jacobian_into=jit(_pose_jacobian_into),
-                                                    pair_rows=jit(_pair_rows))
+                                                    pair_rows=jit(_pair_rows), membrane=jit(_membrane),
+                                                    vertex_normals=jit(_vertex_normals),
+                                                    strain_limit_pass=jit(_strain_limit_pass))
     return _compiled_kernels
 
 
@@ -76,6 +80,21 @@ def pose_jacobian_into(rest, G, W, sel, q, J):
 def pair_rows(J, vi, nn):
     """Compiled :func:`_pair_rows`."""
     return _compiled().pair_rows(J, vi, nn)
+
+
+def membrane(x, faces, C, w, rhs):
+    """Compiled :func:`_membrane`."""
+    return _compiled().membrane(x, faces, C, w, rhs)
+
+
+def vertex_normals(x, faces, out):
+    """Compiled :func:`_vertex_normals`."""
+    return _compiled().vertex_normals(x, faces, out)
+
+
+def strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
+    """Compiled :func:`_strain_limit_pass`."""
+    return _compiled().strain_limit_pass(x, edges, edge_max, inv_mass, acc, count)
 
 
 def _closest_on_triangle(px, py, pz, V, F, f):
@@ -275,6 +294,106 @@ def _pair_rows(J, vi, nn):
     return rows
 
 
+def _membrane(x, faces, C, w, rhs):
+    """The drape's membrane projection (``drape.solver.Draper._local``, PD Eq. 13): for each
+    triangle t its deformation gradient F_t = sum_k x[faces[t, k]] C[t, k] (3 x 2), the closest
+    rotation R_t = F_t (F_t^T F_t)^(-1/2) (the closed form of ``drape.solver._polar``), R_t's
+    columns added into rhs (N, 3) float64 as G^T (w R) (rhs[faces[t, k]] += w_t sum_c C[t, k, c]
+    R_t[:, c]). x (N, 3) float64, faces (T, 3) int64, C (T, 3, 2) float64, w (T,) float64.
+    Returns sum_t w_t / 2 ||F_t - R_t||^2 (J)."""
+    T = faces.shape[0]
+    e = 0.0
+    for t in range(T):
+        a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+        for k in range(3):
+            v = faces[t, k]
+            ck0, ck1 = C[t, k, 0], C[t, k, 1]
+            a0 += x[v, 0] * ck0
+            a1 += x[v, 1] * ck0
+            a2 += x[v, 2] * ck0
+            b0 += x[v, 0] * ck1
+            b1 += x[v, 1] * ck1
+            b2 += x[v, 2] * ck1
+        c00 = a0 * a0 + a1 * a1 + a2 * a2
+        c01 = a0 * b0 + a1 * b1 + a2 * b2
+        c11 = b0 * b0 + b1 * b1 + b2 * b2
+        det = max(c00 * c11 - c01 * c01, 0.0)
+        s = np.sqrt(det)
+        tt = np.sqrt(max(c00 + c11 + 2 * s, 1e-300))
+        m00, m01, m11 = c00 + s, c01, c11 + s
+        inv_det = tt / max(m00 * m11 - m01 * m01, 1e-300)
+        i00, i01, i11 = m11 * inv_det, -m01 * inv_det, m00 * inv_det
+        r0, r1, r2 = a0 * i00 + b0 * i01, a1 * i00 + b1 * i01, a2 * i00 + b2 * i01
+        q0, q1, q2 = a0 * i01 + b0 * i11, a1 * i01 + b1 * i11, a2 * i01 + b2 * i11
+        wt = w[t]
+        e += 0.5 * wt * ((a0 - r0) ** 2 + (a1 - r1) ** 2 + (a2 - r2) ** 2
+                         + (b0 - q0) ** 2 + (b1 - q1) ** 2 + (b2 - q2) ** 2)
+        for k in range(3):
+            v = faces[t, k]
+            ck0, ck1 = wt * C[t, k, 0], wt * C[t, k, 1]
+            rhs[v, 0] += ck0 * r0 + ck1 * q0
+            rhs[v, 1] += ck0 * r1 + ck1 * q1
+            rhs[v, 2] += ck0 * r2 + ck1 * q2
+    return e
+
+
+def _vertex_normals(x, faces, out):
+    """Area-weighted unit vertex normals into out (N, 3) float64, as ``drape.solver._normals``:
+    x (N, 3) float64, faces (T, 3) int64."""
+    out[:] = 0.0
+    for t in range(faces.shape[0]):
+        i, j, k = faces[t, 0], faces[t, 1], faces[t, 2]
+        u0, u1, u2 = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
+        v0, v1, v2 = x[k, 0] - x[i, 0], x[k, 1] - x[i, 1], x[k, 2] - x[i, 2]
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        for v in (i, j, k):
+            out[v, 0] += n0
+            out[v, 1] += n1
+            out[v, 2] += n2
+    for v in range(out.shape[0]):
+        ln = max(np.sqrt(out[v, 0] ** 2 + out[v, 1] ** 2 + out[v, 2] ** 2), 1e-30)
+        out[v, 0] /= ln
+        out[v, 1] /= ln
+        out[v, 2] /= ln
+
+
+def _strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
+    """One Jacobi pass of the drape's strain limit (``drape.solver.Draper._strain_limit``):
+    every edge longer than edge_max (E,) shortened to it, the correction shared by the ends'
+    inverse masses inv_mass (N,), each vertex moved by the mean of its corrections. x (N, 3)
+    float64 in place, edges (E, 2) int64; acc (N, 3) and count (N,) float64 scratch. Returns
+    the number of over-stretched edges."""
+    acc[:] = 0.0
+    count[:] = 0.0
+    n_over = 0
+    for k in range(edges.shape[0]):
+        a, b = edges[k, 0], edges[k, 1]
+        d0, d1, d2 = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+        ln = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if ln <= edge_max[k]:
+            continue
+        n_over += 1
+        wa, wb = inv_mass[a], inv_mass[b]
+        wsum = max(wa + wb, 1e-12)
+        f = (ln - edge_max[k]) / ln
+        sa, sb = wa / wsum * f, wb / wsum * f
+        acc[a, 0] += sa * d0
+        acc[a, 1] += sa * d1
+        acc[a, 2] += sa * d2
+        acc[b, 0] -= sb * d0
+        acc[b, 1] -= sb * d1
+        acc[b, 2] -= sb * d2
+        count[a] += 1.0
+        count[b] += 1.0
+    if n_over:
+        for v in range(x.shape[0]):
+            if count[v] > 0:
+                x[v, 0] += acc[v, 0] / count[v]
+                x[v, 1] += acc[v, 1] / count[v]
+                x[v, 2] += acc[v, 2] / count[v]
+    return n_over
+
+
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel for the argument types the
     service passes: the Docker build runs it, so that no process of the image compiles them
@@ -292,3 +411,8 @@ def warm() -> None:
     pose_jacobian_into(np.zeros((1, 3)), np.tile(np.eye(4), (2, 1, 1)), np.ones((1, 2)), np.ones((1, 2)),
                        np.zeros((1, 3)), J)
     pair_rows(J, np.zeros(1, np.int64), np.ones((1, 3)))
+    C = np.zeros((1, 3, 2))
+    membrane(V, F, C, np.ones(1), np.zeros((3, 3)))
+    vertex_normals(V, F, np.zeros((3, 3)))
+    e = np.array([[0, 1]], np.int64)
+    strain_limit_pass(V.copy(), e, np.ones(1), np.ones(3), np.zeros((3, 3)), np.zeros(3))

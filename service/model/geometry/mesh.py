@@ -166,10 +166,13 @@ PRUNE_SLACK_SQ = kernels.PRUNE_SLACK_SQ  # squared metres: absolute slack (a poi
 
 def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, k: int = 8,
                            tree: cKDTree | None = None, vert_faces: np.ndarray | None = None,
-                           bounds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+                           bounds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                           near: np.ndarray | None = None):
     """The closest point of a triangle mesh to each of ``points`` (P, 3): exact among the
     triangles around the k nearest vertices (pass ``tree`` over ``vertices``,
-    ``vertex_faces(faces, V)`` and :func:`face_bounds` to reuse them). Returns (face ids (P,) int64, closest points
+    ``vertex_faces(faces, V)`` and :func:`face_bounds` to reuse them), or around ``near`` (P, k)
+    int vertex indices given instead (no nearest-vertex search: e.g. the vertices of each point's
+    closest face a moment ago, for a point that has moved a little). Returns (face ids (P,) int64, closest points
     (P, 3) float64, barycentric weights (P, 3) float64 of the closest points in those faces).
 
     With ``PRUNE_CANDIDATES``, a candidate face is evaluated only when a lower bound of its
@@ -182,9 +185,13 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if not len(p):
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
-    tree = tree if tree is not None else cKDTree(V)
     vert_faces = vert_faces if vert_faces is not None else vertex_faces(F, len(V))
-    d1, nn = tree.query(p, k=k)
+    d1 = None  # distances to the candidate vertices (the numpy path's upper bound)
+    if near is not None:
+        nn = np.asarray(near, np.int64).reshape(len(p), -1)
+    else:
+        tree = tree if tree is not None else cKDTree(V)
+        d1, nn = tree.query(p, k=k)
     if COMPILED and kernels.AVAILABLE and PRUNE_CANDIDATES:
         c, n, r = bounds if bounds is not None else face_bounds(V, F)
         face, q = kernels.closest_faces(np.ascontiguousarray(p), np.ascontiguousarray(V), np.ascontiguousarray(F),
@@ -195,6 +202,8 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
         t = V[F[face]]
         return face, q, barycentric(q, t[:, 0], t[:, 1], t[:, 2])
     raw = vert_faces[nn.reshape(len(p), -1)].reshape(len(p), -1)
+    if d1 is None:
+        d1 = np.sqrt(((V[nn] - p[:, None, :]) ** 2).sum(-1))
     if PRUNE_CANDIDATES:
         return _closest_pruned(p, V, F, raw, np.asarray(d1).reshape(len(p), -1), np.asarray(nn).reshape(len(p), -1),
                                vert_faces, bounds if bounds is not None else face_bounds(V, F))
