@@ -70,6 +70,26 @@ def test_mhclo_upload_is_draped_on_every_example(client: TestClient) -> None:
     assert glb["meshes"][0]["name"] == "Hat"
 
 
+def test_mhclo_in_sizes_is_draped_per_size(client: TestClient) -> None:
+    """A ``.mhclo`` with a size chart and the drape on: one queued build grades it and drapes
+    every size on every example avatar (progress per size), one basis per size."""
+    files = {"mhclo": ("fedora.mhclo", (HAT / "fedora.mhclo").read_bytes()),
+             "obj": ("fedora.obj", (HAT / "fedora.obj").read_bytes())}
+    chart = '{"S": {"chest_cm": 90}, "L": {"chest_cm": 106}}'
+    r = client.post("/v1/garments", data={"name": "Hat", "size_chart": chart, "base_size": "S", "fabric": "knit"},
+                    files=files, headers=KEY)
+    assert r.status_code == 202, r.text
+    gid = r.json()["id"]
+    ctx = client.app.state.context
+    messages: list[str] = []
+    assert ctx.garments.run_build(gid, lambda f, m: messages.append(m))["status"] == "done"
+    assert any(m.startswith("size S: ") for m in messages) and any(m.startswith("size L: ") for m in messages)
+    hat = client.get(f"/v1/garments/{gid}").json()
+    assert [s["label"] for s in hat["sizes"]] == ["S", "L"] and hat["example_fits"] == "drape"
+    small, large = (ctx.bases.load(gid, hat["etag"], i) for i in (0, 1))
+    assert np.abs(np.asarray(large.g) - np.asarray(small.g)).max() > 1e-4  # two sizes, each draped at its own
+
+
 def _far_mhclo(mhclo: bytes, factor: float) -> bytes:
     """The binding with every vertex's offset from its body triangle scaled (a garment that no
     longer sits on the body)."""

@@ -193,6 +193,41 @@ def test_heavy_crotch_keeps_the_bottoms_outside(model):
     assert after == 0
 
 
+def test_a_body_detail_between_garment_vertices_is_pushed_out_of_the_face():
+    """A flat skin (y = 0, normal +y, 1 cm grid) with one vertex raised 6 mm (a nipple) under the
+    middle of one 6 cm garment triangle lying 3 mm over the skin: every garment vertex clears
+    its nearest skin vertex, so the vertex push-out leaves the face 3 mm under the bump's tip.
+    The face pass (``correctives.skin_under_faces`` then ``push_out``'s pairs) lifts the face
+    until its point over the bump is the clearance out, each vertex by its barycentric share;
+    against the slow reference (the face point's height over the tip)."""
+    from scipy.spatial import cKDTree
+
+    from service.model.garments.correctives import skin_under_faces
+
+    xs = np.arange(-0.05, 0.0501, 0.01)
+    X, Z = np.meshgrid(xs, xs, indexing="ij")
+    V = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], axis=1)
+    n = len(xs)
+    q = np.arange(n * n).reshape(n, n)
+    F = np.concatenate([np.stack([q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, 1:].ravel()], 1),
+                        np.stack([q[:-1, :-1].ravel(), q[1:, 1:].ravel(), q[1:, :-1].ravel()], 1)])
+    tip = int(np.argmin(np.linalg.norm(V - [0.0, 0.0, 0.0], axis=1)))
+    V[tip, 1] = 0.006
+    N = np.tile([0.0, 1.0, 0.0], (len(V), 1))  # the skin's normal (the bump's own is near it)
+    garment = np.array([[-0.03, 0.003, -0.02], [0.03, 0.003, -0.02], [0.0, 0.003, 0.04]])
+    faces = np.array([[0, 2, 1]])
+    nn = cKDTree(V).query(garment, k=1)[1][:, None]
+    plain, _ = G.push_out(garment, V, N, nn, None, 0.003)
+    under = skin_under_faces(plain, faces, V, N, 0.006)
+    assert tip in set(under[0].tolist())
+    out, moved = G.push_out(garment, V, N, nn, None, 0.003, None, under, faces)
+    k = list(under[0]).index(tip)
+    point = under[2][k] @ out[faces[under[1][k]]]
+    assert (under[2][k] @ plain[faces[under[1][k]]])[1] < V[tip, 1]  # the vertex pass alone: through
+    assert point[1] == pytest.approx(V[tip, 1] + 0.003, abs=1e-6) and moved == 3
+    np.testing.assert_allclose(out[:, [0, 2]], garment[:, [0, 2]], atol=1e-7)  # straight out along the normal
+
+
 def test_try_on_pushes_outer_layers_further(model):
     ex = T.example_set(model, n=4)
     EX = T.example_vertices(model, ex)

@@ -22,7 +22,7 @@ import numpy as np
 
 from service.model.body.model import BodyModel
 from service.model.drape import Config, DrapeError, precompute
-from service.model.garments.garment import CLEARANCE
+from service.model.garments.draped import DRAPE_CLEARANCE_M
 from service.model.garments.tryon import GarmentBasis, try_on
 from service.records import Customer, Garment, JobRef
 from service.settings import Settings
@@ -44,10 +44,6 @@ log = logging.getLogger("tryon.drapes")
 DRAPE_JOB = "worker.jobs.drape_garment"  # the rq job, by dotted path (the service never imports worker)
 # bump when what a drape is made of changes (its method, its start): every key, job id and ETag changes
 DRAPE_VERSION = 2
-# How far the cloth of an exact drape rests outside the skin (m). Contact is per garment vertex, so
-# body details smaller than the garment's triangles (nipples, shoulder blades, the armpit's fold)
-# show through a cloth lying at the try-on's 3 mm (``garment.CLEARANCE``); twice that hides them.
-EXACT_CLEARANCE_M = 2 * CLEARANCE
 DRAPE_START = 0.05  # a drape job's progress once the records are loaded and the basis try-on made
 
 
@@ -203,7 +199,7 @@ class ExactDrapes:
         progress(DRAPE_START, "draping the garment on the customer's body")
         try:
             draper = precompute(drape_rest(basis), np.asarray(basis.faces, np.int64), garment.fabric,
-                                Config(max_iterations=int(iterations), clearance_m=EXACT_CLEARANCE_M))
+                                Config(max_iterations=int(iterations), clearance_m=DRAPE_CLEARANCE_M))
             result = draper.solve(self.model.body_vertices(body.vertices).astype(np.float64),
                                   self.model.body_faces, start)
         except DrapeError as exc:

@@ -16,7 +16,7 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
   it (``TRYON_DRAPE`` on: that size draped on the example avatars and 64 population bodies; and,
   beside it, as built with the drape off: warp fits) tried on held-out customers (10, or
   ``--limit``) vs that size's rest shape draped directly on each (the drape engine, from the
-  warp basis's try-on, as the exact drape job); vertex distance and the strain maps' difference
+  warp basis's try-on, at the clearance of the build and of the exact drape job); vertex distance and the strain maps' difference
   (percentage points).
 """
 from __future__ import annotations
@@ -30,8 +30,8 @@ from service.model.garments import sizing as S
 from service.model.body.model import load_body_model
 from service.model.garments.catalogue import load_catalogue
 from service.model.body.shape import avatar_from_measurements
-from service.model.drape import edge_strain, precompute
-from service.model.garments.draped import draped_example_fits
+from service.model.drape import Config, edge_strain, precompute
+from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
 from service.model.garments.tryon import build_garment_basis, customer_body, example_set, example_vertices, try_on
 from tests.bench.common import median_ms, read_ansur
 from tests.bench.drape import _subdivide
@@ -156,7 +156,7 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     # customer's body by the drape engine (its rest shape, started from the try-on, as the exact
     # drape job does); the strain maps (per-vertex stretch against the size's rest shape) of both
     rest0 = np.asarray(g0["rests"][0], np.float64)
-    draper = precompute(rest0, g0["faces"], GARMENTS[0][2])
+    draper = precompute(rest0, g0["faces"], GARMENTS[0][2], Config(clearance_m=DRAPE_CLEARANCE_M))
     customers = bodies_cache[: min(len(bodies_cache), limit or DRAPE_CUSTOMERS)]
     drapes = []
     for _, cust in customers:

@@ -40,6 +40,8 @@ from service.model.garments import garment as G
 from service.model.body import lbs as L
 from service.model.body.model import BONES
 from service.model.geometry.mesh import (
+    barycentric,
+    closest_point_on_triangles,
     closest_points_on_mesh,
     face_bounds,
     vertex_faces,
@@ -379,6 +381,21 @@ def poking_through(pv: np.ndarray, faces: np.ndarray, X: np.ndarray, N: np.ndarr
     rim = ((bary < 1e-3) & edge_bound).any(axis=1) | ((bary > 1 - 1e-3) & fb).any(axis=1)
     poke = ~rim & (dist < POKE_DISTANCE) & (np.abs(s) > np.cos(np.pi / 4) * dist) & (s < trigger)
     return near[poke], s[poke], face[poke]
+
+
+def skin_under_faces(garment: np.ndarray, faces: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
+                     trigger: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body vertices (B, 3) with unit normals (B, 3) that poke through a garment (M, 3) /
+    (F, 3) between its vertices, or come nearer than ``trigger`` (:func:`poking_through`), for
+    ``garment.push_out``'s face pass: (body vertex indices (R,), garment faces (R,), barycentric
+    weights (R, 3) of the body vertex's closest point in its face)."""
+    X = np.asarray(body, np.float64)
+    which, _, face = poking_through(np.asarray(garment, np.float64), faces, X,
+                                    np.asarray(body_normals, np.float64), trigger)
+    F = np.asarray(faces, np.int64)
+    tri = np.asarray(garment, np.float64)[F[face]]
+    q = closest_point_on_triangles(X[which], tri[:, 0], tri[:, 1], tri[:, 2])
+    return which, face, barycentric(q, tri[:, 0], tri[:, 1], tri[:, 2])
 
 
 POKE_SAMPLE_SPACING = 0.045  # m: triangles longer than this get extra prefilter samples (see garment_index;

@@ -12,10 +12,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.model.drape import drape_examples
+from service.model.drape import Config, drape_examples
 
 from . import garment as G
 from .tryon import population_weights
+
+
+# cloth this far off the skin in every drape a shopper sees (a basis's example drapes, a customer's
+# exact drape). Contact is per garment vertex, so body details smaller than the garment's
+# triangles (nipples, shoulder blades, the armpit's fold) show through a cloth lying at the
+# try-on's 3 mm (``garment.CLEARANCE``), or through a basis blended from drapes at the solver's
+# 0.5 mm; twice the try-on's hides them
+DRAPE_CLEARANCE_M = 2 * G.CLEARANCE
 
 
 @dataclass
@@ -30,14 +38,15 @@ class DrapedFits:
 
 def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarray, rest: np.ndarray,
                         faces: np.ndarray, warp_fits: np.ndarray, fabric: str, population: int,
-                        progress: Callable[[float, str], None] | None = None) -> DrapedFits:
+                        progress: Callable[[float, str], None] | None = None,
+                        clearance_m: float = DRAPE_CLEARANCE_M) -> DrapedFits:
     """The garment (its rest shape: its own size) draped on every example avatar, each solve
     started from its warp fit there, and on ``population`` bodies drawn from the body model's
     distribution (``tryon.population_weights``), started from the warp fits' basis there. With
     population bodies the fits are those of the least-squares basis through all the drapes: a
     drape is not linear in the body (tight on large bodies, hanging on small ones), and the
     central difference of two examples half a std from the mean extrapolates it badly. Raises
-    ``DrapeError`` naming the body that failed."""
+    ``DrapeError`` naming the body that failed. The cloth rests ``clearance_m`` off the skin."""
     warp_fits = np.asarray(warp_fits, np.float64)
     W = population_weights(examples, population)
     shapes, inits = np.asarray(example_avatars), warp_fits
@@ -49,7 +58,8 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
         inits = np.concatenate([warp_fits, [G.synthesize(g0, B0, w) for w in W]])
     bodies = np.stack([model.body_vertices(X) for X in shapes]).astype(np.float64)
     drapes, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
-                                   np.asarray(inits, np.float64), bodies, model.body_faces, fabric, progress=progress)
+                                   np.asarray(inits, np.float64), bodies, model.body_faces, fabric,
+                                   config=Config(clearance_m=clearance_m), progress=progress)
     fits = drapes[: len(warp_fits)]
     if len(W):
         g, B = G.regress_basis(drapes, np.vstack([examples.weights(), W]), examples.sigma)

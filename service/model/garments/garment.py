@@ -197,7 +197,9 @@ def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, bo
 
 def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, binding: np.ndarray,
              smoother: sp.csc_matrix | None = None, clearance: float = CLEARANCE,
-             anchors: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, int]:
+             anchors: tuple[np.ndarray, ...] | None = None,
+             under: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+             faces: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Move garment vertices that are inside the body (or within ``clearance`` of it) out
     along the body normal, then smooth the displacement so the garment stays smooth.
 
@@ -207,8 +209,15 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     skin is that to the bound vertex's tangent plane, or, for the garment vertices of
     ``anchors`` = (indices (R,), skin points (R, 3), unit normals (R, 3), largest clearance
     (R,)), to the plane of their own skin point, with at most that clearance
-    (:func:`crease_anchors`: where facing skin makes the bound vertex's plane wrong).
-    Returns (garment (M, 3) float32, number of vertices moved)."""
+    (:func:`crease_anchors`: where facing skin makes the bound vertex's plane wrong). Then, with
+    ``under`` = (body vertex indices (R,), garment faces (R,), barycentric weights (R, 3) of
+    the body vertex's closest point in them: ``correctives.skin_under_faces``) and the
+    garment's ``faces``, the body vertices under a
+    face's inside clear it too (a body detail between the garment's vertices otherwise shows
+    through a tight garment): the face's vertices move out along the body vertex's normal, each
+    by its barycentric share (PBD's point-triangle constraint, Mueller et al. 2007 Sec. 4.4;
+    the drape solver's ``push_faces``), the largest move per vertex. Returns (garment (M, 3)
+    float32, number of vertices moved)."""
     G = np.asarray(garment, np.float32)
     body = np.asarray(body, np.float32)
     if binding.shape[1] == 1:
@@ -225,7 +234,7 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
         depth[a] = np.minimum(most, clearance) - row_dot(G[a] - q, qn)
     bad = np.flatnonzero(depth > 0)
     if not len(bad):
-        return G, 0
+        return _push_faces(G, body, body_normals, under, faces, clearance)
     d, nbad = depth[bad], np.take(n, bad, axis=0)
     required = d[:, None] * nbad
     if smoother is not None:
@@ -237,4 +246,42 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     # each pushed vertex ends at least ``clearance`` out along its body normal
     short = d - row_dot(np.take(disp, bad, axis=0), nbad)
     disp[bad] += np.maximum(short, 0)[:, None] * nbad
-    return (G + disp).astype(np.float32, copy=False), len(bad)
+    out, n_faces = _push_faces((G + disp).astype(np.float32, copy=False), body, body_normals, under, faces, clearance)
+    return out, len(bad) + n_faces
+
+
+def face_pass_depths(G: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
+                     under: tuple[np.ndarray, np.ndarray, np.ndarray], faces: np.ndarray,
+                     clearance: float) -> np.ndarray:
+    """(R,) how far each pair of ``under`` (:func:`push_out`) has its garment face point (of G
+    (M, 3)) short of ``clearance`` out of its body vertex, along the body vertex's normal
+    (> 0: :func:`push_out`'s face pass lifts the face)."""
+    b, f, w = under
+    q = np.einsum("rkc,rk->rc", G[faces[f]], w)
+    return clearance - row_dot(q - np.take(body, b, axis=0), np.take(body_normals, b, axis=0))
+
+
+def _push_faces(G: np.ndarray, body: np.ndarray, body_normals: np.ndarray,
+                under: tuple[np.ndarray, np.ndarray, np.ndarray] | None, faces: np.ndarray | None,
+                clearance: float) -> tuple[np.ndarray, int]:
+    """:func:`push_out`'s body-vertex / garment-face pass: G (M, 3) float32, returned moved, and
+    how many garment vertices moved."""
+    if under is None or faces is None or not len(under[0]):
+        return G, 0
+    b, f, w = under
+    tri = faces[f]
+    depth = face_pass_depths(G, body, body_normals, under, faces, clearance)
+    hit = depth > 0
+    if not hit.any():
+        return G, 0
+    tri, w, nb, depth = tri[hit], w[hit], np.take(body_normals, b[hit], axis=0), depth[hit]
+    amount = (w * (depth / (w ** 2).sum(1))[:, None]).ravel()  # the face point moves by depth
+    idx, inv = np.unique(tri.ravel(), return_inverse=True)  # the touched vertices only (a try-on's budget)
+    move = np.zeros(len(idx))
+    np.maximum.at(move, inv, amount)
+    best = amount >= move[inv] - 1e-12  # each vertex along the normal of its deepest pair
+    dirs = np.zeros((len(idx), 3))
+    dirs[inv[best]] = np.repeat(nb, 3, axis=0)[best]
+    out = G.copy()
+    out[idx] += (move[:, None] * dirs).astype(np.float32)
+    return out, int((move > 0).sum())

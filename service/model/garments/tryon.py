@@ -32,6 +32,7 @@ from service.model.garments.catalogue import Material, RenderLayout, Texture
 from service.model.geometry.mesh import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
 from service.model.formats.gltf import MeshTemplate
 from service.model.formats.gltf_buffers import vertex_tangents
+from service.model.garments.correctives import skin_under_faces
 from service.model.garments.layering import covered_body
 from service.model.body.poses import preset_transforms
 from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
@@ -375,18 +376,41 @@ class CustomerBody:
         """(M, 1) nearest body vertex of each garment vertex on this body (cached per garment)."""
         return self.push_binding(basis, garment)[0]
 
-    def push_binding(self, basis: "GarmentBasis", garment: np.ndarray) -> tuple[np.ndarray, tuple | None]:
+    def push_binding(self, basis: "GarmentBasis", garment: np.ndarray) -> tuple[np.ndarray, tuple | None, tuple]:
         """The push-out's binding of a garment on this body, cached per garment: (M, 1) nearest
-        body vertex of each garment vertex and the crease anchors (:func:`crease_anchors`;
-        None without ``faces``)."""
+        body vertex of each garment vertex, the crease anchors (:func:`crease_anchors`; None
+        without ``faces``) and the body vertices that poke through the garment between its
+        vertices, or come within ``FACE_PUSH_TRIGGER_M`` of it (``correctives.skin_under_faces``:
+        the push-out's face pass keeps them ``clearance`` under the cloth)."""
         key = basis.etag() or id(basis)
         hit = self._bindings.get(key)
         if hit is None:
+            nn = self.nearest(garment, G.CREASE_K)
+            nb = len(self.normals)
+            under = skin_under_faces(garment, basis.faces, self.vertices[:nb], self.normals, FACE_PUSH_TRIGGER_M)
             if self.faces is None:
-                hit = (self.nearest(garment, 1).astype(np.int32)[:, None], None)
+                hit = (nn[:, :1].astype(np.int32), None, under)
             else:
-                nn = self.nearest(garment, G.CREASE_K)
-                hit = (nn[:, :1].astype(np.int32), self.crease_anchors(garment, nn))
+                hit = (nn[:, :1].astype(np.int32), self.crease_anchors(garment, nn), under)
+            if len(self._bindings) >= MAX_BINDINGS_PER_BODY:
+                self._bindings.pop(next(iter(self._bindings)))
+            self._bindings[key] = hit
+        return hit
+
+    def face_pass(self, basis: "GarmentBasis", garment: np.ndarray, clearance: float) -> tuple:
+        """The pairs of the push-out's face pass (``push_binding``'s third) that a try-on of this
+        garment at this ``clearance`` lifts, cached: the synthesized garment is the same at every
+        try-on of a basis on a body, so the pairs whose face stays more than
+        ``FACE_PUSH_SLACK_M`` clear after the vertex push-out are dropped once (most of them: a
+        try-on then costs the pairs it pushes only)."""
+        key = (basis.etag() or id(basis), round(float(clearance), 6))
+        hit = self._bindings.get(key)
+        if hit is None:
+            nearest, anchors, under = self.push_binding(basis, garment)
+            faces = np.asarray(basis.faces)
+            pushed, _ = G.push_out(garment, self.vertices, self.normals, nearest, basis.smoother(), clearance, anchors)
+            keep = G.face_pass_depths(pushed, self.vertices, self.normals, under, faces, clearance) > -FACE_PUSH_SLACK_M
+            hit = tuple(a[keep] for a in under)
             if len(self._bindings) >= MAX_BINDINGS_PER_BODY:
                 self._bindings.pop(next(iter(self._bindings)))
             self._bindings[key] = hit
@@ -418,7 +442,11 @@ class CustomerBody:
                                 self._vert_faces, self._face_bounds)
 
 
-MAX_BINDINGS_PER_BODY = 32
+MAX_BINDINGS_PER_BODY = 64  # push-out bindings and face-pass pairs (two per garment) kept per body
+# body vertices nearer a garment's face than this (before its push-out) are kept outside it by the
+# push-out's face pass: twice the try-on's clearance, the vertex push-out then moves the face
+FACE_PUSH_TRIGGER_M = 2 * G.CLEARANCE
+FACE_PUSH_SLACK_M = 0.001  # ... and of those, the pairs a try-on can lift (CustomerBody.face_pass)
 
 
 @functools.lru_cache(maxsize=4)
@@ -452,5 +480,7 @@ def try_on(basis: GarmentBasis, body: CustomerBody, layer: int = 0) -> tuple[np.
     cached on the body)."""
     v = G.synthesize(np.asarray(basis.g), np.asarray(basis.B), body.weights)
     clearance = G.CLEARANCE + layer * G.LAYER_GAP
-    nearest, anchors = body.push_binding(basis, v)
-    return G.push_out(v, body.vertices, body.normals, nearest, basis.smoother(), clearance, anchors)
+    nearest, anchors, _ = body.push_binding(basis, v)
+    faces = np.asarray(basis.faces)
+    under = body.face_pass(basis, v, clearance)
+    return G.push_out(v, body.vertices, body.normals, nearest, basis.smoother(), clearance, anchors, under, faces)
