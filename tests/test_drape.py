@@ -140,6 +140,10 @@ def test_drape_examples_keeps_the_garment_size_on_each_body():
         assert Rb / Rg - 1 - 0.002 < hoop < circumscribed + 0.002, (hoop, Rb / Rg - 1, circumscribed)
     with pytest.raises(DrapeError, match="example avatar 1"):
         drape_examples(V, F, np.stack([inits[0], inits[1] * np.nan]), np.stack(bodies), BF, "knit")
+    # past the ``required`` bodies (the population bodies of a build) a failure is recorded, not raised
+    fits2, stats2 = drape_examples(V, F, np.stack([inits[0], inits[1] * np.nan]), np.stack(bodies), BF, "knit",
+                                   required=1)
+    assert np.isfinite(fits2[0]).all() and np.isnan(fits2[1]).all() and "finite" in stats2[1]["failed"]
 
 
 def test_compiled_local_step_and_strain_limit_match_numpy(monkeypatch):

@@ -11,11 +11,13 @@ from .solver import Config, DrapeError, precompute
 
 def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodies: np.ndarray,
                    body_faces: np.ndarray, fabric: str = "woven", config: Config | None = None,
-                   progress: Callable[[float, str], None] | None = None) -> tuple[np.ndarray, list[dict]]:
+                   progress: Callable[[float, str], None] | None = None,
+                   required: int | None = None) -> tuple[np.ndarray, list[dict]]:
     """The garment (rest shape (N, 3), faces (F, 3)) settled on each example body (bodies
     (E, B, 3) with ``body_faces`` (G, 3)) from its warp fit there (inits (E, N, 3)): factored
     once, solved per body. Returns the draped fits (E, N, 3) float32 and each solve's stats.
-    Raises :class:`DrapeError` naming the example that failed."""
+    Raises :class:`DrapeError` naming the example that failed, among the first ``required``
+    bodies (default all); a later body that fails gets NaN fits and ``{"failed": reason}``."""
     inits = np.asarray(inits)
     if inits.ndim != 3 or inits.shape[1:] != np.shape(rest) or len(inits) != len(bodies):
         raise DrapeError(f"expected one start shape per example body; got {inits.shape} for {len(bodies)} bodies")
@@ -26,7 +28,11 @@ def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodie
         try:
             r = draper.solve(body, body_faces, init)
         except DrapeError as exc:
-            raise DrapeError(f"example avatar {i}: {exc}") from None
+            if required is None or i < required:
+                raise DrapeError(f"example avatar {i}: {exc}") from None
+            out[i] = np.nan
+            stats.append({"failed": str(exc), "seconds": 0.0, "settled": False})
+            continue
         out[i] = r.vertices
         stats.append(r.stats)
         if progress is not None:

@@ -28,8 +28,9 @@ DRAPE_CLEARANCE_M = 2 * G.CLEARANCE
 
 @dataclass
 class DrapedFits:
-    """fits (E, M, 3) float32: the basis's example fits; drapes (E + P, M, 3): every drape
-    (examples first, then the population bodies of ``weights`` (P, N)); stats: one per drape."""
+    """fits (E, M, 3) float32: the basis's example fits; drapes (E + P, M, 3): every drape that
+    settled (examples first, then the population bodies of ``weights`` (P, N)); stats: one per
+    body tried (a population body that failed: ``{"failed": reason}``)."""
     fits: np.ndarray
     drapes: np.ndarray
     weights: np.ndarray
@@ -46,7 +47,8 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
     population bodies the fits are those of the least-squares basis through all the drapes: a
     drape is not linear in the body (tight on large bodies, hanging on small ones), and the
     central difference of two examples half a std from the mean extrapolates it badly. Raises
-    ``DrapeError`` naming the body that failed. The cloth rests ``clearance_m`` off the skin."""
+    ``DrapeError`` naming the example avatar that failed; a population body that fails is left
+    out (its stats say ``failed``). The cloth rests ``clearance_m`` off the skin."""
     warp_fits = np.asarray(warp_fits, np.float64)
     W = population_weights(examples, population)
     shapes, inits = np.asarray(example_avatars), warp_fits
@@ -59,9 +61,15 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
     bodies = np.stack([model.body_vertices(X) for X in shapes]).astype(np.float64)
     drapes, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
                                    np.asarray(inits, np.float64), bodies, model.body_faces, fabric,
-                                   config=Config(clearance_m=clearance_m), progress=progress)
+                                   config=Config(clearance_m=clearance_m), progress=progress,
+                                   required=len(warp_fits))
     fits = drapes[: len(warp_fits)]
     if len(W):
+        # a population body the garment cannot be put on (too small for it: it would end inside)
+        # is left out of the regression; the example avatars must all drape
+        ok = np.isfinite(drapes).all(axis=(1, 2))
+        ok[: len(warp_fits)] = True
+        drapes, W = drapes[ok], W[ok[len(warp_fits):]]
         g, B = G.regress_basis(drapes, np.vstack([examples.weights(), W]), examples.sigma)
         fits = G.example_equivalent(g, B, examples)
     return DrapedFits(fits=fits, drapes=drapes, weights=W, stats=stats)

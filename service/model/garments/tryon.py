@@ -410,6 +410,16 @@ class CustomerBody:
             faces = np.asarray(basis.faces)
             pushed, _ = G.push_out(garment, self.vertices, self.normals, nearest, basis.smoother(), clearance, anchors)
             keep = G.face_pass_depths(pushed, self.vertices, self.normals, under, faces, clearance) > -FACE_PUSH_SLACK_M
+            # only cloth lying on the same skin: the face's vertices rest on skin facing the way
+            # the body vertex does, and none is in a crease (skin facing skin: a face over the
+            # crotch pushed along one thigh's normal goes into the other thigh)
+            tri = faces[under[1]]
+            keep &= np.einsum("rkc,rc->rk", self.normals[nearest[tri, 0]],
+                              self.normals[under[0]]).min(axis=1) > FACE_PUSH_MIN_COS
+            if anchors is not None and len(anchors[0]):
+                in_crease = np.zeros(len(garment), bool)
+                in_crease[anchors[0]] = True
+                keep &= ~in_crease[tri].any(axis=1)
             hit = tuple(a[keep] for a in under)
             if len(self._bindings) >= MAX_BINDINGS_PER_BODY:
                 self._bindings.pop(next(iter(self._bindings)))
@@ -446,7 +456,8 @@ MAX_BINDINGS_PER_BODY = 64  # push-out bindings and face-pass pairs (two per gar
 # body vertices nearer a garment's face than this (before its push-out) are kept outside it by the
 # push-out's face pass: twice the try-on's clearance, the vertex push-out then moves the face
 FACE_PUSH_TRIGGER_M = 2 * G.CLEARANCE
-FACE_PUSH_SLACK_M = 0.001  # ... and of those, the pairs a try-on can lift (CustomerBody.face_pass)
+FACE_PUSH_SLACK_M = 0.001  # ... and of those, the pairs a try-on can lift (CustomerBody.face_pass) ...
+FACE_PUSH_MIN_COS = 0.5  # ... under a face resting on skin facing within 60 degrees of the body vertex's
 
 
 @functools.lru_cache(maxsize=4)
