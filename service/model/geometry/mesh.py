@@ -191,7 +191,7 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
         nn = np.asarray(near, np.int64).reshape(len(p), -1)
     else:
         tree = tree if tree is not None else cKDTree(V)
-        d1, nn = tree.query(p, k=k)
+        d1, nn = tree.query(p, k=min(k, len(V)))  # more than the mesh has would index past it
     if COMPILED and kernels.AVAILABLE and PRUNE_CANDIDATES:
         c, n, r = bounds if bounds is not None else face_bounds(V, F)
         face, q = kernels.closest_faces(np.ascontiguousarray(p), np.ascontiguousarray(V), np.ascontiguousarray(F),
