@@ -163,7 +163,7 @@ class DemoCatalogue:
 
     def drape_demo(self) -> list[str]:
         """The demo garments built through their binding (:meth:`ensure_demo`) re-built through
-        the cloth drape, one after the other in catalogue order, each size's rest shape settled
+        the cloth drape, one after the other (:meth:`demo_to_drape`'s order), each size's rest shape settled
         on every example avatar (``TRYON_DRAPE``'s build): their bases replaced in place and
         their records marked ``example_fits: "drape"``. Run by ``tryon drape-demo`` in a
         background process after the first start; each garment under a Redis lock (one process
