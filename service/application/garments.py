@@ -219,17 +219,19 @@ class GarmentService(DemoCatalogue):
             self.limits.check_jobs()
             return self._queue_build(record.model_copy(update={"status": "building"}),
                                      MhcloUpload(mhclo, obj, texture, color).to_bytes())
-        built = self._from_binding(record, binding, faces, layout, material, drape=False)
+        built = self._from_binding(record, binding, faces, layout, material, drape=False, fits=fits)
         self._publish_built(built)
         return built
 
     def _from_binding(self, record: Garment, binding: Any, faces: np.ndarray, layout: RenderLayout | None,
-                      material: Material | None, drape: bool, progress: Progress | None = None) -> Garment:
+                      material: Material | None, drape: bool, progress: Progress | None = None,
+                      fits: np.ndarray | None = None) -> Garment:
         """A garment bound to the body mesh (``.mhclo``, the demo catalogue): its example fits
         by its binding (with ``drape``: then draped at its own size, its fit to the mean example
         avatar), in the sizes of its chart (graded: :meth:`_store_sizes`) or one; the bases
-        stored, the record with its counts returned (not yet published). Raises ``Invalid``
-        (it does not sit on the bodies) or ``DrapeError``."""
+        stored, the record with its counts returned (not yet published). ``fits``: its
+        :meth:`_bound_fits`, when already made. Raises ``Invalid`` (it does not sit on the
+        bodies) or ``DrapeError``."""
         mean = self.examples.index("mean") or 0
         if record.sizes and len(record.sizes) > 1:
             chart = Chart([sz.model_dump() for sz in record.sizes], record.base_size or "", record.fabric)
@@ -240,7 +242,7 @@ class GarmentService(DemoCatalogue):
             rests, on, bodies = sizing.graded(self.model, g0, faces, source, chart, record.gender)
             return self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, layout, material,
                                      progress, bound=binding.fit, drape=drape)
-        fits = self._bound_fits(binding)
+        fits = self._bound_fits(binding) if fits is None else fits
         rest = None
         if drape:  # its size: the garment as bound to the mean example avatar
             rest = fits[mean]
