@@ -40,48 +40,16 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 NEWTON_BODIES = 5  # held-out people the reference drapes the catalogue garment on
 NEWTON_SECONDS = 2.0  # simulated seconds of the reference's damped settle
 
 
 def self_intersections(V: np.ndarray, F: np.ndarray) -> int:
-    """Pairs of faces (sharing no vertex) that intersect: an edge of one crosses the other
-    (Moller-Trumbore on candidate pairs whose bounding spheres overlap)."""
-    V = np.asarray(V, np.float64)
-    F = np.asarray(F, np.int64)
-    tri = V[F]
-    c = tri.mean(1)
-    r = np.linalg.norm(tri - c[:, None], axis=2).max(1)
-    pairs = cKDTree(c).query_pairs(2 * float(r.max()), output_type="ndarray")
-    if not len(pairs):
-        return 0
-    a, b = pairs[:, 0], pairs[:, 1]
-    near = np.linalg.norm(c[a] - c[b], axis=1) <= r[a] + r[b]
-    shared = (F[a][:, :, None] == F[b][:, None, :]).any(axis=(1, 2))
-    pairs = pairs[near & ~shared]
-    if not len(pairs):
-        return 0
-    hit = np.zeros(len(pairs), bool)
-    for s, t in ((0, 1), (1, 0)):
-        P, Q = pairs[:, s], pairs[:, t]
-        T = tri[Q]
-        for i, j in ((0, 1), (1, 2), (2, 0)):
-            o = tri[P, i]
-            d = tri[P, j] - o
-            e1, e2 = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
-            h = np.cross(d, e2)
-            det = (e1 * h).sum(1)
-            ok = np.abs(det) > 1e-14
-            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-            sv = o - T[:, 0]
-            u = (sv * h).sum(1) * inv
-            q = np.cross(sv, e1)
-            v = (d * q).sum(1) * inv
-            tt = (e2 * q).sum(1) * inv
-            hit |= ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (tt >= 0) & (tt <= 1)
-    return int(hit.sum())
+    """Pairs of faces (sharing no vertex) that intersect (``geometry.intersecting_face_pairs``)."""
+    from service.model.geometry import mesh as geometry
+
+    return len(geometry.intersecting_face_pairs(V, F))
 
 
 def _inside(x: np.ndarray, BV: np.ndarray, BF: np.ndarray, depth_m: float = 0.001) -> int:

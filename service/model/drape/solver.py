@@ -84,6 +84,8 @@ class Config:
     face_contact_passes: int = 3  # ... in this many passes
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
+    untangle_rounds: int = 20  # the settled cloth's self-intersections smoothed out (geometry.untangle; 0: off) ...
+    untangle_passes: int = 4  # ... then the body contact again, up to this many times
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
@@ -235,6 +237,7 @@ class Draper:
         free = np.ones(N, bool)
         free[pinned] = False
         self.free = np.flatnonzero(free)
+        self._pin_mask = ~free
         Ks = (G.T @ sp.diags(self.w_stretch) @ G).tocsr()
         Kr = (L.T @ sp.diags(self.w_bend) @ L + sp.diags(self.w_prox)).tocsr()
         # stiffness continuation: one factor per level (the membrane scaled by `level`, PD's
@@ -431,6 +434,8 @@ class Draper:
                 # into the body (in a concave fold: the armpit): the vertices outside again
                 body.refresh(x)
                 x, _ = body.project(x, None, None)
+        tangled = self._untangle(x, body)
+        if body is not None:
             d = body.signed_distance(x, exact=True)
             max_inside = float(max(0.0, -d.min()))
             if max_inside > cfg.max_inside_m:
@@ -439,11 +444,32 @@ class Draper:
         e, _ = self.energy(x)
         stats = {"iterations": it, "settled": bool(settled), "last_move_mm": 1000 * moves[-1] if moves else 0.0,
                  "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self),
-                 "over_limit_edges": int(n_over), "anderson_restarts": restarts, "energy_j": e,
+                 "over_limit_edges": int(n_over), "untangled_pairs": tangled[0], "self_intersections": tangled[1],
+                 "anderson_restarts": restarts, "energy_j": e,
                  "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s, "local_s": t_local,
                  "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
                  "fabric": fab.name}
         return DrapeResult(vertices=x.astype(np.float32), stats=stats)
+
+    def _untangle(self, x: np.ndarray, body: "_Body | None") -> tuple[int, int]:
+        """The settled cloth's self-intersections (where its parts were pressed together, as the
+        sleeve and the side panel in an armpit: the vertex-vertex self-contact does not hold
+        faces apart) smoothed out locally (``geometry.untangle``; pinned vertices stay), then the
+        body contact again, up to ``untangle_passes`` times. In place; returns the intersecting
+        face pairs before and after."""
+        cfg = self.config
+        if cfg.untangle_rounds <= 0:
+            return 0, 0
+        found = left = len(geometry.intersecting_face_pairs(x, self.faces))
+        for _ in range(cfg.untangle_passes if found else 0):
+            x[:], left = geometry.untangle(x, self.faces, cfg.untangle_rounds, keep=self._pin_mask)
+            if body is not None:
+                body.refresh(x)
+                x[:], _ = body.project(x, None, None)
+                left = len(geometry.intersecting_face_pairs(x, self.faces))
+            if not left:
+                break
+        return found, left
 
     def _strain_limit(self, x: np.ndarray) -> int:
         """Edges longer than the fabric's stretch limit shortened to it, both ends moving

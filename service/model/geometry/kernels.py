@@ -53,7 +53,8 @@ def _compiled() -> SimpleNamespace:
                                                     pose_jacobian_into=jit(_pose_jacobian_into),
                                                     pair_rows=jit(_pair_rows), membrane=jit(_membrane),
                                                     vertex_normals=jit(_vertex_normals),
-                                                    strain_limit_pass=jit(_strain_limit_pass))
+                                                    strain_limit_pass=jit(_strain_limit_pass),
+                                                    faces_cross=jit(_faces_cross))
     return _compiled_kernels
 
 
@@ -95,6 +96,11 @@ def vertex_normals(x, faces, out):
 def strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
     """Compiled :func:`_strain_limit_pass`."""
     return _compiled().strain_limit_pass(x, edges, edge_max, inv_mass, acc, count)
+
+
+def faces_cross(V, F, pairs, c, r, hit):
+    """Compiled :func:`_faces_cross`."""
+    return _compiled().faces_cross(V, F, pairs, c, r, hit)
 
 
 def _closest_on_triangle(px, py, pz, V, F, f):
@@ -394,6 +400,50 @@ def _strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
     return n_over
 
 
+def _faces_cross(V, F, pairs, c, r, hit):
+    """Which candidate face pairs (K, 2) int64 of one mesh (V (N, 3) float64, F (M, 3) int64)
+    intersect (``geometry.intersecting_face_pairs``): bounding spheres (centres c (M, 3), radii
+    r (M,)) overlapping, no shared vertex, and an edge of one face crossing the other
+    (Moller-Trumbore, the same float operations as the numpy reference). hit (K,) bool out."""
+    for k in range(pairs.shape[0]):
+        hit[k] = False
+        a, b = pairs[k, 0], pairs[k, 1]
+        dc0, dc1, dc2 = c[a, 0] - c[b, 0], c[a, 1] - c[b, 1], c[a, 2] - c[b, 2]
+        if np.sqrt(dc0 * dc0 + dc1 * dc1 + dc2 * dc2) > r[a] + r[b]:
+            continue
+        shared = False
+        for i in range(3):
+            for j in range(3):
+                if F[a, i] == F[b, j]:
+                    shared = True
+        if shared:
+            continue
+        for s in range(2):
+            P, Q = (a, b) if s == 0 else (b, a)
+            t0, t1, t2 = F[Q, 0], F[Q, 1], F[Q, 2]
+            e10, e11, e12 = V[t1, 0] - V[t0, 0], V[t1, 1] - V[t0, 1], V[t1, 2] - V[t0, 2]
+            e20, e21, e22 = V[t2, 0] - V[t0, 0], V[t2, 1] - V[t0, 1], V[t2, 2] - V[t0, 2]
+            for m in range(3):
+                i, j = F[P, m], F[P, (m + 1) % 3]
+                o0, o1, o2 = V[i, 0], V[i, 1], V[i, 2]
+                d0, d1, d2 = V[j, 0] - o0, V[j, 1] - o1, V[j, 2] - o2
+                h0, h1, h2 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22, d0 * e21 - d1 * e20
+                det = e10 * h0 + e11 * h1 + e12 * h2
+                if abs(det) <= 1e-14:
+                    continue
+                inv = 1.0 / det
+                s0, s1, s2 = o0 - V[t0, 0], o1 - V[t0, 1], o2 - V[t0, 2]
+                u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
+                q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
+                v = (d0 * q0 + d1 * q1 + d2 * q2) * inv
+                tt = (e20 * q0 + e21 * q1 + e22 * q2) * inv
+                if u >= 0 and v >= 0 and u + v <= 1 and tt >= 0 and tt <= 1:
+                    hit[k] = True
+                    break
+            if hit[k]:
+                break
+
+
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel for the argument types the
     service passes: the Docker build runs it, so that no process of the image compiles them
@@ -416,3 +466,4 @@ def warm() -> None:
     vertex_normals(V, F, np.zeros((3, 3)))
     e = np.array([[0, 1]], np.int64)
     strain_limit_pass(V.copy(), e, np.ones(1), np.ones(3), np.zeros((3, 3)), np.zeros(3))
+    faces_cross(V, F, np.zeros((1, 2), np.int64), c, np.ones(1), np.zeros(1, bool))

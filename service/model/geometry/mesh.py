@@ -146,6 +146,98 @@ def closest_point_on_triangles(p, a, b, c):
     return res
 
 
+COMPILED_PAIRS = True  # intersecting_face_pairs: the pair tests in a compiled loop (kernels.faces_cross) where numba is there
+
+
+def intersecting_face_pairs(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """(K, 2) pairs of faces of one mesh that share no vertex and intersect: an edge of one
+    crosses the other (Moller-Trumbore on the candidate pairs whose bounding spheres overlap).
+    vertices (V, 3), faces (F, 3) int; ``among`` (S,) face indices: only the pairs with one of
+    them."""
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    tri = V[F]
+    c = tri.mean(1)
+    r = np.linalg.norm(tri - c[:, None], axis=2).max(1)
+    if among is None:
+        pairs = cKDTree(c).query_pairs(2 * float(r.max()), output_type="ndarray")
+    else:
+        among = np.asarray(among, np.int64)
+        ij = cKDTree(c[among]).sparse_distance_matrix(cKDTree(c), 2 * float(r.max()), output_type="ndarray")
+        a, b = among[ij["i"]], ij["j"]
+        in_among = np.zeros(len(F), bool)
+        in_among[among] = True
+        once = ~in_among[b] | (a < b)  # a pair of two of them once
+        pairs = np.stack([a[once], b[once]], 1)
+    if not len(pairs):
+        return np.zeros((0, 2), np.int64)
+    if COMPILED_PAIRS and kernels.AVAILABLE:
+        hit = np.empty(len(pairs), bool)
+        pairs = np.ascontiguousarray(pairs, np.int64)
+        kernels.faces_cross(np.ascontiguousarray(V), np.ascontiguousarray(F), pairs, c, r, hit)
+        return pairs[hit]
+    a, b = pairs[:, 0], pairs[:, 1]
+    near = np.linalg.norm(c[a] - c[b], axis=1) <= r[a] + r[b]
+    pairs = pairs[near]
+    a, b = pairs[:, 0], pairs[:, 1]
+    shared = (F[a][:, :, None] == F[b][:, None, :]).any(axis=(1, 2))
+    pairs = pairs[~shared]
+    if not len(pairs):
+        return np.zeros((0, 2), np.int64)
+    hit = np.zeros(len(pairs), bool)
+    for s, t in ((0, 1), (1, 0)):
+        P, Q = pairs[:, s], pairs[:, t]
+        T = tri[Q]
+        e1, e2 = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            o = tri[P, i]
+            d = tri[P, j] - o
+            h = np.cross(d, e2)
+            det = (e1 * h).sum(1)
+            ok = np.abs(det) > 1e-14
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            sv = o - T[:, 0]
+            u = (sv * h).sum(1) * inv
+            q = np.cross(sv, e1)
+            v = (d * q).sum(1) * inv
+            tt = (e2 * q).sum(1) * inv
+            hit |= ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (tt >= 0) & (tt <= 1)
+    return pairs[hit].astype(np.int64)
+
+
+def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20,
+             keep: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """A mesh's self-intersections (:func:`intersecting_face_pairs`) smoothed out: each round,
+    the vertices of the intersecting faces and their neighbours move halfway to the mean of
+    their neighbours (uniform Laplacian smoothing, local to the tangle; a crumple, as a
+    garment's armpit bound to a body, flattens in one or two rounds). ``keep`` (V,) bool:
+    vertices that do not move. Returns the vertices (V, 3) float64 and the face pairs still
+    intersecting after ``rounds``."""
+    V = np.array(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    P = intersecting_face_pairs(V, F)
+    if not len(P):
+        return V, 0
+    M = neighbour_mean(F, len(V))
+    A = face_incidence(F, len(V))
+    for _ in range(rounds):
+        sel = np.zeros(len(F))
+        sel[P.ravel()] = 1.0
+        move = (A @ (A.T @ (A @ sel))) > 0  # the faces' vertices and their neighbours
+        if keep is not None:
+            move &= ~keep
+        if not move.any():
+            break
+        V[move] = 0.5 * V[move] + 0.5 * (M @ V)[move]
+        # pairs of faces that did not move stay as they were; the others are tested again
+        moved = np.flatnonzero(A.T @ move.astype(np.float64) > 0)
+        still = ~np.isin(P, moved).any(axis=1)
+        P = np.concatenate([P[still], intersecting_face_pairs(V, F, among=moved)])
+        if not len(P):
+            return V, 0
+    return V, len(P)
+
+
 def barycentric(p, a, b, c):
     """Barycentric coordinates (..., 3) of points p (..., 3) in the planes of triangles a, b, c
     (..., 3) (for a point on the triangle: its weights; they sum to 1)."""
