@@ -143,3 +143,33 @@ def test_tryon_serve_drapes_the_demo_in_a_background_process() -> None:
             time.sleep(2)
         log = s.log_path.read_text()
         assert "demo garment fedora draped" in log and "demo catalogue: 1 garments draped" in log
+
+
+def _collapsed_mhclo(mhclo: bytes, obj: bytes) -> bytes:
+    """The binding with the second vertex of the garment's first face bound exactly as its first
+    (the two coincide on every body: the faces between them have no area)."""
+    face = next(line.split()[1:3] for line in obj.decode().splitlines() if line.startswith("f "))
+    a, b = (int(t.split("/")[0]) - 1 for t in face)
+    lines = mhclo.decode().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("verts")) + 1
+    lines[start + b] = lines[start + a]
+    return "\n".join(lines).encode()
+
+
+def test_mhclo_that_cannot_be_draped_fails_its_build_with_the_reason(client: TestClient) -> None:
+    """A ``.mhclo`` whose bound rest shape has zero-area faces sits on the bodies (202), then its
+    build job fails with the drape's reason; the record says so, no basis is left behind, and its
+    basis is refused with that reason (409, not a 500)."""
+    mh, obj = (HAT / "fedora.mhclo").read_bytes(), (HAT / "fedora.obj").read_bytes()
+    files = {"mhclo": ("fedora.mhclo", _collapsed_mhclo(mh, obj)), "obj": ("fedora.obj", obj)}
+    r = client.post("/v1/garments", data={"name": "Broken hat"}, files=files, headers=KEY)
+    assert r.status_code == 202, r.text
+    gid = r.json()["id"]
+    ctx = client.app.state.context
+    out = ctx.garments.run_build(gid, lambda f, m: None)
+    assert out["status"] == "failed", out
+    rec = client.get(f"/v1/garments/{gid}").json()
+    assert rec["status"] == "failed" and "zero-area" in rec["error"], rec
+    assert gid not in ctx.bases.ids() and not ctx.bases.path(gid).exists()
+    basis = client.get(f"/v1/garments/{gid}/basis.glb")
+    assert basis.status_code == 409 and "zero-area" in basis.json()["detail"], basis.text
