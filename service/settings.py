@@ -94,13 +94,21 @@ class Settings(BaseSettings):
         "first start; off: the demo keeps its binding's fits (it follows the body).",
     )
     drape_population: int = Field(
-        default=64,
+        default=192,
         validation_alias="TRYON_DRAPE_POPULATION",
         ge=0,
         description="With TRYON_DRAPE on: population bodies (drawn from the body model's own distribution) a "
         "garment is also draped on at its build, the clothing basis then being the least-squares line through "
         "the example and population drapes (a drape is not linear in the body); 0: central differences of the "
         "examples alone.",
+    )
+    drape_workers: int = Field(
+        default=2,
+        validation_alias="TRYON_DRAPE_WORKERS",
+        ge=1,
+        le=64,
+        description="With TRYON_DRAPE on: processes a garment build drapes the example and population bodies in "
+        "(forked from the build's own process; the solves are independent). 1: one after another.",
     )
     drape_timeout: int = Field(
         default=600,

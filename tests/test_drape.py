@@ -146,6 +146,34 @@ def test_drape_examples_keeps_the_garment_size_on_each_body():
     assert np.isfinite(fits2[0]).all() and np.isnan(fits2[1]).all() and "finite" in stats2[1]["failed"]
 
 
+def test_drape_examples_in_processes_equal_one_after_another():
+    """``workers`` > 1 (forked processes, results in the order they finish): the same fits and
+    stats as the serial solves, a failing population body recorded the same, a failing
+    required body raised with its index."""
+    from service.model.drape import drape_examples
+
+    na, nh, Rg = 24, 5, 0.15
+    V, F = tube(Rg, 0.2, na, nh)
+    radii = np.linspace(0.152, 0.162, 8)
+    bodies, inits = [], []
+    for Rb in radii:
+        BV, BF = cylinder(Rb, -0.3, 0.6, n_around=48, n_height=8)
+        bodies.append(BV)
+        init = V.copy()
+        init[:, [0, 2]] *= (Rb + 0.002) / Rg
+        inits.append(init)
+    inits[6] = inits[6] * np.nan  # a population body that cannot be draped
+    seen: list[float] = []
+    serial, s_stats = drape_examples(V, F, np.stack(inits), np.stack(bodies), BF, "knit", required=6)
+    forked, f_stats = drape_examples(V, F, np.stack(inits), np.stack(bodies), BF, "knit", required=6, workers=2,
+                                     progress=lambda f, m: seen.append(f))
+    assert np.array_equal(serial, forked, equal_nan=True) and np.isnan(forked[6]).all()
+    assert [s.get("iterations") for s in s_stats] == [s.get("iterations") for s in f_stats]
+    assert "failed" in f_stats[6] and seen == sorted(seen) and seen[-1] == 1.0
+    with pytest.raises(DrapeError, match="example avatar 6"):
+        drape_examples(V, F, np.stack(inits), np.stack(bodies), BF, "knit", workers=2)
+
+
 def test_compiled_local_step_and_strain_limit_match_numpy(monkeypatch):
     """The compiled membrane, normals and strain-limit loops (geometry.kernels) against the
     numpy and sparse-product path they replace, on a small randomly deformed tube."""

@@ -308,7 +308,7 @@ class GarmentService(DemoCatalogue):
         ex = self.examples
         cb = None if progress is None else (lambda f, msg: progress(f, msg))
         d = draped_example_fits(self.model, ex.set, ex.vertices, rest, faces, warp_fits, fabric,
-                                self.settings.drape_population, progress=cb)
+                                self.settings.drape_population, progress=cb, workers=self.settings.drape_workers)
         log.info("draped on %d bodies: %.1fs, %d of them settled, %d population bodies left out (it would end "
                  "inside them)", len(d.drapes), sum(s["seconds"] for s in d.stats),
                  sum(bool(s["settled"]) for s in d.stats), sum("failed" in s for s in d.stats))

@@ -32,6 +32,7 @@ from service.model.garments.catalogue import load_catalogue
 from service.model.body.shape import avatar_from_measurements
 from service.model.drape import Config, edge_strain, precompute
 from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
+from service.settings import Settings
 from service.model.garments.tryon import build_garment_basis, customer_body, example_set, example_vertices, try_on
 from tests.bench.common import median_ms, read_ansur
 from tests.bench.drape import _subdivide
@@ -40,7 +41,8 @@ from tests.bench.drape import _subdivide
 GARMENTS = (("womens-tshirt", "female", "knit"), ("mens-tshirt", "male", "knit"), ("striped-shirt", "male", "woven"))
 ROUND_TRIP_EASE_CM = 1.0
 DRAPE_CUSTOMERS = 10  # held-out customers the per-size basis try-on is checked on against direct drapes
-DRAPE_POPULATION = 64  # population bodies of the size's drape build (Settings.drape_population's default)
+DRAPE_POPULATION = Settings.model_fields["drape_population"].default  # population bodies of the size's drape build
+DRAPE_WORKERS = Settings.model_fields["drape_workers"].default  # ... draped in this many processes
 CHARTED = ("chest", "waist", "hip")
 
 
@@ -171,7 +173,7 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     t = time.perf_counter()
     ex = example_set(model)
     d = draped_example_fits(model, ex, example_vertices(model, ex), rest0, g0["faces"], fits, GARMENTS[0][2],
-                            DRAPE_POPULATION)
+                            DRAPE_POPULATION, workers=DRAPE_WORKERS)
     t_drape_build = time.perf_counter() - t
     basis_d = build_garment_basis(model, d.fits, g0["faces"], ex, rest=rest0)
     basis_vs_drape = {**_basis_vs_drapes(basis_d, drapes, rest0, g0["faces"]),

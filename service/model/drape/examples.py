@@ -1,40 +1,86 @@
 """One garment draped on every example avatar: the example fits of a clothing basis from a
-garment at its own size (the rest shape), started from the warp fits."""
+garment at its own size (the rest shape), started from the warp fits. The solves are
+independent: with ``workers`` > 1 they run in that many forked processes, which inherit the
+factored system (factor once, solve many, on every core)."""
 from __future__ import annotations
 
+import multiprocessing
 from collections.abc import Callable
 
 import numpy as np
 
-from .solver import Config, DrapeError, precompute
+from service.model.geometry import kernels
+
+from .solver import Config, Draper, DrapeError, precompute
+
+MIN_SOLVES_PER_WORKER = 4  # fewer solves than this per process: not worth forking for
+
+# what a forked process solves: (draper, inits, bodies, body faces), set just before the fork
+_FORKED: tuple[Draper, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def _solve_one(i: int) -> tuple[int, np.ndarray | None, dict]:
+    """Solve i of the forked set: (i, vertices (N, 3) float32 or None, stats or {"failed": why})."""
+    assert _FORKED is not None
+    draper, inits, bodies, body_faces = _FORKED
+    try:
+        r = draper.solve(bodies[i], body_faces, inits[i])
+    except DrapeError as exc:
+        return i, None, {"failed": str(exc), "seconds": 0.0, "settled": False}
+    return i, r.vertices, r.stats
+
+
+def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: np.ndarray, workers: int):
+    """(i, vertices or None, stats) of every body, in the order they finish."""
+    global _FORKED
+    n = len(bodies)
+    if workers <= 1 or n < 2 * MIN_SOLVES_PER_WORKER or "fork" not in multiprocessing.get_all_start_methods():
+        for i in range(n):
+            try:
+                r = draper.solve(bodies[i], body_faces, inits[i])
+            except DrapeError as exc:
+                yield i, None, {"failed": str(exc), "seconds": 0.0, "settled": False}
+                continue
+            yield i, r.vertices, r.stats
+        return
+    if kernels.AVAILABLE:
+        kernels.warm()  # compiled (or loaded) before the fork, not once per process behind a lock
+    _FORKED = (draper, inits, bodies, body_faces)
+    try:
+        with multiprocessing.get_context("fork").Pool(min(workers, n // MIN_SOLVES_PER_WORKER)) as pool:
+            yield from pool.imap_unordered(_solve_one, range(n))
+    finally:
+        _FORKED = None
 
 
 def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodies: np.ndarray,
                    body_faces: np.ndarray, fabric: str = "woven", config: Config | None = None,
                    progress: Callable[[float, str], None] | None = None,
-                   required: int | None = None) -> tuple[np.ndarray, list[dict]]:
+                   required: int | None = None, workers: int = 1) -> tuple[np.ndarray, list[dict]]:
     """The garment (rest shape (N, 3), faces (F, 3)) settled on each example body (bodies
     (E, B, 3) with ``body_faces`` (G, 3)) from its warp fit there (inits (E, N, 3)): factored
-    once, solved per body. Returns the draped fits (E, N, 3) float32 and each solve's stats.
-    Raises :class:`DrapeError` naming the example that failed, among the first ``required``
-    bodies (default all); a later body that fails gets NaN fits and ``{"failed": reason}``."""
+    once, solved per body, in ``workers`` processes. Returns the draped fits (E, N, 3) float32
+    and each solve's stats (the same whatever ``workers``). Raises :class:`DrapeError` naming
+    the example that failed, among the first ``required`` bodies (default all); a later body
+    that fails gets NaN fits and ``{"failed": reason}``."""
     inits = np.asarray(inits)
     if inits.ndim != 3 or inits.shape[1:] != np.shape(rest) or len(inits) != len(bodies):
         raise DrapeError(f"expected one start shape per example body; got {inits.shape} for {len(bodies)} bodies")
     draper = precompute(rest, faces, fabric, config)
     out = np.empty(inits.shape, np.float32)
-    stats = []
-    for i, (init, body) in enumerate(zip(inits, bodies)):
-        try:
-            r = draper.solve(body, body_faces, init)
-        except DrapeError as exc:
-            if required is None or i < required:
-                raise DrapeError(f"example avatar {i}: {exc}") from None
-            out[i] = np.nan
-            stats.append({"failed": str(exc), "seconds": 0.0, "settled": False})
-            continue
-        out[i] = r.vertices
-        stats.append(r.stats)
-        if progress is not None:
-            progress((i + 1) / len(bodies), f"draped on {i + 1} of {len(bodies)} example avatars")
+    stats: list[dict] = [{} for _ in range(len(bodies))]
+    solves = _solves(draper, inits, bodies, body_faces, workers)
+    try:
+        for done, (i, verts, st) in enumerate(solves, start=1):
+            if verts is None:
+                if required is None or i < required:
+                    raise DrapeError(f"example avatar {i}: {st['failed']}")
+                out[i] = np.nan
+            else:
+                out[i] = verts
+            stats[i] = st
+            if progress is not None:
+                progress(done / len(bodies), f"draped on {done} of {len(bodies)} example avatars")
+    finally:
+        solves.close()  # a failure stops the other processes now
     return out, stats

@@ -30,7 +30,9 @@ level), and solves without a body are Anderson-accelerated (Peng et al. 2018). C
 friction are position projections after each global step (the strain limit first, then
 self-contact, then the body; Macklin et al., "Unified Particle Physics for Real-Time
 Applications", 2014, Sec. 6.1 friction: tangential displacement cancelled up to mu times the
-penetration depth).
+penetration depth). Where the settled cloth still crosses itself (two layers pressed together
+between an arm and the torso), the crossing is smoothed out locally (``geometry.untangle``) and
+the body contact applied again.
 
 Shapes: rest and current vertices (N, 3) metres, Y up; faces (F, 3) int; body (B, 3), (G, 3).
 """
@@ -84,8 +86,7 @@ class Config:
     face_contact_passes: int = 3  # ... in this many passes
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
-    untangle_rounds: int = 20  # the settled cloth's self-intersections smoothed out (geometry.untangle; 0: off) ...
-    untangle_passes: int = 4  # ... then the body contact again, up to this many times
+    untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
@@ -456,21 +457,22 @@ class Draper:
     def _untangle(self, x: np.ndarray, body: "_Body | None") -> tuple[int, int]:
         """The settled cloth's self-intersections (where its parts were pressed together, as the
         sleeve and the side panel in an armpit: the vertex-vertex self-contact does not hold
-        faces apart) smoothed out locally (``geometry.untangle``; pinned vertices stay), then the
-        body contact again, up to ``untangle_passes`` times. In place; returns the intersecting
-        face pairs before and after."""
+        faces apart) smoothed out locally (``geometry.untangle``; pinned vertices stay), the body
+        contact applied after each round (it may push the layers into each other again). In
+        place; returns the intersecting face pairs before and after."""
         cfg = self.config
         if cfg.untangle_rounds <= 0:
             return 0, 0
-        found = left = len(geometry.intersecting_face_pairs(x, self.faces))
-        for _ in range(cfg.untangle_passes if found else 0):
-            x[:], left = geometry.untangle(x, self.faces, cfg.untangle_rounds, keep=self._pin_mask)
-            if body is not None:
-                body.refresh(x)
-                x[:], _ = body.project(x, None, None)
-                left = len(geometry.intersecting_face_pairs(x, self.faces))
-            if not left:
-                break
+        found = len(geometry.intersecting_face_pairs(x, self.faces))
+        if not found:
+            return 0, 0
+
+        def contact(v: np.ndarray) -> np.ndarray:
+            body.refresh(v)
+            return body.project(v, None, None)[0]
+
+        x[:], left = geometry.untangle(x, self.faces, cfg.untangle_rounds, keep=self._pin_mask,
+                                       after=contact if body is not None else None)
         return found, left
 
     def _strain_limit(self, x: np.ndarray) -> int:

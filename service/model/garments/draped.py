@@ -40,7 +40,7 @@ class DrapedFits:
 def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarray, rest: np.ndarray,
                         faces: np.ndarray, warp_fits: np.ndarray, fabric: str, population: int,
                         progress: Callable[[float, str], None] | None = None,
-                        clearance_m: float = DRAPE_CLEARANCE_M) -> DrapedFits:
+                        clearance_m: float = DRAPE_CLEARANCE_M, workers: int = 1) -> DrapedFits:
     """The garment (its rest shape: its own size) draped on every example avatar, each solve
     started from its warp fit there, and on ``population`` bodies drawn from the body model's
     distribution (``tryon.population_weights``), started from the warp fits' basis there. With
@@ -62,7 +62,7 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
     drapes, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
                                    np.asarray(inits, np.float64), bodies, model.body_faces, fabric,
                                    config=Config(clearance_m=clearance_m), progress=progress,
-                                   required=len(warp_fits))
+                                   required=len(warp_fits), workers=workers)
     fits = drapes[: len(warp_fits)]
     if len(W):
         # a population body the garment cannot be put on (too small for it: it would end inside)

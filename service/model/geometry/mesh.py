@@ -4,6 +4,8 @@ vertices: (V, 3) float, faces: (F, 3) int (counter-clockwise seen from outside).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csr_matrix
@@ -205,14 +207,16 @@ def intersecting_face_pairs(vertices: np.ndarray, faces: np.ndarray, among: np.n
     return pairs[hit].astype(np.int64)
 
 
-def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20,
-             keep: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np.ndarray | None = None,
+             after: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, int]:
     """A mesh's self-intersections (:func:`intersecting_face_pairs`) smoothed out: each round,
     the vertices of the intersecting faces and their neighbours move halfway to the mean of
     their neighbours (uniform Laplacian smoothing, local to the tangle; a crumple, as a
     garment's armpit bound to a body, flattens in one or two rounds). ``keep`` (V,) bool:
-    vertices that do not move. Returns the vertices (V, 3) float64 and the face pairs still
-    intersecting after ``rounds``."""
+    vertices that do not move; ``after``: applied to the vertices after each round (e.g. a
+    body's contact, which may push the smoothed layers into each other again: the next round
+    sees that). Returns the vertices (V, 3) float64 and the face pairs still intersecting after
+    ``rounds``."""
     V = np.array(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     P = intersecting_face_pairs(V, F)
@@ -228,9 +232,13 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20,
             move &= ~keep
         if not move.any():
             break
+        before = V.copy()
         V[move] = 0.5 * V[move] + 0.5 * (M @ V)[move]
+        if after is not None:
+            V = np.asarray(after(V), np.float64)
         # pairs of faces that did not move stay as they were; the others are tested again
-        moved = np.flatnonzero(A.T @ move.astype(np.float64) > 0)
+        changed = (V != before).any(axis=1)
+        moved = np.flatnonzero(A.T @ changed.astype(np.float64) > 0)
         still = ~np.isin(P, moved).any(axis=1)
         P = np.concatenate([P[still], intersecting_face_pairs(V, F, among=moved)])
         if not len(P):
