@@ -5,6 +5,7 @@ factored system (factor once, solve many, on every core)."""
 from __future__ import annotations
 
 import multiprocessing
+import signal
 from collections.abc import Callable
 
 import numpy as np
@@ -17,6 +18,14 @@ MIN_SOLVES_PER_WORKER = 4  # fewer solves than this per process: not worth forki
 
 # what a forked process solves: (draper, inits, bodies, body faces), set just before the fork
 _FORKED: tuple[Draper, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def _child_signals() -> None:
+    """A forked process's signals as the system's: it must not run the handlers it inherits (a
+    worker's graceful shutdown, a test session's teardown), and the pool's terminate (SIGTERM)
+    must end it at once, whatever it is doing; Ctrl-C is the parent's to handle."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _solve_one(i: int) -> tuple[int, np.ndarray | None, dict]:
@@ -47,7 +56,8 @@ def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: n
         kernels.warm()  # compiled (or loaded) before the fork, not once per process behind a lock
     _FORKED = (draper, inits, bodies, body_faces)
     try:
-        with multiprocessing.get_context("fork").Pool(min(workers, n // MIN_SOLVES_PER_WORKER)) as pool:
+        with multiprocessing.get_context("fork").Pool(min(workers, n // MIN_SOLVES_PER_WORKER),
+                                                      initializer=_child_signals) as pool:
             yield from pool.imap_unordered(_solve_one, range(n))
     finally:
         _FORKED = None
