@@ -28,15 +28,20 @@ def _child_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def _solve(draper: Draper, body: np.ndarray, body_faces: np.ndarray, init: np.ndarray) -> tuple[np.ndarray | None, dict]:
+    """One drape: (vertices (N, 3) float32 or None, stats or {"failed": why})."""
+    try:
+        r = draper.solve(body, body_faces, init)
+    except DrapeError as exc:
+        return None, {"failed": str(exc), "seconds": 0.0, "settled": False}
+    return r.vertices, r.stats
+
+
 def _solve_one(i: int) -> tuple[int, np.ndarray | None, dict]:
-    """Solve i of the forked set: (i, vertices (N, 3) float32 or None, stats or {"failed": why})."""
+    """Solve i of the forked set: (i, vertices or None, stats)."""
     assert _FORKED is not None
     draper, inits, bodies, body_faces = _FORKED
-    try:
-        r = draper.solve(bodies[i], body_faces, inits[i])
-    except DrapeError as exc:
-        return i, None, {"failed": str(exc), "seconds": 0.0, "settled": False}
-    return i, r.vertices, r.stats
+    return (i, *_solve(draper, bodies[i], body_faces, inits[i]))
 
 
 def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: np.ndarray, workers: int):
@@ -45,12 +50,7 @@ def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: n
     n = len(bodies)
     if workers <= 1 or n < 2 * MIN_SOLVES_PER_WORKER or "fork" not in multiprocessing.get_all_start_methods():
         for i in range(n):
-            try:
-                r = draper.solve(bodies[i], body_faces, inits[i])
-            except DrapeError as exc:
-                yield i, None, {"failed": str(exc), "seconds": 0.0, "settled": False}
-                continue
-            yield i, r.vertices, r.stats
+            yield (i, *_solve(draper, bodies[i], body_faces, inits[i]))
         return
     if kernels.AVAILABLE:
         kernels.warm()  # compiled (or loaded) before the fork, not once per process behind a lock
