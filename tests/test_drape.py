@@ -199,6 +199,34 @@ def test_compiled_local_step_and_strain_limit_match_numpy(monkeypatch):
     assert np.array_equal(y1[[0, 5]], 1.1 * x[[0, 5]])  # pinned vertices stay
 
 
+def test_compiled_body_contact_matches_numpy(monkeypatch):
+    """The compiled body contact (geometry.kernels.contact_project: push-out along the normal,
+    friction against the move since the step's start) against the numpy path, on a tube shaken
+    around a cylinder it partly enters: the same positions and contact set, with and without
+    friction."""
+    from service.model.drape import solver
+    from service.model.geometry import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+    V, F = tube(0.15, 0.3, 24, 8, y0=0.1)
+    BV, BF = cylinder(0.149, -0.3, 0.6)
+    rng = np.random.default_rng(1)
+    x_prev = V + 0.004 * rng.standard_normal(V.shape)
+    x = x_prev + 0.004 * rng.standard_normal(V.shape)
+    slide = np.full(len(V), 6.0)
+    out = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(solver, "COMPILED", compiled)
+        body = solver._Body(BV, BF, solver.Config(clearance_m=0.002))
+        body.refresh(x_prev)
+        out[compiled] = body.project(x, x_prev, slide), body.project(x, None, None)
+    for (a, ca), (b, cb) in zip(out[True], out[False]):
+        assert np.array_equal(ca, cb) and 0 < ca.sum() < len(V)
+        assert np.allclose(a, b, rtol=0, atol=1e-15)
+    assert not np.allclose(out[True][0][0], out[True][1][0])  # friction held some contacts back
+
+
 def _crumpled_square(n: int = 12, seed: int = 2):
     """A square sheet (n x n) whose middle 4 x 4 vertices are shaken by ~1.2 edge lengths: a
     crumple that crosses itself; the other vertices flat."""

@@ -17,10 +17,12 @@ Rows (goals from issue 43):
 - ``inside_vertices`` / ``self_intersections``: garment vertices > 1 mm inside the body (winding
   numbers), self-intersecting face pairs, over every drape of the run (goal 0 / 0);
 - ``garment_10k_s``: a catalogue T-shirt subdivided to ~10k vertices, draped from its warp fit on
-  an example avatar (goal <= 4 s on 2 cores);
+  an example avatar (goal <= 4 s on 2 cores); beside it, the same drape with the body contact's
+  closest points refreshed as before 2026-11-29 (every vertex every 10 iterations, in between
+  those that moved 0.5 mm), its time and its mean distance to the drape (the baseline of the same run);
 - ``basis_vs_drape_mean_mm`` / ``_p99_mm``: the demo men's T-shirt (knit, 810 vertices, its size as
   bound to the mean avatar) built as the service builds it with ``TRYON_DRAPE`` on (draped on the
-  65 example avatars and ``TRYON_DRAPE_POPULATION`` = 64 population bodies, the least-squares
+  65 example avatars and ``TRYON_DRAPE_POPULATION`` (default 192) population bodies, the least-squares
   basis: ``garments.draped.draped_example_fits``), its basis synthesis on held-out avatars (ANSUR
   II people the body model never saw; 20, or ``--limit``) vs the garment draped directly on each
   from its warp fit there (goal mean <= 3 mm, p99 <= 12 mm); beside it the central-difference
@@ -37,7 +39,9 @@ Rows (goals from issue 43):
 - ``walking_step_stretch``: the catalogue's bottoms (skirts, trousers) as plain GLBs posed by
   their skin weights alone in the page's four poses on five bodies (``tryon bench tryon``'s
   pose-stretch measure): the 99.9th-percentile edge stretch of the worst garment, body and pose
-  (the walking step for all of them; goal <= 1.5).
+  (the walking step for all of them; goal <= 1.5); beside it the avatar's own skin in the same
+  poses and bodies (``avatar_skin``, the body model's skinning) and the worst garment's stretch
+  relative to the body under it (``relative_to_body``).
 """
 from __future__ import annotations
 
@@ -185,12 +189,24 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
     t0 = time.perf_counter()
     dg = precompute(Vg, Fg, "knit")
     r = dg.solve(BVg, m.body_faces, init)
-    rows["garment_10k_s"] = {"value": time.perf_counter() - t0, "goal": 4.0, "n_vertices": len(Vg),
+    t_10k = time.perf_counter() - t0
+    record("white_tshirt_10k", Vg, Fg, BVg, m.body_faces, r)
+    # baseline, same run: the body contact's closest points refreshed as before 2026-11-29
+    # (every vertex every 10 iterations, in between those that moved 0.5 mm)
+    from service.model.drape import Config as _Config
+
+    t0 = time.perf_counter()
+    rb = precompute(Vg, Fg, "knit", _Config(contact_refresh=10, contact_moved_m=0.0005, contact_walk_m=np.inf)).solve(
+        BVg, m.body_faces, init)
+    t_base = time.perf_counter() - t0
+    rows["garment_10k_s"] = {"value": t_10k, "goal": 4.0, "n_vertices": len(Vg),
                              "precompute_s": dg.precompute_s, "iterations": r.stats["iterations"],
                              "settled": r.stats["settled"], "local_s": r.stats["local_s"],
                              "global_s": r.stats["global_s"], "contact_s": r.stats["contact_s"],
-                             "factor": r.stats["factor"]}
-    record("white_tshirt_10k", Vg, Fg, BVg, m.body_faces, r)
+                             "factor": r.stats["factor"], "baseline_s": t_base, "ratio_to_baseline": t_10k / t_base,
+                             "baseline_contact_s": rb.stats["contact_s"],
+                             "vs_baseline_mean_mm": float(1000 * np.linalg.norm(
+                                 r.vertices.astype(np.float64) - rb.vertices, axis=1).mean())}
 
     # 7. the clothing basis through drapes vs direct drapes on held-out people; the build's time
     from service.model.garments import garment as G
@@ -281,10 +297,13 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
     from tests.bench.tryon import bench_pose_stretch, catalogue_bases
 
     bottoms = {k: v for k, v in catalogue_bases(m, ex, E).items() if v[1] == "bottom"}
-    ps = bench_pose_stretch(m, bottoms)["per_garment"]
+    pose = bench_pose_stretch(m, bottoms)
+    ps = pose["per_garment"]
     worst = max(ps, key=lambda k: ps[k]["after"])
     rows["walking_step_stretch"] = {"value": float(ps[worst]["after"]), "goal": 1.5, "garment": worst,
                                     "where": ps[worst]["worst"], "percentile": 99.9,
+                                    "avatar_skin": round(float(pose["avatar"]), 3),
+                                    "relative_to_body": round(float(ps[worst]["after_relative"]), 3),
                                     **{f"{k}": round(float(v["after"]), 3) for k, v in ps.items()}}
 
     rows["inside_vertices"] = {"value": inside, "goal": 0}

@@ -78,14 +78,17 @@ class Config:
     settle_window: int = 5  # ... for this many consecutive iterations
     friction_gain: float = 10.0  # the penetration of one step read as this many steps' normal force
     max_step_m: float = 0.01  # no vertex moves farther than this in one iteration
-    contact_refresh: int = 10  # closest body points of every vertex every this many iterations ...
+    contact_refresh: int = 50  # closest body points of every vertex every this many iterations ...
     contact_near_m: float = 0.02  # ... and in between of those that may be this close to the body ...
-    contact_moved_m: float = 0.0005  # ... and have moved more than this since their last refresh
+    contact_moved_m: float = 0.002  # ... and have moved more than this since their last refresh (a tangent plane 2 mm
+    # away is off a body of radius R by (2 mm)^2 / 2R: 0.04 mm on a 5 cm limb) ...
+    contact_walk_m: float = 0.005  # ... by a walk from their last closest face if they moved less than this, else afresh
     contact_k: int = 8  # nearest body vertices whose faces are searched for the closest point
     face_contact_m: float = 0.008  # body vertices this close to a settled garment's face are pushed out of it (0: off) ...
     face_contact_passes: int = 3  # ... in this many passes
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
+    self_refresh: int = 10  # the self-contact's close pairs found afresh every this many iterations
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
@@ -316,6 +319,8 @@ class Draper:
     def _global(self, rhs: np.ndarray, x_pinned: np.ndarray, k: int) -> np.ndarray:
         """PD's global step with level ``k``'s factor (pinned vertices eliminated)."""
         _, factor, K_fp, _ = self.levels[k]
+        if K_fp is None:
+            return factor.solve(rhs)
         out = np.empty((self.n, 3))
         r = rhs[self.free]
         if K_fp is not None:
@@ -371,13 +376,13 @@ class Draper:
                 if far.any():
                     g[far] = x[far] + (g[far] - x[far]) * (cfg.max_step_m / step[far])[:, None]
                 n_over = self._strain_limit(g)
-                n_self = self._self_contact(g, refresh=refresh)
+                n_self = self._self_contact(g, refresh=(it - 1) % cfg.self_refresh == 0)
                 if body is not None:
                     # tangent planes at the closest points of the (outside) start of the step
                     if refresh:
                         body.refresh(x)
                     else:
-                        body.refresh_near(x, cfg.contact_near_m, cfg.contact_moved_m)
+                        body.refresh_near(x, cfg.contact_near_m, cfg.contact_moved_m, cfg.contact_walk_m)
                     g, _ = body.project(g, x, slide)
                 if len(self.pinned):
                     g[self.pinned] = x_pinned
@@ -414,7 +419,10 @@ class Draper:
                 t_local += time.perf_counter() - td
                 x = x_next
                 moves.append(move)
-                if not np.isfinite(move) or float(np.sqrt(((x - start) ** 2).sum(1).max())) > cfg.diverge_m:
+                # (a vertex moves at most max_step_m an iteration with a body: its distance from the
+                # start is checked every 10th)
+                if not np.isfinite(move) or ((anderson or it % 10 == 0)
+                                             and float(np.sqrt(((x - start) ** 2).sum(1).max())) > cfg.diverge_m):
                     raise DrapeError(f"the drape diverged after {it} iterations (a vertex moved more than "
                                      f"{cfg.diverge_m:.2f} m): check the garment's scale (metres) and its rest shape")
                 settled_run = settled_run + 1 if move < tol else 0
@@ -617,20 +625,24 @@ class _Body:
         self.reach = np.abs(((x - self.q) * self.n).sum(1))  # how far each may move before its plane is stale
         self.x_at = x.copy()
 
-    def refresh_near(self, x: np.ndarray, near_m: float, moved_m: float) -> None:
+    def refresh_near(self, x: np.ndarray, near_m: float, moved_m: float, walk_m: float) -> None:
         """Refresh only the vertices that may be within ``near_m`` of the body (their distance
         at their last refresh minus how far they moved since: the others cannot reach it) and
-        have moved more than ``moved_m`` since (a resting vertex keeps its plane). Each searches the
-        faces around its last closest face's vertices (it moved at most ``near_m`` since, about a
-        body face: a walk on the surface, no nearest-vertex search); :meth:`refresh` searches
-        afresh."""
+        have moved more than ``moved_m`` since (a resting vertex keeps its plane). Those that
+        moved less than ``walk_m`` search the faces around their last closest face's vertices
+        (a walk on the surface, no nearest-vertex search); the others search afresh, as
+        :meth:`refresh` does for every vertex."""
         moved = np.linalg.norm(x - self.x_at, axis=1)
         idx = np.flatnonzero((self.reach - moved < near_m) & (moved > moved_m))
-        if len(idx):
-            q, n, face = self._query(x[idx], near=self.F[self.face[idx]])
-            self.q[idx], self.n[idx], self.face[idx] = q, n, face
-            self.reach[idx] = np.abs(((x[idx] - q) * n).sum(1))
-            self.x_at[idx] = x[idx]
+        if not len(idx):
+            return
+        walk = moved[idx] < walk_m
+        for sel, near in ((idx[walk], True), (idx[~walk], False)):
+            if len(sel):
+                q, n, face = self._query(x[sel], near=self.F[self.face[sel]] if near else None)
+                self.q[sel], self.n[sel], self.face[sel] = q, n, face
+                self.reach[sel] = np.abs(((x[sel] - q) * n).sum(1))
+                self.x_at[sel] = x[sel]
 
     def _query(self, x: np.ndarray, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest body points (P, 3), interpolated unit normals there (P, 3) and faces (P,) of x
@@ -650,6 +662,14 @@ class _Body:
         normal; with ``x_prev``, their tangential move since then cancelled up to ``slide`` (N,)
         times the correction (Coulomb friction as in Macklin et al. 2014 Eq. 24-25, the ratio
         from the forces: :attr:`Draper.slide_per_depth`). Returns (x, contact mask)."""
+        if COMPILED and kernels.AVAILABLE:
+            out, c = np.empty((len(x), 3)), np.empty(len(x), np.bool_)
+            friction = x_prev is not None and slide is not None
+            if not kernels.contact_project(np.ascontiguousarray(x, np.float64), self.q, self.n, self.cfg.clearance_m,
+                                           x_prev if friction else x, slide if friction else self.reach, friction,
+                                           out, c):
+                return x, c
+            return out, c
         d = self.signed_distance(x)
         depth = self.cfg.clearance_m - d
         c = depth > 0

@@ -54,7 +54,8 @@ def _compiled() -> SimpleNamespace:
                                                     pair_rows=jit(_pair_rows), membrane=jit(_membrane),
                                                     vertex_normals=jit(_vertex_normals),
                                                     strain_limit_pass=jit(_strain_limit_pass),
-                                                    faces_cross=jit(_faces_cross))
+                                                    faces_cross=jit(_faces_cross),
+                                                    contact_project=jit(_contact_project))
     return _compiled_kernels
 
 
@@ -101,6 +102,11 @@ def strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
 def faces_cross(V, F, pairs, c, r, hit):
     """Compiled :func:`_faces_cross`."""
     return _compiled().faces_cross(V, F, pairs, c, r, hit)
+
+
+def contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact):
+    """Compiled :func:`_contact_project`."""
+    return _compiled().contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact)
 
 
 def _closest_on_triangle(px, py, pz, V, F, f):
@@ -398,6 +404,40 @@ def _strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
                 x[v, 1] += acc[v, 1] / count[v]
                 x[v, 2] += acc[v, 2] / count[v]
     return n_over
+
+
+def _contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact):
+    """The drape's body contact (``drape.solver._Body.project``): each vertex of x (N, 3) float64
+    closer than ``clearance`` to its tangent plane (closest body point q (N, 3), unit normal n
+    (N, 3)) moved out along n; with ``friction``, its tangential move since x_prev (N, 3) cancelled
+    up to slide (N,) times that correction. out (N, 3) float64 and contact (N,) bool out.
+    Returns the number of vertices in contact."""
+    hits = 0
+    for i in range(x.shape[0]):
+        n0, n1, n2 = n[i, 0], n[i, 1], n[i, 2]
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        depth = clearance - ((x0 - q[i, 0]) * n0 + (x1 - q[i, 1]) * n1 + (x2 - q[i, 2]) * n2)
+        if not depth > 0:
+            contact[i] = False
+            out[i, 0], out[i, 1], out[i, 2] = x0, x1, x2
+            continue
+        contact[i] = True
+        hits += 1
+        x0 += depth * n0
+        x1 += depth * n1
+        x2 += depth * n2
+        if friction:
+            dx0, dx1, dx2 = x0 - x_prev[i, 0], x1 - x_prev[i, 1], x2 - x_prev[i, 2]
+            dn = dx0 * n0 + dx1 * n1 + dx2 * n2
+            t0, t1, t2 = dx0 - dn * n0, dx1 - dn * n1, dx2 - dn * n2
+            lt = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            hold = slide[i] * depth
+            scale = 1.0 if lt <= hold else hold / max(lt, 1e-30)
+            x0 -= scale * t0
+            x1 -= scale * t1
+            x2 -= scale * t2
+        out[i, 0], out[i, 1], out[i, 2] = x0, x1, x2
+    return hits
 
 
 def _faces_cross(V, F, pairs, c, r, hit):

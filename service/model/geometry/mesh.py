@@ -207,6 +207,9 @@ def intersecting_face_pairs(vertices: np.ndarray, faces: np.ndarray, among: np.n
     return pairs[hit].astype(np.int64)
 
 
+UNTANGLE_STILL_M = 1e-7  # untangle: a vertex moved less than this (m) in a round keeps its face pairs' test
+
+
 def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np.ndarray | None = None,
              after: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, int]:
     """A mesh's self-intersections (:func:`intersecting_face_pairs`) smoothed out: each round,
@@ -236,8 +239,10 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np
         V[move] = 0.5 * V[move] + 0.5 * (M @ V)[move]
         if after is not None:
             V = np.asarray(after(V), np.float64)
-        # pairs of faces that did not move stay as they were; the others are tested again
-        changed = (V != before).any(axis=1)
+        # pairs of faces that did not move stay as they were; the others are tested again (a
+        # vertex that ``after`` nudged by less than UNTANGLE_STILL_M counts as still: a body's
+        # contact re-projects every vertex at its clearance by rounding-sized amounts)
+        changed = (np.abs(V - before) > UNTANGLE_STILL_M).any(axis=1)
         moved = np.flatnonzero(A.T @ changed.astype(np.float64) > 0)
         still = ~np.isin(P, moved).any(axis=1)
         P = np.concatenate([P[still], intersecting_face_pairs(V, F, among=moved)])
