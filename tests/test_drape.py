@@ -41,6 +41,26 @@ def test_tube_on_wider_cylinder_takes_the_hoop_strain():
     assert abs(x[:, 1].min() - V[:, 1].min()) < 0.01
 
 
+def test_a_start_stretched_along_the_body_lets_go_before_friction_holds_it():
+    """A tight tube (girth 4 % under the cylinder's) started stretched 10 % along its axis (a
+    made-to-measure warp fit on a taller body): the optional release stage (no friction, no
+    gravity) lets the axial stretch go, then friction holds the tube where it is; without it,
+    friction keeps the start's stretch."""
+    Rg, Rb, na, nh, H = 0.15, 0.156, 48, 10, 0.3
+    V, F = tube(Rg, H, na, nh)
+    BV, BF = cylinder(Rb, -0.3, 0.6)
+    init = V.copy()
+    init[:, [0, 2]] *= (Rb + 0.002) / Rg
+    init[:, 1] = 0.5 * H + 1.10 * (init[:, 1] - 0.5 * H)  # 10 % longer, about its middle
+    length = {}
+    for release in (50, 0):
+        r = precompute(V, F, "knit", Config(release_iterations=release)).solve(BV, BF, init)
+        x = r.vertices.astype(np.float64)
+        length[release] = x[:, 1].max() - x[:, 1].min()
+        assert abs(0.5 * (x[:, 1].max() + x[:, 1].min()) - 0.5 * H) < 0.01  # nothing slid down
+    assert length[50] < 1.02 * H < 1.05 * H < length[0]
+
+
 def test_tube_hangs_with_its_own_girth_below_a_wider_band():
     """The same tube on a thinner cylinder (hung from a wider band at the top, as a skirt from
     the hips): below the band it keeps its own girth (within 1 %)."""

@@ -30,7 +30,10 @@ level), and solves without a body are Anderson-accelerated (Peng et al. 2018). C
 friction are position projections after each global step (the strain limit first, then
 self-contact, then the body; Macklin et al., "Unified Particle Physics for Real-Time
 Applications", 2014, Sec. 6.1 friction: tangential displacement cancelled up to mu times the
-penetration depth). Where the settled cloth still crosses itself (two layers pressed together
+penetration depth). An optional first stage (``Config.release_iterations``, off by default)
+runs at the fabric's stiffness without friction or gravity, so that a start made to measure (the
+warp fit, stretched on a body larger than the garment) lets go of that stretch before friction
+holds the cloth where it lies. Where the settled cloth still crosses itself (two layers pressed together
 between an arm and the torso), the crossing is smoothed out locally (``geometry.untangle``) and
 the body contact applied again.
 
@@ -89,6 +92,11 @@ class Config:
     self_contact_m: float = 0.003  # garment vertices of distant parts kept at least this far apart
     self_rings: int = 2  # vertices within this many edges of each other never self-collide
     self_refresh: int = 10  # the self-contact's close pairs found afresh every this many iterations
+    release_iterations: int = 0  # with a body, first this many (at most max_iterations / 8) at the fabric's stiffness
+    # without friction or gravity: a start made to measure (the warp fit, stretched on a body larger than the garment)
+    # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
+    # holds up slides down meanwhile. Off: it brings the T-shirt's hem to Newton's, but the retraction presses sleeve
+    # and side panel through each other in armpits, more than the untangling resolves (docs/drape.md)
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
@@ -288,9 +296,10 @@ class Draper:
              + self.L.T @ (self.w_bend[:, None] * r_b) - self.gravity_force)
         return float(e), g
 
-    def _local(self, x: np.ndarray, level: float = 1.0) -> tuple[np.ndarray, float]:
+    def _local(self, x: np.ndarray, level: float = 1.0, gravity: bool = True) -> tuple[np.ndarray, float]:
         """The local step's projections folded into the global right-hand side (N, 3) (PD Eq. 10
-        right side, without the proximal term), and the energy E(x) (J) from the same residuals.
+        right side, without the proximal term), and the energy E(x) (J) from the same residuals
+        (``gravity`` False: both without gravity).
         With ``COMPILED`` (and numba there) the membrane and the normals in compiled loops
         (``geometry.kernels.membrane``, ``vertex_normals``: equal to ~1e-15 relative)."""
         if COMPILED and kernels.AVAILABLE:
@@ -302,8 +311,8 @@ class Draper:
             pb = self.h0[:, None] * n
             rhs += self.L.T @ (self.w_bend[:, None] * pb)
             e = (e_s + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
-                 - float((self.gravity_force * x).sum()))
-            return rhs + self.gravity_force, e
+                 - float((self.gravity_force * x).sum()) * gravity)
+            return (rhs + self.gravity_force, e) if gravity else (rhs, e)
         Gxr = self.G @ x  # (2T, 3)
         Gx = Gxr.reshape(-1, 2, 3).transpose(0, 2, 1)  # (T, 3, 2)
         R = _polar(Gx).transpose(0, 2, 1).reshape(-1, 3)
@@ -313,8 +322,9 @@ class Draper:
         pb = self.h0[:, None] * n
         rhs += self.L.T @ (self.w_bend[:, None] * pb)
         e = (0.5 * float((ws * ((Gxr - R) ** 2).sum(1)).sum())
-             + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum()) - float((self.gravity_force * x).sum()))
-        return rhs + self.gravity_force, e
+             + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
+             - float((self.gravity_force * x).sum()) * gravity)
+        return (rhs + self.gravity_force, e) if gravity else (rhs, e)
 
     def _global(self, rhs: np.ndarray, x_pinned: np.ndarray, k: int) -> np.ndarray:
         """PD's global step with level ``k``'s factor (pinned vertices eliminated)."""
@@ -355,15 +365,23 @@ class Draper:
         # Anderson's extrapolation fights the contact projections (it re-enters the body and
         # undoes friction): used for solves without a body (pinned sheets) only
         anderson = cfg.anderson > 0 and body is None
-        for k, (level, _, _, slide) in enumerate(self.levels):
-            last = k == n_levels - 1
+        # the stages: (stiffness level index, friction per unit depth, iteration budget, gravity);
+        # with a body and `release_iterations`, first those at the fabric's stiffness without
+        # friction or gravity: the start's stretch retracts, nothing slides down
+        stages = [(k, slide, None, True) for k, (_, _, _, slide) in enumerate(self.levels)]
+        if body is not None and cfg.release_iterations > 0:
+            stages.insert(0, (n_levels - 1, np.zeros(self.n), min(cfg.release_iterations, cfg.max_iterations // 8), False))
+        for stage, (k, slide, budget, gravity) in enumerate(stages):
+            level = self.levels[k][0]
+            last = stage == len(stages) - 1
             tol = cfg.tolerance_m * (1.0 if last else cfg.level_tolerance_factor)
-            budget = cfg.max_iterations - it if last else max(cfg.max_iterations // (2 * n_levels), 1)
+            if budget is None:
+                budget = cfg.max_iterations - it if last else max(cfg.max_iterations // (2 * n_levels), 1)
             dF: list[np.ndarray] = []  # Anderson history: differences of residuals and of map values
             dG: list[np.ndarray] = []
             f_prev = g_prev = None
             settled_run = 0
-            rhs, e_x = self._local(x, level)
+            rhs, e_x = self._local(x, level, gravity)
             for _ in range(budget):
                 it += 1
                 refresh = (it - 1) % cfg.contact_refresh == 0
@@ -408,10 +426,10 @@ class Draper:
                 td = time.perf_counter()
                 t_contact += td - tc
                 t_global += tc - tb
-                rhs_next, e_next = self._local(x_next, level)
+                rhs_next, e_next = self._local(x_next, level, gravity)
                 if x_next is not g and e_next > e_x + cfg.anderson_energy_slack_j:
                     x_next = g
-                    rhs_next, e_next = self._local(g, level)
+                    rhs_next, e_next = self._local(g, level, gravity)
                     dF.clear()
                     dG.clear()
                     restarts += 1
