@@ -35,7 +35,8 @@ runs at the fabric's stiffness without friction or gravity, so that a start made
 warp fit, stretched on a body larger than the garment) lets go of that stretch before friction
 holds the cloth where it lies. Where the settled cloth still crosses itself (two layers pressed together
 between an arm and the torso), the crossing is smoothed out locally (``geometry.untangle``) and
-the body contact applied again.
+the body contact applied again; before that, the strain limit and the body contact in turn for a
+few rounds (the contact passes pull edges long in the crease between arm and torso).
 
 Shapes: rest and current vertices (N, 3) metres, Y up; faces (F, 3) int; body (B, 3), (G, 3).
 """
@@ -97,6 +98,7 @@ class Config:
     # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
     # holds up slides down meanwhile. Off: it brings the T-shirt's hem to Newton's, but the retraction presses sleeve
     # and side panel through each other in armpits, more than the untangling resolves (docs/drape.md)
+    final_limit_rounds: int = 20  # the strain limit and the body contact in turn this many times at the end
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
@@ -463,6 +465,14 @@ class Draper:
                 # into the body (in a concave fold: the armpit): the vertices outside again
                 body.refresh(x)
                 x, _ = body.project(x, None, None)
+            # the contact passes above stretch the cloth where the arm meets the torso (both
+            # sides pushed out, the edges between them pulled long): the strain limit and the
+            # contact in turn, the contact last
+            for _ in range(cfg.final_limit_rounds):
+                if not self._strain_limit(x):
+                    break
+                body.refresh_near(x, cfg.contact_near_m, 0.0, cfg.contact_walk_m)
+                x, _ = body.project(x, None, None)
         tangled = self._untangle(x, body)
         if body is not None:
             d = body.signed_distance(x, exact=True)
@@ -494,6 +504,8 @@ class Draper:
             return 0, 0
 
         def contact(v: np.ndarray) -> np.ndarray:
+            # the smoothing pulls edges long in the crease: the strain limit first, the contact last
+            self._strain_limit(v)
             body.refresh(v)
             return body.project(v, None, None)[0]
 
