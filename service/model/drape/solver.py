@@ -98,7 +98,8 @@ class Config:
     # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
     # holds up slides down meanwhile. Off: it brings the T-shirt's hem to Newton's, but the retraction presses sleeve
     # and side panel through each other in armpits, more than the untangling resolves (docs/drape.md)
-    final_limit_rounds: int = 20  # the strain limit and the body contact in turn this many times at the end
+    final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
+    # untangling (and once in each of its rounds): the contact passes after the iterations pull edges long in creases
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
@@ -334,11 +335,8 @@ class Draper:
         if K_fp is None:
             return factor.solve(rhs)
         out = np.empty((self.n, 3))
-        r = rhs[self.free]
-        if K_fp is not None:
-            r = r - K_fp @ x_pinned
-            out[self.pinned] = x_pinned
-        out[self.free] = factor.solve(r)
+        out[self.pinned] = x_pinned
+        out[self.free] = factor.solve(rhs[self.free] - K_fp @ x_pinned)
         return out
 
     def solve(self, body_vertices: np.ndarray | None, body_faces: np.ndarray | None,

@@ -5,8 +5,8 @@ order, so the same results bit for bit; the tests compare them), one query point
 no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_rows`) compute
 what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with
 numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them); so do the
-cloth drape's (:func:`membrane`, :func:`vertex_normals`, :func:`strain_limit_pass`: what
-``drape.solver`` computes with numpy and sparse products).
+cloth drape's (:func:`membrane`, :func:`vertex_normals`, :func:`strain_limit_pass`,
+:func:`contact_project`: what ``drape.solver`` computes with numpy and sparse products).
 ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is set): callers
 then use the numpy path.
 
