@@ -18,7 +18,7 @@ Rows (goals from issue 43):
   numbers), self-intersecting face pairs, over every drape of the run (goal 0 / 0);
 - ``garment_10k_s``: a catalogue T-shirt subdivided to ~10k vertices, draped from its warp fit on
   an example avatar (goal <= 4 s on 2 cores); beside it, the same drape with the body contact's
-  closest points refreshed as before 2026-11-29 (every vertex every 10 iterations, in between
+  closest points refreshed more often (every vertex every 10 iterations, in between
   those that moved 0.5 mm), its time and its mean distance to the drape (the baseline of the same run);
 - ``basis_vs_drape_mean_mm`` / ``_p99_mm``: the demo men's T-shirt (knit, 810 vertices, its size as
   bound to the mean avatar) built as the service builds it with ``TRYON_DRAPE`` on (draped on the
@@ -191,7 +191,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
     r = dg.solve(BVg, m.body_faces, init)
     t_10k = time.perf_counter() - t0
     record("white_tshirt_10k", Vg, Fg, BVg, m.body_faces, r)
-    # baseline, same run: the body contact's closest points refreshed as before 2026-11-29
+    # baseline, same run: the body contact's closest points refreshed more often
     # (every vertex every 10 iterations, in between those that moved 0.5 mm)
     from service.model.drape import Config as _Config
 

@@ -96,8 +96,8 @@ class Config:
     release_iterations: int = 0  # with a body, first this many (at most max_iterations / 8) at the fabric's stiffness
     # without friction or gravity: a start made to measure (the warp fit, stretched on a body larger than the garment)
     # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
-    # holds up slides down meanwhile. Off: it brings the T-shirt's hem to Newton's, but the retraction presses sleeve
-    # and side panel through each other in armpits, more than the untangling resolves (docs/drape.md)
+    # holds up slides down meanwhile. Off by default: the retraction presses sleeves through side panels in armpits
+    # (docs/drape.md, Figures)
     final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
     # untangling (and once in each of its rounds): the contact passes after the iterations pull edges long in creases
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
