@@ -336,3 +336,53 @@ def test_a_drape_ends_with_no_self_intersections():
     loose = precompute(rest, F, "knit", Config(clearance_m=DRAPE_CLEARANCE_M, final_limit_rounds=0,
                                                 untangle_rounds=0)).solve(BV, m.body_faces, init)
     assert longest(loose.vertices) > 1.6 > 1.4 > longest(r.vertices)
+
+
+def test_the_release_guard_holds_back_a_face_moving_through_another_part():
+    """The release stage's guard: a vertex whose move would take its face through another part
+    of the cloth goes back to where it was (with its neighbours where needed); crossings the
+    cloth already had are allowed."""
+    quad = np.array([[-0.1, 0, -0.1], [0.1, 0, -0.1], [0.1, 0, 0.1], [-0.1, 0, 0.1]])
+    # a small square 1 cm above a large one, another one far away
+    V = np.vstack([quad, 0.5 * quad + [0.0, 0.01, 0.0], quad + [0.0, 0.5, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7], [8, 9, 10], [8, 10, 11]])
+    d = precompute(V, F, "knit")
+    x = V.copy()
+    g = x.copy()
+    g[6, 1] = -0.01  # one corner of the small square through the large one
+    g[8, 0] -= 0.001  # a move of the far square stays
+    assert len(geometry.intersecting_face_pairs(g, F))
+    held = d._hold_back(g, x, d._crossing_keys(x))
+    assert 1 <= held <= 8 and g[6, 1] == x[6, 1] and g[8, 0] == V[8, 0] - 0.001
+    assert not len(geometry.intersecting_face_pairs(g, F))
+    # a crossing already there at the start is not undone
+    g2 = g.copy()
+    g2[6, 1] = -0.01
+    assert d._hold_back(g2.copy(), g2, d._crossing_keys(g2)) == 0
+
+
+def test_the_reference_solvers_bending_matches_the_drape_engines():
+    """The bench's Newton material (``drape_newton._cloth_builder``): per-edge bending stiffness
+    B |e| / (A1 + A2) makes Newton's dihedral energy sum 1/2 ke_e |e| theta^2 equal the drape
+    engine's B / 2 kappa^2 per unit area on a triangulated cylinder (no Newton needed)."""
+    from tests.bench.drape_newton import _edge_bending_scale
+
+    R, B = 0.1, 2e-5
+    V, F = tube(R, 0.3, 60, 30)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    area = 0.5 * np.linalg.norm(fn, axis=1)
+    fn /= 2 * area[:, None]
+    faces_of: dict = {}
+    for f, t in enumerate(F):
+        for k in range(3):
+            faces_of.setdefault(tuple(sorted((int(t[k]), int(t[(k + 1) % 3])))), []).append(f)
+    energy = 0.0
+    for (k, l), fs in faces_of.items():
+        if len(fs) != 2:
+            continue
+        i, j = (int(next(v for v in F[f] if v not in (k, l))) for f in fs)
+        theta = np.arccos(np.clip(fn[fs[0]] @ fn[fs[1]], -1.0, 1.0))
+        ke = B * _edge_bending_scale(V, i, j, k, l)
+        energy += 0.5 * ke * np.linalg.norm(V[k] - V[l]) * theta ** 2
+    assert energy == pytest.approx(B / 2 / R ** 2 * area.sum(), rel=0.03)
+    assert _edge_bending_scale(V, -1, 3, 0, 1) == 0.0

@@ -6,7 +6,8 @@ contact, friction and self-contact (projective dynamics, factored once per garme
     edge_strain(rest_vertices, faces, result.vertices)                # (N,) stretch - 1
 """
 from .fabrics import FABRICS, Fabric
-from .solver import Config, DrapeError, DrapeResult, Draper, edge_strain, precompute
+from .solver import Config, DrapeError, DrapeResult, Draper, edge_strain, precompute, start_outside
 from .examples import drape_examples
 
-__all__ = ["Config", "DrapeError", "DrapeResult", "Draper", "FABRICS", "Fabric", "drape_examples", "edge_strain", "precompute"]
+__all__ = ["Config", "DrapeError", "DrapeResult", "Draper", "FABRICS", "Fabric", "drape_examples", "edge_strain", "precompute",
+           "start_outside"]

@@ -98,6 +98,8 @@ class Config:
     # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
     # holds up slides down meanwhile. Off by default: the retraction presses sleeves through side panels in armpits
     # (docs/drape.md, Figures)
+    release_guard_rounds: int = 8  # in that stage, vertices of faces that newly cross another part of the cloth go back
+    # to where they were, and their neighbours too, over up to this many widening rounds (0: no guard)
     final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
     # untangling (and once in each of its rounds): the contact passes after the iterations pull edges long in creases
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
@@ -353,8 +355,7 @@ class Draper:
         body = _Body(body_vertices, body_faces, cfg) if body_vertices is not None and len(body_vertices) else None
         x_pinned = x[self.pinned]
         if body is not None:
-            body.refresh(x)
-            x, _ = body.project(x, None, None)
+            x = body.outside(x)
         moves: list[float] = []
         it = 0
         n_self = n_over = 0
@@ -371,6 +372,7 @@ class Draper:
         stages = [(k, slide, None, True) for k, (_, _, _, slide) in enumerate(self.levels)]
         if body is not None and cfg.release_iterations > 0:
             stages.insert(0, (n_levels - 1, np.zeros(self.n), min(cfg.release_iterations, cfg.max_iterations // 8), False))
+        n_reverted = 0
         for stage, (k, slide, budget, gravity) in enumerate(stages):
             level = self.levels[k][0]
             last = stage == len(stages) - 1
@@ -381,6 +383,11 @@ class Draper:
             dG: list[np.ndarray] = []
             f_prev = g_prev = None
             settled_run = 0
+            # the release stage retracts the cloth fast: a face that comes to cross another part
+            # of it (a sleeve pressed through the side panel in an armpit) would stay crossed, so
+            # its vertices are held back where they were (the crossings of the start are allowed)
+            guard = not gravity and cfg.release_guard_rounds > 0
+            crossing0 = self._crossing_keys(x) if guard else None
             rhs, e_x = self._local(x, level, gravity)
             for _ in range(budget):
                 it += 1
@@ -402,6 +409,8 @@ class Draper:
                     else:
                         body.refresh_near(x, cfg.contact_near_m, cfg.contact_moved_m, cfg.contact_walk_m)
                     g, _ = body.project(g, x, slide)
+                if guard:
+                    n_reverted += self._hold_back(g, x, crossing0)
                 if len(self.pinned):
                     g[self.pinned] = x_pinned
                 f = g - x
@@ -482,11 +491,35 @@ class Draper:
         stats = {"iterations": it, "settled": bool(settled), "last_move_mm": 1000 * moves[-1] if moves else 0.0,
                  "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self),
                  "over_limit_edges": int(n_over), "untangled_pairs": tangled[0], "self_intersections": tangled[1],
-                 "anderson_restarts": restarts, "energy_j": e,
+                 "anderson_restarts": restarts, "held_back": n_reverted, "energy_j": e,
                  "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s, "local_s": t_local,
                  "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
                  "fabric": fab.name}
         return DrapeResult(vertices=x.astype(np.float32), stats=stats)
+
+    def _crossing_keys(self, x: np.ndarray) -> np.ndarray:
+        """The intersecting face pairs of ``x`` (N, 3) as sorted keys a * F + b (K,) int64."""
+        P = np.sort(geometry.intersecting_face_pairs(x, self.faces), axis=1)
+        return np.unique(P[:, 0] * len(self.faces) + P[:, 1])
+
+    def _hold_back(self, g: np.ndarray, x: np.ndarray, allowed: np.ndarray) -> int:
+        """Vertices of the faces of ``g`` (N, 3) that cross another face and did not in ``allowed``
+        (keys, :meth:`_crossing_keys`) set back to ``x`` (N, 3), the region widened by one ring of
+        neighbours each round until no new crossing is left (up to ``release_guard_rounds``;
+        then every vertex goes back). In place; returns the vertices set back."""
+        held = np.zeros(self.n, bool)
+        for _ in range(self.config.release_guard_rounds):
+            keys = self._crossing_keys(g)
+            new = keys[~np.isin(keys, allowed)]
+            if not len(new):
+                return int(held.sum())
+            faces = np.unique(np.concatenate([new // len(self.faces), new % len(self.faces)]))
+            if held[self.faces[faces].ravel()].all():
+                held |= (self.incidence @ (self.incidence.T @ held.astype(np.float64))) > 0
+            held[self.faces[faces].ravel()] = True
+            g[held] = x[held]
+        g[:] = x
+        return self.n
 
     def _untangle(self, x: np.ndarray, body: "_Body | None") -> tuple[int, int]:
         """The settled cloth's self-intersections (where its parts were pressed together, as the
@@ -680,6 +713,12 @@ class _Body:
         n = (self.normals[self.F[face]] * bary[:, :, None]).sum(1)
         return q, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30), face
 
+    def outside(self, x: np.ndarray) -> np.ndarray:
+        """x (N, 3) with every vertex within ``clearance`` of the body (or inside) moved out along
+        the normal at its closest body point (a fresh search for every vertex)."""
+        self.refresh(x)
+        return self.project(x, None, None)[0]
+
     def signed_distance(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
         if exact:
             self.refresh(x)
@@ -714,6 +753,15 @@ class _Body:
             scale = np.where(lt <= hold, 1.0, hold / np.maximum(lt, 1e-30))
             x[c] -= scale[:, None] * dt
         return x, c
+
+
+def start_outside(init_vertices: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,
+                  config: Config | None = None) -> np.ndarray:
+    """A drape's start (N, 3) as :meth:`Draper.solve` takes it: the vertices inside the body
+    (B, 3), (G, 3) or within ``config.clearance_m`` of it moved out along the body's normal
+    (N, 3) float64; e.g. for another solver started where this one starts."""
+    cfg = config or Config()
+    return _Body(body_vertices, body_faces, cfg).outside(np.array(init_vertices, np.float64).reshape(-1, 3))
 
 
 def precompute(rest_vertices: np.ndarray, faces: np.ndarray, fabric: "str | Fabric" = "woven",
