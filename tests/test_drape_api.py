@@ -62,6 +62,12 @@ def test_mhclo_upload_is_draped_on_every_example(client: TestClient) -> None:
     bound = binding.fit(ex.vertices[0])
     moved = np.linalg.norm(np.asarray(basis.g) - bound, axis=1)
     assert np.median(moved) > 1e-3 and moved.max() < 0.10
+    # its strain map is a channel regressed over the drapes' own maps (not the positions')
+    assert basis.gs is not None and np.asarray(basis.Bs).shape == (hat["n_components"], len(bound))
+    from service.model.garments.tryon import strain_maps
+
+    own = strain_maps(bound, faces, np.asarray(basis.g)[None])[0]
+    assert np.abs(np.asarray(basis.gs) - own).max() > 1e-4
     from service.model.geometry.mesh import winding_numbers
 
     body = ctx.model.body_vertices(ex.vertices[0]).astype(np.float64)

@@ -247,7 +247,8 @@ def test_garment_basis_save_load_round_trip(model, tmp_path):
     EX = T.example_vertices(model, ex)
     skirt = D.make_demo_garments(model)["skirt"]
     basis = T.build_garment_basis(model, np.stack([skirt.fit(model, E) for E in EX]), skirt.faces, ex,
-                                  meta={"name": "skirt"})
+                                  meta={"name": "skirt"}, rest=skirt.fit(model, EX[0]))
+    assert basis.gs is not None and basis.Bs is not None  # the strain channel is stored too
     basis.save(tmp_path / "g1")
     back = T.GarmentBasis.load(tmp_path / "g1")
     for k in T.ARRAYS:
@@ -330,3 +331,33 @@ def test_winding_numbers_tell_inside_from_outside():
     pts = np.array([[0, 0, 0], [0.49, 0.49, 0.49], [0.51, 0, 0], [2, 2, 2], [0.6, 0.6, 0.0]])
     w = winding_numbers(pts, box.vertices, box.faces)
     np.testing.assert_allclose(w, [1, 1, 0, 0, 0], atol=1e-9)
+
+
+def test_the_strain_map_is_a_linear_channel_of_the_basis(model):
+    """With a rest shape the basis keeps the strain map (``tryon.vertex_strain`` against it) as
+    its own channel (gs, Bs), built like the positions: at the mean the mean fit's strain map,
+    from ``strain_fits`` where given (e.g. regressed over drapes); a basis without one (stored
+    before it existed) measures the map on the tried-on positions."""
+    ex = T.example_set(model, n=3)
+    EX = T.example_vertices(model, ex)
+    shirt = D.make_demo_garments(model)["tshirt"]
+    fits = np.stack([shirt.fit(model, E) for E in EX])
+    rest = 0.97 * fits[0]  # a size smaller than the mean fit: stretched on every example
+    basis = T.build_garment_basis(model, fits, shirt.faces, ex, rest=rest)
+    M = len(rest)
+    assert basis.gs.shape == (M,) and basis.Bs.shape == (ex.n, M)
+    S0 = T.strain_maps(rest, shirt.faces, fits)
+    assert S0.shape == (len(fits), M) and 0.02 < np.median(S0[0]) < 0.04
+    w0 = np.zeros(model.n_components)
+    np.testing.assert_allclose(T.strain_map(basis, w0, fits[0]), S0[0], atol=1e-6)
+    # the channel, not the positions: a given strain (0.1 at the mean, growing along component 0)
+    given = np.full((len(fits), M), 0.1, np.float32)
+    given[1], given[2] = 0.1 + 0.05, 0.1 - 0.05
+    b2 = T.build_garment_basis(model, fits, shirt.faces, ex, rest=rest, strain_fits=given)
+    w = w0.copy()
+    w[0] = ex.c * ex.sigma[0]
+    np.testing.assert_allclose(T.strain_map(b2, w, fits[0]), 0.15, atol=1e-6)
+    # no channel: measured on the vertices
+    b3 = T.build_garment_basis(model, fits, shirt.faces, ex)
+    assert b3.gs is None
+    np.testing.assert_allclose(T.strain_map(b3, w0, 1.02 * np.asarray(b3.g)), 0.02, atol=1e-4)

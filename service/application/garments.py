@@ -13,7 +13,7 @@ from typing import Any
 from service.model.body.model import BodyModel
 from service.model.garments.autofit import fit_to_examples
 from service.model.drape import DrapeError
-from service.model.garments.draped import draped_example_fits
+from service.model.garments.draped import DrapedFits, draped_example_fits
 from service.model.garments.catalogue import Material, RenderLayout, Texture
 from service.model.fitting.checks import FitError
 from service.model.fitting.fit import fit_body
@@ -243,11 +243,12 @@ class GarmentService(DemoCatalogue):
             return self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, layout, material,
                                      progress, bound=binding.fit, drape=drape)
         fits = self._bound_fits(binding) if fits is None else fits
-        rest = None
+        rest = strains = None
         if drape:  # its size: the garment as bound to the mean example avatar
             rest = fits[mean]
-            fits = self.drape_to_examples(rest, faces, fits, record.fabric, progress)
-        return self._store_one_size(record, fits, faces, layout, material, rest=rest, drape=drape)
+            d = self.drape_to_examples(rest, faces, fits, record.fabric, progress)
+            fits, strains = d.fits, d.strain_fits
+        return self._store_one_size(record, fits, faces, layout, material, rest=rest, drape=drape, strain_fits=strains)
 
     def _bound_fits(self, binding: Any) -> np.ndarray:
         """(E, N, 3) a bound garment's fit to every example avatar, checked (``Invalid``)."""
@@ -273,11 +274,13 @@ class GarmentService(DemoCatalogue):
         else:
             fits = sizing.per_size_fits(self.model, rests, faces, bodies_on,
                                         progress.scaled(0.0, 0.1 if drape else 0.9))
+        strains: list = [None] * len(fits)
         if drape:
             n = len(fits)
-            fits = [self.drape_to_examples(rests[s], faces, f, chart.fabric,
-                                           progress.scaled(0.1 + 0.8 * s / n, 0.8 / n, f"size {chart.labels[s]}: "))
-                    for s, f in enumerate(fits)]
+            draped = [self.drape_to_examples(rests[s], faces, f, chart.fabric,
+                                             progress.scaled(0.1 + 0.8 * s / n, 0.8 / n, f"size {chart.labels[s]}: "))
+                      for s, f in enumerate(fits)]
+            fits, strains = [d.fits for d in draped], [d.strain_fits for d in draped]
         progress(0.9, "building the clothing bases")
         bases = []
         for s, f in enumerate(fits):
@@ -285,7 +288,7 @@ class GarmentService(DemoCatalogue):
                     "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version,
                     "size": chart.labels[s]}
             bases.append(build_garment_basis(self.model, f, faces, self.examples.set, meta=meta, layout=layout,
-                                             material=material, rest=rests[s]))
+                                             material=material, rest=rests[s], strain_fits=strains[s]))
         fit = SZ.sized_garment_fit(self.model, rests, faces, bodies_on, chart.labels, chart.base, base_body,
                                    chart.fabric, list(chart.sizes[0]["measurements"]))
         self.bases.save_sizes(record.id, bases)
@@ -296,13 +299,13 @@ class GarmentService(DemoCatalogue):
                                          "fit": fit.to_meta(), "example_fits": "drape" if drape else "warp"})
 
     def drape_to_examples(self, rest: np.ndarray, faces: np.ndarray, warp_fits: np.ndarray, fabric: str,
-                          progress: Progress | None = None) -> np.ndarray:
+                          progress: Progress | None = None) -> DrapedFits:
         """The garment at its own size (``rest`` (N, 3), as uploaded on its body) settled on every
         example avatar by the cloth drape engine, each solve started from the warp fit there
         (``warp_fits`` (E, N, 3)), and on ``settings.drape_population`` population bodies
         (started from the warp fits' basis there): the example fits (E, N, 3) of its clothing
         basis, those of the least-squares basis through all the drapes when there are population
-        bodies (``garments.draped.draped_example_fits``). The one place a garment meets the
+        bodies, and those of its strain channel (``garments.draped.draped_example_fits``). The one place a garment meets the
         examples (per size, for graded garments). Raises ``DrapeError`` (degenerate rest shape,
         a drape that cannot settle)."""
         ex = self.examples
@@ -312,7 +315,7 @@ class GarmentService(DemoCatalogue):
         log.info("draped on %d bodies: %.1fs, %d of them settled, %d population bodies left out (it would end "
                  "inside them)", len(d.drapes), sum(s["seconds"] for s in d.stats),
                  sum(bool(s["settled"]) for s in d.stats), sum("failed" in s for s in d.stats))
-        return d.fits
+        return d
 
     def _fits_from_meshes(self, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:
         ex = self.examples
@@ -402,13 +405,14 @@ class GarmentService(DemoCatalogue):
 
     def _store_one_size(self, record: Garment, fits: np.ndarray, faces: np.ndarray, layout: RenderLayout | None,
                         material: Material | None, rest: np.ndarray | None = None, drape: bool = False,
-                        example_fits: str | None = None) -> Garment:
-        """A one-size garment's clothing basis from its example fits (E, N, 3) built and stored;
-        the record with its counts, ETag, girths (``fit``) and how its fits were made."""
+                        example_fits: str | None = None, strain_fits: np.ndarray | None = None) -> Garment:
+        """A one-size garment's clothing basis from its example fits (E, N, 3) (and those of its
+        strain channel (E, N), from the drapes) built and stored; the record with its counts,
+        ETag, girths (``fit``) and how its fits were made."""
         meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
                 "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version}
         basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta, layout=layout,
-                                    material=material, rest=rest)
+                                    material=material, rest=rest, strain_fits=strain_fits)
         fit = SZ.sized_garment_fit(self.model, np.asarray(fits[0])[None], faces, self.examples.vertices[0],
                                    record.size_labels(), 0, self.examples.vertices[0], record.fabric)
         self.bases.save(record.id, basis)
@@ -580,20 +584,21 @@ class GarmentService(DemoCatalogue):
                                      progress=progress.scaled(start, span))
         except ValueError as exc:
             return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
-        fits = result.fits
+        fits, strains = result.fits, None
         if self.settings.drape:
             # its size: the garment as uploaded on the body it was draped on (in the model's frame)
             progress(1.0 - share["basis"], "draping the garment on the example avatars")
             try:
-                fits = self.drape_to_examples(garment, faces, fits, record.fabric,
-                                              progress.scaled(1.0 - share["basis"], 0.8 * share["basis"], "draping: "))
+                d = self.drape_to_examples(garment, faces, fits, record.fabric,
+                                           progress.scaled(1.0 - share["basis"], 0.8 * share["basis"], "draping: "))
+                fits, strains = d.fits, d.strain_fits
             except DrapeError as exc:
                 return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
         progress(1.0 - share["basis"], "building the clothing basis")
         rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
         material = _upload_material(upload.texture, rgba, None, upload.layout)
         built = self._store_one_size(record, fits, faces, upload.layout, material, rest=garment,
-                                     drape=self.settings.drape)
+                                     drape=self.settings.drape, strain_fits=strains)
         return self._complete_build(built, progress)
 
     def _run_mhclo_build(self, record: Garment, upload: MhcloUpload, progress: MonotoneProgress) -> dict[str, Any]:

@@ -15,10 +15,10 @@ from service.model.garments import correctives
 from service.model.formats import gltf
 from service.model.body import lbs
 from service.model.body.model import BONES, BodyModel
-from service.model.geometry.mesh import mesh_edges, vertex_normals
+from service.model.geometry.mesh import vertex_normals
 from service.model.garments import sizing as SZ
 from service.model.garments.layering import layer_outfit
-from service.model.garments.tryon import CustomerBody, GarmentBasis, try_on
+from service.model.garments.tryon import CustomerBody, GarmentBasis, strain_map, try_on
 from service.records import Garment
 from service.storage.cache import VersionedLRU
 
@@ -170,14 +170,12 @@ def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray
 
 def fitmap_colors(kind: str, basis: GarmentBasis, record: Garment, v: np.ndarray, body: CustomerBody) -> np.ndarray:
     """COLOR_0 (M, 4) uint8 of a garment worn as ``v`` (M, 3) on ``body``: ``strain`` (each
-    vertex's largest edge stretch against the size's rest shape) or ``ease`` (its gap over
-    the body); ``sizing.strain_colors`` / ``ease_colors`` for the garment's fabric."""
+    vertex's mean edge stretch against the size's rest shape, from the basis's strain channel:
+    ``tryon.strain_map``) or ``ease`` (its gap over the body); ``sizing.strain_colors`` /
+    ``ease_colors`` for the garment's fabric."""
     fabric = record.fabric if record.fabric in SZ.FIT_THRESHOLDS else SZ.DEFAULT_FABRIC
     if kind == "strain":
-        edges = mesh_edges(np.asarray(basis.faces))
-        rest = np.asarray(basis.rest if basis.rest is not None else basis.g, np.float64)
-        rest_len = np.maximum(np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1), 1e-9)
-        return SZ.strain_colors(SZ.vertex_strain(np.asarray(v, np.float64), edges, rest_len), fabric)
+        return SZ.strain_colors(strain_map(basis, body.weights, v), fabric)
     nearest = body.push_binding(basis, v)[0][:, 0]
     nb = len(body.normals)
     return SZ.ease_colors(SZ.body_gap(v, body.vertices[:nb], body.normals, nearest), fabric)

@@ -791,12 +791,5 @@ def edge_strain(rest_vertices: np.ndarray, faces: np.ndarray, vertices: np.ndarr
     """Per-vertex stretch (N,): the mean over a vertex's edges of (length / rest length - 1);
     positive stretched, negative compressed (strain maps)."""
     rest = np.asarray(rest_vertices, np.float64)
-    x = np.asarray(vertices, np.float64)
     e = geometry.mesh_edges(np.asarray(faces))
-    l0 = np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1)
-    l1 = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
-    s = l1 / np.maximum(l0, 1e-30) - 1.0
-    n = len(rest)
-    tot = np.bincount(e.reshape(-1), np.repeat(s, 2), minlength=n)
-    cnt = np.bincount(e.reshape(-1), minlength=n)
-    return tot / np.maximum(cnt, 1)
+    return geometry.vertex_mean_strain(vertices, e, np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1))

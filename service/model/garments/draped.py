@@ -15,7 +15,7 @@ import numpy as np
 from service.model.drape import Config, drape_examples
 
 from . import garment as G
-from .tryon import population_weights
+from .tryon import population_weights, strain_maps
 
 
 # cloth this far off the skin in every drape a shopper sees (a basis's example drapes, a customer's
@@ -28,13 +28,16 @@ DRAPE_CLEARANCE_M = 2 * G.CLEARANCE
 
 @dataclass
 class DrapedFits:
-    """fits (E, M, 3) float32: the basis's example fits; drapes (E + P, M, 3): every drape that
-    settled (examples first, then the population bodies of ``weights`` (P, N)); stats: one per
-    body tried (a population body that failed: ``{"failed": reason}``)."""
+    """fits (E, M, 3) float32: the basis's example fits; strain_fits (E, M) float32: those of
+    its strain channel (``tryon.build_garment_basis``), fitted to the drapes' own strain maps;
+    drapes (E + P, M, 3): every drape that settled (examples first, then the population bodies
+    of ``weights`` (P, N)); stats: one per body tried (a population body that failed:
+    ``{"failed": reason}``)."""
     fits: np.ndarray
     drapes: np.ndarray
     weights: np.ndarray
     stats: list[dict]
+    strain_fits: np.ndarray
 
 
 def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarray, rest: np.ndarray,
@@ -64,6 +67,7 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
                                    config=Config(clearance_m=clearance_m), progress=progress,
                                    required=len(warp_fits), workers=workers)
     fits = drapes[: len(warp_fits)]
+    strains = None
     if len(W):
         # a population body the garment cannot be put on (too small for it: it would end inside)
         # is left out of the regression; the example avatars must all drape
@@ -72,4 +76,11 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
         drapes, W = drapes[ok], W[ok[len(warp_fits):]]
         g, B = G.regress_basis(drapes, np.vstack([examples.weights(), W]), examples.sigma)
         fits = G.example_equivalent(g, B, examples)
-    return DrapedFits(fits=fits, drapes=drapes, weights=W, stats=stats)
+        # the strain map regressed over the same drapes as its own channel: a tight garment's
+        # strain is not the strain of the regressed positions (their errors along short edges)
+        gs, Bs = G.regress_basis(strain_maps(rest, faces, drapes)[:, :, None], np.vstack([examples.weights(), W]),
+                                 examples.sigma)
+        strains = G.example_equivalent(gs, Bs, examples)[:, :, 0]
+    else:
+        strains = strain_maps(rest, faces, fits)
+    return DrapedFits(fits=fits, drapes=drapes, weights=W, stats=stats, strain_fits=strains)

@@ -742,16 +742,6 @@ def fit_gap_m(fabric: str, girth_cm: float = 95.0) -> float:
     return max(EASE_MAP_CONTACT_M * 2, girth_cm / 100 * mid_pct / 100 / (2 * np.pi))
 
 
-def vertex_strain(vertices: np.ndarray, edges: np.ndarray, rest_len: np.ndarray) -> np.ndarray:
-    """(M,) per-vertex stretch: the largest |edge| / rest - 1 over its edges (E, 2), at least 0
-    (a fold is not strain)."""
-    s = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) / rest_len - 1.0
-    out = np.zeros(len(vertices))
-    np.maximum.at(out, edges[:, 0], s)
-    np.maximum.at(out, edges[:, 1], s)
-    return out
-
-
 def _rgba(rgb: np.ndarray) -> np.ndarray:
     out = np.full((len(rgb), 4), 255, np.uint8)
     out[:, :3] = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)

@@ -29,7 +29,8 @@ from service.model.garments import garment as G
 from service.model.garments import skin_weights as SW
 from service.model.body.model import BONES
 from service.model.garments.catalogue import Material, RenderLayout, Texture
-from service.model.geometry.mesh import face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_normals
+from service.model.geometry.mesh import (face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_mean_strain,
+                                         vertex_normals)
 from service.model.formats.gltf import MeshTemplate
 from service.model.formats.gltf_buffers import vertex_tangents
 from service.model.garments.correctives import skin_under_faces
@@ -40,10 +41,10 @@ from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
 EXAMPLES = {"n": 32, "c": 0.5}
-ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "rest", "render_vertex", "render_uv",
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "rest", "gs", "Bs", "render_vertex", "render_uv",
           "render_faces")
 # normal basis, rest shape and render layout: bases saved before they existed load without them
-OPTIONAL = ("gn", "Bn", "rest", "render_vertex", "render_uv", "render_faces")
+OPTIONAL = ("gn", "Bn", "rest", "gs", "Bs", "render_vertex", "render_uv", "render_faces")
 MATERIAL_FILE = "material.json"
 TEXTURE_EXT = {"image/png": ".png", "image/jpeg": ".jpg"}
 
@@ -116,6 +117,8 @@ class GarmentBasis:
     gn: np.ndarray | None = None  # (M, 3) normals of the mean garment
     Bn: np.ndarray | None = None  # (N, M, 3) their basis (central differences, like B)
     rest: np.ndarray | None = None  # (M, 3) the garment's rest shape (its size; the strain map's reference)
+    gs: np.ndarray | None = None  # (M,) the strain map of the mean garment (vertex_strain against rest) ...
+    Bs: np.ndarray | None = None  # (N, M) ... and its basis: the strain map is a linear channel like the normals
     render_vertex: np.ndarray | None = None  # (R,) int32 welded vertex of each render vertex
     render_uv: np.ndarray | None = None  # (R, 2) float32, glTF convention (origin top-left)
     render_faces: np.ndarray | None = None  # (F, 3) int32 into the render vertices
@@ -276,13 +279,21 @@ def material_digest(material: Material | None) -> bytes:
 
 def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.ExampleSet,
                         meta: dict | None = None, layout: RenderLayout | None = None,
-                        material: Material | None = None, rest: np.ndarray | None = None) -> GarmentBasis:
+                        material: Material | None = None, rest: np.ndarray | None = None,
+                        strain_fits: np.ndarray | None = None) -> GarmentBasis:
     """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order);
-    rest: (M, 3) the garment's rest shape (its own size), kept for the strain map;
+    rest: (M, 3) the garment's rest shape (its own size), kept for the strain map, whose channel
+    (gs, Bs) is built from ``strain_fits`` (1 + 2N, M) (e.g. regressed over many drapes:
+    ``draped.DrapedFits``) or else from the fits' own strain maps (:func:`strain_maps`);
     layout: optional render layout over the M vertices (UVs), material: optional look."""
     g, B = G.build_basis(fits, examples)
     inc = face_incidence(np.asarray(faces), fits.shape[1])
     gn, Bn = G.build_basis(np.stack([vertex_normals(f, faces, inc) for f in fits]), examples)
+    gs = Bs = None
+    if rest is not None:
+        S = np.asarray(strain_fits if strain_fits is not None else strain_maps(rest, faces, fits), np.float64)
+        gs, Bs = G.build_basis(S[:, :, None], examples)
+        gs, Bs = gs[:, 0], Bs[:, :, 0]
     nb = model.n_body_vertices
     binding = G.bind_to_body(g, model.mean[:nb])
     skin_idx, skin_w = garment_skin_weights(model, g, faces, fits)
@@ -297,11 +308,43 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
             raise ValueError("the render layout refers to a vertex out of range")
     basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
                          skin_idx=skin_idx, skin_w=skin_w,
-                         gn=gn, Bn=Bn, meta=meta, rest=None if rest is None else np.asarray(rest, np.float32))
+                         gn=gn, Bn=Bn, meta=meta, rest=None if rest is None else np.asarray(rest, np.float32),
+                         gs=gs, Bs=Bs)
     basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
     basis.material = material
     meta["etag"] = basis_digest(basis)
     return basis
+
+
+def vertex_strain(vertices: np.ndarray, edges: np.ndarray, rest_len: np.ndarray) -> np.ndarray:
+    """(M,) the strain map's per-vertex stretch: the mean over its edges (E, 2) of |edge| /
+    rest - 1, at least 0 (a fold is not strain; the mean rather than the largest, so that one
+    sliver edge at a seam does not colour its vertex)."""
+    return np.maximum(vertex_mean_strain(vertices, edges, rest_len), 0.0)
+
+
+def strain_maps(rest: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> np.ndarray:
+    """(K, M) float32: the strain map (``vertex_strain``) of each of ``fits`` (K, M, 3)
+    against the rest shape (M, 3)."""
+    e = mesh_edges(np.asarray(faces))
+    r = np.asarray(rest, np.float64)
+    rest_len = np.linalg.norm(r[e[:, 0]] - r[e[:, 1]], axis=1)
+    return np.stack([vertex_strain(np.asarray(f, np.float64), e, rest_len) for f in fits]).astype(np.float32)
+
+
+def strain_map(basis: GarmentBasis, weights: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """(M,) the strain map of the garment tried on as ``vertices`` (M, 3) by a customer of
+    ``weights`` (N,): the basis's strain channel gs + w Bs where it has one (fitted to the
+    example drapes' own strain maps: the synthesised positions' millimetre errors along short
+    edges would read as strain), else ``vertex_strain`` of the vertices against the rest
+    shape (or the mean garment)."""
+    if basis.gs is not None and basis.Bs is not None:
+        return np.maximum(G.synthesize(np.asarray(basis.gs)[:, None], np.asarray(basis.Bs)[:, :, None], weights)[:, 0],
+                          0.0).astype(np.float64)
+    e = mesh_edges(np.asarray(basis.faces))
+    rest = np.asarray(basis.rest if basis.rest is not None else basis.g, np.float64)
+    rest_len = np.maximum(np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1), 1e-9)
+    return vertex_strain(np.asarray(vertices, np.float64), e, rest_len)
 
 
 def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -328,7 +371,8 @@ def basis_digest(basis: GarmentBasis) -> str:
     """The content digest of a basis (its ETag): geometry, skinning, render layout, material."""
     h = hashlib.sha256()
     for a in (basis.g, basis.B, basis.faces, basis.skin_idx, basis.skin_w,
-              *(x for x in (basis.render_vertex, basis.render_uv, basis.render_faces) if x is not None)):
+              *(x for x in (basis.render_vertex, basis.render_uv, basis.render_faces, basis.gs, basis.Bs)
+                if x is not None)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(material_digest(basis.material))
     return h.hexdigest()[:32]
@@ -349,7 +393,9 @@ def refresh_skinning(model, basis: GarmentBasis) -> GarmentBasis | None:
     out = GarmentBasis(g=np.asarray(basis.g), B=np.asarray(basis.B), faces=np.asarray(basis.faces),
                        binding=np.asarray(basis.binding), skin_idx=skin_idx, skin_w=skin_w,
                        gn=np.asarray(basis.gn), Bn=np.asarray(basis.Bn), meta=meta,
-                       rest=None if basis.rest is None else np.asarray(basis.rest))
+                       rest=None if basis.rest is None else np.asarray(basis.rest),
+                       gs=None if basis.gs is None else np.asarray(basis.gs),
+                       Bs=None if basis.Bs is None else np.asarray(basis.Bs))
     out.render_vertex, out.render_uv, out.render_faces = basis.render_vertex, basis.render_uv, basis.render_faces
     out.material = basis.material
     meta["etag"] = basis_digest(out)

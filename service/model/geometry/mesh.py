@@ -22,6 +22,16 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
+def vertex_mean_strain(vertices: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray) -> np.ndarray:
+    """(V,) per-vertex stretch: the mean over each vertex's edges (E, 2) of |edge| / rest
+    length (E,) - 1 (positive stretched, negative compressed; 0 on a vertex with no edge)."""
+    x = np.asarray(vertices, np.float64)
+    s = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / np.maximum(rest_lengths, 1e-30) - 1.0
+    tot = np.bincount(edges.reshape(-1), np.repeat(s, 2), minlength=len(x))
+    cnt = np.bincount(edges.reshape(-1), minlength=len(x))
+    return tot / np.maximum(cnt, 1)
+
+
 def face_incidence(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """(V, F) sparse vertex-face incidence: ``incidence @ face_values`` sums around vertices.
     Cache it per mesh: normals then cost one sparse product."""
