@@ -221,18 +221,19 @@ UNTANGLE_STILL_M = 1e-7  # untangle: a vertex moved less than this (m) in a roun
 
 
 def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np.ndarray | None = None,
-             after: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, int]:
+             after: Callable[[np.ndarray], np.ndarray] | None = None,
+             pairs: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """A mesh's self-intersections (:func:`intersecting_face_pairs`) smoothed out: each round,
     the vertices of the intersecting faces and their neighbours move halfway to the mean of
     their neighbours (uniform Laplacian smoothing, local to the tangle; a crumple, as a
     garment's armpit bound to a body, flattens in one or two rounds). ``keep`` (V,) bool:
     vertices that do not move; ``after``: applied to the vertices after each round (e.g. a
     body's contact, which may push the smoothed layers into each other again: the next round
-    sees that). Returns the vertices (V, 3) float64 and the face pairs still intersecting after
-    ``rounds``."""
+    sees that); ``pairs``: the mesh's intersecting face pairs (K, 2) if already found. Returns
+    the vertices (V, 3) float64 and the face pairs still intersecting after ``rounds``."""
     V = np.array(vertices, np.float64)
     F = np.asarray(faces, np.int64)
-    P = intersecting_face_pairs(V, F)
+    P = intersecting_face_pairs(V, F) if pairs is None else np.asarray(pairs, np.int64).reshape(-1, 2)
     if not len(P):
         return V, 0
     M = neighbour_mean(F, len(V))
