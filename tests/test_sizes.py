@@ -169,6 +169,24 @@ def _lengths(fit: S.SizeFit) -> set[str]:
     return {r for r, d in zip(S.REGIONS, fit.design_cm) if np.isfinite(d) and r in S.LENGTH_REGIONS}
 
 
+def test_the_pages_fit_map_legends_match_the_colours() -> None:
+    """The page's legend for each fit map (``web_client/app.js``: a CSS gradient of three stops)
+    runs through the same hues as the GLB's colours: each stop's dominant channel is that of
+    ``strain_colors`` / ``ease_colors`` at the scale's start, middle and end."""
+    import re
+    from pathlib import Path
+
+    js = (Path(__file__).resolve().parents[1] / "web_client" / "app.js").read_text()
+    lim = S.FIT_THRESHOLDS["knit"].strain_limit_pct / 100
+    mid = S.fit_gap_m("knit")
+    expected = {"strain": S.strain_colors(np.array([0.0, lim / 2, lim]), "knit"),
+                "ease": S.ease_colors(np.array([0.0, mid, S.EASE_MAP_HANG_M]), "knit")}
+    for kind, colours in expected.items():
+        stops = re.search(kind + r": \{ css: 'linear-gradient\(to right, (#\w{6}), (#\w{6}), (#\w{6})\)'", js).groups()
+        legend = [[int(h[i:i + 2], 16) for i in (1, 3, 5)] for h in stops]
+        assert [int(np.argmax(c)) for c in legend] == [int(np.argmax(c[:3])) for c in colours], (kind, stops)
+
+
 def test_length_regions_of_catalogue_garments(model) -> None:
     """Long sleeves get a sleeve, T-shirt sleeves do not; trousers an inseam and no hem; tops
     and skirts a hem; the lengths sit where the garments end (a long sleeve near the wrist,

@@ -1179,7 +1179,7 @@ const REGION_NAMES = { chest: 'chest', bust: 'bust', waist: 'waist', hip: 'hips'
   upper_arm: 'upper arms', shoulder: 'shoulders', shoulders: 'shoulders', neck: 'neck', calf: 'calves', seat: 'seat' };
 const LENGTH_NAMES = { sleeve: 'sleeves', inseam: 'legs', leg: 'legs', hem: 'hem', length: 'length', rise: 'rise', torso: 'body' };
 const FITMAP_LEGEND = {
-  strain: { css: 'linear-gradient(to right, #2f5bd3, #f2f2f2, #d62b2b)', labels: ['at rest', 'stretched', "at the fabric's limit"] },
+  strain: { css: 'linear-gradient(to right, #2f5bd3, #2ca02c, #d62b2b)', labels: ['at rest', 'stretched', "at the fabric's limit"] },
   ease: { css: 'linear-gradient(to right, #d62b2b, #2ca02c, #2f5bd3)', labels: ['presses the body', 'fits', 'hangs loose'] },
 };
 

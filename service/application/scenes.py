@@ -168,14 +168,16 @@ def look_mesh(basis: GarmentBasis, record: Garment, v: np.ndarray, n: np.ndarray
     return mesh
 
 
-def fitmap_colors(kind: str, basis: GarmentBasis, record: Garment, v: np.ndarray, body: CustomerBody) -> np.ndarray:
+def fitmap_colors(kind: str, basis: GarmentBasis, record: Garment, v: np.ndarray, body: CustomerBody,
+                  synthesised: bool = True) -> np.ndarray:
     """COLOR_0 (M, 4) uint8 of a garment worn as ``v`` (M, 3) on ``body``: ``strain`` (each
-    vertex's mean edge stretch against the size's rest shape, from the basis's strain channel:
-    ``tryon.strain_map``) or ``ease`` (its gap over the body); ``sizing.strain_colors`` /
-    ``ease_colors`` for the garment's fabric."""
+    vertex's mean edge stretch against the size's rest shape: ``tryon.strain_map``, from the
+    basis's strain channel for a basis try-on (``synthesised``), measured on v for the customer's
+    own drape) or ``ease`` (its gap over the body); ``sizing.strain_colors`` / ``ease_colors`` for
+    the garment's fabric."""
     fabric = record.fabric if record.fabric in SZ.FIT_THRESHOLDS else SZ.DEFAULT_FABRIC
     if kind == "strain":
-        return SZ.strain_colors(strain_map(basis, body.weights, v), fabric)
+        return SZ.strain_colors(strain_map(basis, body.weights, v, synthesised), fabric)
     nearest = body.push_binding(basis, v)[0][:, 0]
     nb = len(body.normals)
     return SZ.ease_colors(SZ.body_gap(v, body.vertices[:nb], body.normals, nearest), fabric)
@@ -271,8 +273,8 @@ def outfit_glb(model: BodyModel, body: CustomerBody, garments: list[tuple[Garmen
                 worn[i] = v.astype(np.float32)
                 normals[i] = basis.normals(worn[i])
     garment_meshes = [look_mesh(basis, rec, v, n, template, sk,
-                                None if fitmap is None else fitmap_colors(fitmap, basis, rec, v, body))
-                      for v, n, sk, (rec, basis) in zip(worn, normals, skins, garments)]
+                                None if fitmap is None else fitmap_colors(fitmap, basis, rec, v, body, g is None))
+                      for g, v, n, sk, (rec, basis) in zip(given, worn, normals, skins, garments)]
     if callable(poses):
         poses = poses()
     if poses:

@@ -332,13 +332,14 @@ def strain_maps(rest: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> np.nda
     return np.stack([vertex_strain(np.asarray(f, np.float64), e, rest_len) for f in fits]).astype(np.float32)
 
 
-def strain_map(basis: GarmentBasis, weights: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+def strain_map(basis: GarmentBasis, weights: np.ndarray, vertices: np.ndarray, synthesised: bool = True) -> np.ndarray:
     """(M,) the strain map of the garment tried on as ``vertices`` (M, 3) by a customer of
-    ``weights`` (N,): the basis's strain channel gs + w Bs where it has one (fitted to the
-    example drapes' own strain maps: the synthesised positions' millimetre errors along short
-    edges would read as strain), else ``vertex_strain`` of the vertices against the rest
-    shape (or the mean garment)."""
-    if basis.gs is not None and basis.Bs is not None:
+    ``weights`` (N,): for a basis try-on (``synthesised``), the basis's strain channel gs + w Bs
+    where it has one (fitted to the example drapes' own strain maps: the synthesised positions'
+    millimetre errors along short edges would read as strain); else (the customer's own drape,
+    or a basis without the channel) ``vertex_strain`` of the vertices against the rest shape
+    (or the mean garment)."""
+    if synthesised and basis.gs is not None and basis.Bs is not None:
         return np.maximum(G.synthesize(np.asarray(basis.gs)[:, None], np.asarray(basis.Bs)[:, :, None], weights)[:, 0],
                           0.0).astype(np.float64)
     e = mesh_edges(np.asarray(basis.faces))
