@@ -358,7 +358,7 @@ def test_the_strain_map_is_a_linear_channel_of_the_basis(model):
     w[0] = ex.c * ex.sigma[0]
     np.testing.assert_allclose(T.strain_map(b2, w, fits[0]), 0.15, atol=1e-6)
     # the customer's own drape (not synthesised): measured on its vertices
-    np.testing.assert_allclose(T.strain_map(b2, w, fits[0], synthesised=False), S0[0], atol=1e-6)
+    np.testing.assert_allclose(T.strain_map(b2, w, fits[0], synthesised=False), S0[0], atol=1e-4)
     # no channel: measured on the vertices
     b3 = T.build_garment_basis(model, fits, shirt.faces, ex)
     assert b3.gs is None
