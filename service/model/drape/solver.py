@@ -33,7 +33,8 @@ Applications", 2014, Sec. 6.1 friction: tangential displacement cancelled up to 
 penetration depth). An optional first stage (``Config.release_iterations``, off by default)
 runs at the fabric's stiffness without friction or gravity, so that a start made to measure (the
 warp fit, stretched on a body larger than the garment) lets go of that stretch before friction
-holds the cloth where it lies. Where the settled cloth still crosses itself (two layers pressed together
+holds the cloth where it lies (a vertex whose move there would make its face cross another part
+of the cloth goes back where it was). Where the settled cloth still crosses itself (two layers pressed together
 between an arm and the torso), the crossing is smoothed out locally (``geometry.untangle``) and
 the body contact applied again; before that, the strain limit and the body contact in turn for a
 few rounds (the contact passes pull edges long in the crease between arm and torso).
@@ -100,8 +101,8 @@ class Config:
     release_iterations: int = 0  # with a body, first this many (at most max_iterations / 8) at the fabric's stiffness
     # without friction or gravity: a start made to measure (the warp fit, stretched on a body larger than the garment)
     # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
-    # holds up slides down meanwhile. Off by default: the retraction presses sleeves through side panels in armpits
-    # (docs/drape.md, Figures)
+    # holds up slides down meanwhile. Off by default: it makes drapes less repeatable (the same drape from a start
+    # moved by 2 mm ends 5.8 mm apart instead of 2.4: docs/drape.md, Figures)
     release_guard_rounds: int = 8  # in that stage, vertices of faces that newly cross another part of the cloth go back
     # to where they were, and their neighbours too, over up to this many widening rounds (0: no guard)
     final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
