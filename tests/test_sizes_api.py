@@ -244,7 +244,8 @@ def test_fit_map(client: TestClient, sized: dict, validate_glb) -> None:
         glb = valid_glb(validate_glb, r.content)
         assert glb["colors"] is not None and glb["colors"].shape == (len(glb["positions"]), 4)
         red[size] = float(glb["colors"][:, 0].mean())
-    assert red["48"] > red["52"] + 0.05, red
+    # (the map's stretch is each vertex's mean edge stretch: on this suit the small size is ~1.6x as red)
+    assert red["48"] > red["52"] + 0.02 and red["48"] > 1.4 * red["52"], red
     plain = client.get(url, params={"size": "52"}, headers=auth)
     assert valid_glb(validate_glb, plain.content)["colors"] is None
     for params in ({"fitmap": "ease"}, {"fitmap": "ease", "compression": "quantize"},
