@@ -363,3 +363,25 @@ def test_the_strain_map_is_a_linear_channel_of_the_basis(model):
     b3 = T.build_garment_basis(model, fits, shirt.faces, ex)
     assert b3.gs is None
     np.testing.assert_allclose(T.strain_map(b3, w0, 1.02 * np.asarray(b3.g)), 0.02, atol=1e-4)
+
+
+def test_the_push_outs_compiled_diffusion_equals_scipys(model, monkeypatch):
+    """``garment.push_out`` diffuses its pushes through the smoother's columns of the pushed
+    vertices: the compiled loop (``kernels.columns_product``) gives scipy's ``S[:, bad] @ X``
+    bit for bit."""
+    from service.model.geometry import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed")
+    ex = T.example_set(model, n=3)
+    EX = T.example_vertices(model, ex)
+    shirt = D.make_demo_garments(model)["tshirt"]
+    basis = T.build_garment_basis(model, np.stack([shirt.fit(model, E) for E in EX]), shirt.faces, ex)
+    body = T.customer_body(model, model.population["weights"][7])
+    out = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(G, "COMPILED", compiled)
+        v = 0.97 * np.asarray(basis.g)  # shrunk: many vertices inside, pushed out
+        out[compiled] = G.push_out(v, body.vertices, body.normals, body.push_binding(basis, v)[0], basis.smoother())
+    assert out[True][1] == out[False][1] > 100
+    np.testing.assert_array_equal(out[True][0], out[False][0])

@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from service.model.geometry import kernels
 from service.model.geometry.mesh import closest_points_on_mesh, face_bounds, neighbour_mean, row_dot
 
 CLEARANCE = 0.003  # metres between skin and cloth after push-out
@@ -34,6 +35,8 @@ LAYER_GAP = 0.004  # extra clearance per layer (outer garments over inner ones)
 # exact penetration test); more candidates cost a gather and an argmin per try-on.
 BIND_K = 1
 SMOOTHING = {"iterations": 3, "alpha": 0.5}
+
+COMPILED = True  # the push-out's diffusion of its pushes in a compiled loop (geometry.kernels) where numba is there
 
 
 @dataclass
@@ -240,7 +243,12 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     if smoother is not None:
         # diffuse the pushes to the neighbours (only the pushed vertices' columns of S), and
         # keep each pushed vertex's full push: the garment stays smooth and outside
-        disp = np.asarray(smoother[:, bad] @ required, np.float32)
+        if COMPILED and kernels.AVAILABLE and sp.isspmatrix_csc(smoother):
+            disp = np.zeros_like(G)
+            kernels.columns_product(smoother.indptr, smoother.indices, smoother.data, bad,
+                                    np.ascontiguousarray(required, np.float32), disp)
+        else:
+            disp = np.asarray(smoother[:, bad] @ required, np.float32)
     else:
         disp = np.zeros_like(G)
     # each pushed vertex ends at least ``clearance`` out along its body normal

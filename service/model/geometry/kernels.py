@@ -55,7 +55,8 @@ def _compiled() -> SimpleNamespace:
                                                     vertex_normals=jit(_vertex_normals),
                                                     strain_limit_pass=jit(_strain_limit_pass),
                                                     faces_cross=jit(_faces_cross),
-                                                    contact_project=jit(_contact_project))
+                                                    contact_project=jit(_contact_project),
+                                                    columns_product=jit(_columns_product))
     return _compiled_kernels
 
 
@@ -107,6 +108,11 @@ def faces_cross(V, F, pairs, c, r, hit):
 def contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact):
     """Compiled :func:`_contact_project`."""
     return _compiled().contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact)
+
+
+def columns_product(indptr, indices, data, cols, X, out):
+    """Compiled :func:`_columns_product`."""
+    return _compiled().columns_product(indptr, indices, data, cols, X, out)
 
 
 def _closest_on_triangle(px, py, pz, V, F, f):
@@ -507,3 +513,19 @@ def warm() -> None:
     e = np.array([[0, 1]], np.int64)
     strain_limit_pass(V.copy(), e, np.ones(1), np.ones(3), np.zeros((3, 3)), np.zeros(3))
     faces_cross(V, F, np.zeros((1, 2), np.int64), c, np.ones(1), np.zeros(1, bool))
+
+
+def _columns_product(indptr, indices, data, cols, X, out):
+    """out (M, 3) += S[:, cols] @ X for a CSC matrix S (M, M) (indptr, indices, data) and X
+    (len(cols), 3): what scipy's ``S[:, cols] @ X`` computes (the columns in the order of cols,
+    each column's entries in stored order: the same sums, bit for bit), without building the
+    column slice (the try-on's push-out diffuses the pushes of the vertices it moved)."""
+    for c in range(cols.shape[0]):
+        j = cols[c]
+        x0, x1, x2 = X[c, 0], X[c, 1], X[c, 2]
+        for k in range(indptr[j], indptr[j + 1]):
+            i = indices[k]
+            v = data[k]
+            out[i, 0] += v * x0
+            out[i, 1] += v * x1
+            out[i, 2] += v * x2
