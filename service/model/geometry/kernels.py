@@ -6,7 +6,8 @@ no temporaries. The fitting's kernels (:func:`pose_jacobian_into`, :func:`pair_r
 what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations`` compute with
 numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them); so do the
 cloth drape's (:func:`membrane`, :func:`vertex_normals`, :func:`strain_limit_pass`,
-:func:`contact_project`: what ``drape.solver`` computes with numpy and sparse products).
+:func:`contact_project`: what ``drape.solver`` computes with numpy and sparse products). The
+try-on's push-out (:func:`columns_product`) sums what scipy's sparse product sums, in its order.
 ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is set): callers
 then use the numpy path.
 
