@@ -39,8 +39,7 @@ from service.model.drape import Config, precompute
 from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
 from service.settings import Settings
 from service.model.garments.tryon import (build_garment_basis, customer_body, example_set, example_vertices, strain_map,
-                                          try_on, vertex_strain)
-from service.model.geometry.mesh import mesh_edges
+                                          strain_maps, try_on)
 from tests.bench.common import median_ms, read_ansur
 from tests.bench.drape import _subdivide
 
@@ -104,18 +103,15 @@ def _basis_vs_drapes(basis, drapes: list, rest: np.ndarray, faces: np.ndarray) -
     """A size's basis try-on (as served: synthesis + push-out) on each customer body vs that
     size draped directly there (``drapes``: (customer body, draped vertices)): vertex distance
     (mm) and the strain maps' difference (points): the map as served (``tryon.strain_map``: the
-    basis's strain channel) vs ``tryon.vertex_strain`` of the drape, and beside it the map
+    basis's strain channel) vs the drape's own (``tryon.strain_maps``), and beside it the map
     measured on the tried-on positions instead of the channel (``strain_from_positions_*``)."""
-    e_idx = mesh_edges(np.asarray(faces))
-    r = np.asarray(rest, np.float64)
-    rest_len = np.linalg.norm(r[e_idx[:, 0]] - r[e_idx[:, 1]], axis=1)
     errs, strain_pts, pos_pts = [], [], []
     for cb, draped in drapes:
         tried = np.asarray(try_on(basis, cb)[0], np.float64)
         errs.append(np.linalg.norm(tried - draped, axis=1))
-        truth = vertex_strain(np.asarray(draped, np.float64), e_idx, rest_len)
+        truth = strain_maps(rest, faces, [draped])[0]
         strain_pts.append(100 * np.abs(strain_map(basis, cb.weights, tried) - truth))
-        pos_pts.append(100 * np.abs(vertex_strain(tried, e_idx, rest_len) - truth))
+        pos_pts.append(100 * np.abs(strain_map(basis, cb.weights, tried, synthesised=False) - truth))
     e, sp, pp = 1000 * np.concatenate(errs), np.concatenate(strain_pts), np.concatenate(pos_pts)
     return {"customers": len(drapes), "mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99)),
             "strain_mean_pts": float(sp.mean()), "strain_p99_pts": float(np.percentile(sp, 99)),

@@ -67,19 +67,18 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
                                    config=Config(clearance_m=clearance_m), progress=progress,
                                    required=len(warp_fits), workers=workers)
     fits = drapes[: len(warp_fits)]
-    strains = None
     if len(W):
         # a population body the garment cannot be put on (too small for it: it would end inside)
         # is left out of the regression; the example avatars must all drape
         ok = np.isfinite(drapes).all(axis=(1, 2))
         ok[: len(warp_fits)] = True
         drapes, W = drapes[ok], W[ok[len(warp_fits):]]
-        g, B = G.regress_basis(drapes, np.vstack([examples.weights(), W]), examples.sigma)
+        weights = np.vstack([examples.weights(), W])
+        g, B = G.regress_basis(drapes, weights, examples.sigma)
         fits = G.example_equivalent(g, B, examples)
         # the strain map regressed over the same drapes as its own channel: a tight garment's
         # strain is not the strain of the regressed positions (their errors along short edges)
-        gs, Bs = G.regress_basis(strain_maps(rest, faces, drapes)[:, :, None], np.vstack([examples.weights(), W]),
-                                 examples.sigma)
+        gs, Bs = G.regress_basis(strain_maps(rest, faces, drapes)[:, :, None], weights, examples.sigma)
         strains = G.example_equivalent(gs, Bs, examples)[:, :, 0]
     else:
         strains = strain_maps(rest, faces, fits)

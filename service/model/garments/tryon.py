@@ -341,11 +341,8 @@ def strain_map(basis: GarmentBasis, weights: np.ndarray, vertices: np.ndarray, s
     (or the mean garment)."""
     if synthesised and basis.gs is not None and basis.Bs is not None:
         return np.maximum(G.synthesize(np.asarray(basis.gs)[:, None], np.asarray(basis.Bs)[:, :, None], weights)[:, 0],
-                          0.0).astype(np.float64)
-    e = mesh_edges(np.asarray(basis.faces))
-    rest = np.asarray(basis.rest if basis.rest is not None else basis.g, np.float64)
-    rest_len = np.maximum(np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1), 1e-9)
-    return vertex_strain(np.asarray(vertices, np.float64), e, rest_len)
+                          0.0)
+    return strain_maps(basis.rest if basis.rest is not None else basis.g, basis.faces, [vertices])[0]
 
 
 def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
