@@ -97,8 +97,9 @@ class Settings(BaseSettings):
         default=192,
         validation_alias="TRYON_DRAPE_POPULATION",
         ge=0,
-        description="With TRYON_DRAPE on: population bodies (drawn from the body model's own distribution) a "
-        "garment is also draped on at its build, the clothing basis then being the least-squares line through "
+        description="With TRYON_DRAPE on: people of the body model's training population (three quarters of the "
+        "garment's gender, half each for unisex) a garment is also draped on at its build, the clothing basis then "
+        "being the least-squares line through "
         "the example and population drapes (a drape is not linear in the body); 0: central differences of the "
         "examples alone.",
     )

@@ -33,6 +33,11 @@ def test_basis_is_exact_for_garments_linear_in_the_weights(model):
     np.testing.assert_allclose(G.synthesize(g, B, w), expect, atol=2e-5)
 
 
+def _normal_weights(examples: G.ExampleSet, count: int, seed: int = 0) -> np.ndarray:
+    """(count, N) weights of independent normal components of std sigma_i: a synthetic population."""
+    return np.random.default_rng(seed).standard_normal((count, examples.n)) * examples.sigma[None, :]
+
+
 def test_regressed_basis_is_exact_for_linear_fits_and_stored_as_examples(model):
     """G.regress_basis through linear data recovers it; G.example_equivalent gives example fits
     whose central differences (build_basis) are that basis exactly."""
@@ -40,7 +45,7 @@ def test_regressed_basis_is_exact_for_linear_fits_and_stored_as_examples(model):
     rng = np.random.default_rng(2)
     g_true = rng.normal(size=(30, 3))
     B_true = rng.normal(size=(5, 30, 3))
-    W = np.vstack([ex.weights(), T.population_weights(ex, 20)])
+    W = np.vstack([ex.weights(), _normal_weights(ex, 20)])
     fits = g_true[None] + np.einsum("ki,imd->kmd", W, B_true)
     g, B = G.regress_basis(fits, W, ex.sigma, ridge=0.0)
     np.testing.assert_allclose(g, g_true, atol=1e-4)
@@ -52,16 +57,33 @@ def test_regressed_basis_is_exact_for_linear_fits_and_stored_as_examples(model):
         G.regress_basis(fits[:4], W[:4], ex.sigma)
 
 
+def test_population_sample_draws_real_people_of_the_garments_gender(model):
+    """T.population_sample: whole rows of the body model's training population, the garment's
+    gender POPULATION_GENDER_SHARE of them (half each without one), the same for a seed."""
+    pop_w = np.asarray(model.population["weights"], np.float64)
+    male = np.asarray(model.population["attributes"])[:, 0] >= 0.5
+    for gender, n_male in (("female", 10), ("male", 30), (None, 20), ("unisex", 20)):
+        W = T.population_sample(model, 40, gender)
+        assert W.shape == (40, model.n_components)
+        rows = [int(np.flatnonzero((pop_w == w).all(axis=1))[0]) for w in W]  # each a person of the population
+        assert int(male[rows].sum()) == n_male, gender
+        assert len(set(rows)) == 40  # without replacement
+    assert T.POPULATION_GENDER_SHARE == 0.75
+    np.testing.assert_array_equal(T.population_sample(model, 8, "male"), T.population_sample(model, 8, "male"))
+    assert not np.array_equal(T.population_sample(model, 8, seed=1), T.population_sample(model, 8, seed=2))
+    assert T.population_sample(model, 0).shape == (0, model.n_components)
+
+
 def test_regressed_basis_fits_a_kinked_garment_better_than_two_examples():
     """Cloth that hangs (constant) on small bodies and follows large ones (a kink at w = 0, as
     contact makes it): the least-squares line over the population misses it by less, over the
     population, than the central difference of two examples half a std from the mean."""
     ex = G.ExampleSet(n=1, c=0.5, sigma=np.array([1.0]))
-    W = np.vstack([ex.weights(), T.population_weights(ex, 200, seed=3)])
+    W = np.vstack([ex.weights(), _normal_weights(ex, 200, seed=3)])
     kink = lambda w: np.maximum(w, 0.0)[:, None, None] * np.ones((1, 4, 3))  # noqa: E731
     g, B = G.regress_basis(kink(W[:, 0]), W, ex.sigma)
     g0, B0 = G.build_basis(kink(ex.weights()[:, 0]), ex)
-    test = T.population_weights(ex, 500, seed=4)
+    test = _normal_weights(ex, 500, seed=4)
     truth = kink(test[:, 0])
     err = lambda g, B: np.mean([np.abs(G.synthesize(g, B, w) - t).mean() for w, t in zip(test, truth)])  # noqa: E731
     assert err(g, B) < 0.75 * err(g0, B0), (err(g, B), err(g0, B0))

@@ -48,7 +48,8 @@ def _suit_files() -> list:
 @pytest.fixture(scope="module")
 def sized(client: TestClient) -> dict:
     r = client.post("/v1/garments", data={"name": "Suit in sizes", "size_chart": json.dumps(CHART),
-                                          "base_size": "50", "fabric": "knit"}, files=_suit_files(), headers=KEY)
+                                          "base_size": "50", "fabric": "knit", "gender": "male"},
+                    files=_suit_files(), headers=KEY)
     assert r.status_code == 201, r.text
     return r.json()
 
@@ -62,7 +63,7 @@ def _customer(client: TestClient, measurements: dict) -> tuple[str, dict]:
 def test_record_shows_the_chart(client: TestClient, sized: dict) -> None:
     assert [s["label"] for s in sized["sizes"]] == ["48", "50", "52"]
     assert sized["sizes"][0]["measurements"] == CHART["48"]
-    assert sized["base_size"] == "50" and sized["fabric"] == "knit"
+    assert sized["base_size"] == "50" and sized["fabric"] == "knit" and sized["gender"] == "male"
     again = client.get(f"/v1/garments/{sized['id']}").json()
     assert again["sizes"] == sized["sizes"]
 
@@ -126,6 +127,7 @@ def test_try_on_per_size(client: TestClient, sized: dict) -> None:
     ({"size_chart": json.dumps({"S": {"chest_cm": 90}}), "base_size": "M"}, ["body", "base_size"], "not a size"),
     ({"base_size": "M"}, ["body", "base_size"], "size_chart"),
     ({"fabric": "silk"}, ["body", "fabric"], "woven, knit, stretch"),
+    ({"gender": "women"}, ["body", "gender"], "female|male|unisex"),
 ])
 def test_bad_charts_are_422_before_any_work(client: TestClient, fields: dict, loc: list, text: str) -> None:
     before = len(client.get("/v1/garments").json())

@@ -70,6 +70,10 @@ async def create_garment(
                     "texture coordinates (vt): the 'garment', the first of 'meshes', or the mhclo's 'obj'")] = None,
     color: Annotated[str | None, Form(pattern=r"^#?[0-9a-fA-F]{6}$", description="sRGB colour #rrggbb")] = None,
     layer: Annotated[int, Form(ge=0, le=9, description="Outfit layer (0 innermost)")] = DEFAULT_LAYER,
+    gender: Annotated[str | None, Form(pattern="^(female|male|unisex)$", description=(
+        "Who the garment is made for: female, male or unisex (default). With a `size_chart`, the sizes' bodies "
+        "are of this gender; with the drape, the population bodies its clothing basis is fitted over are "
+        "three quarters of this gender (half each for unisex)"))] = None,
 ) -> Garment:
     """Upload a garment: ``meshes`` (fitted to each example avatar: 201, its clothing basis is
     built and stored now), a MakeHuman ``mhclo`` + ``obj`` pair, or one ``garment`` draped on an
@@ -88,7 +92,7 @@ async def create_garment(
     if not garment_files and garment_sizes:
         raise invalid(("body", "garment_sizes"), "'garment_sizes' goes with files 'garment' (graded meshes)")
     chart = garments.chart(size_chart, base_size, fabric)
-    common = {"name": name, "owner": retailer, "color": color, "layer": layer, "chart": chart,
+    common = {"name": name, "owner": retailer, "color": color, "layer": layer, "chart": chart, "gender": gender,
               "texture": (await texture.read(), texture.filename) if texture is not None else None}
     if garment_files:
         files = [(await f.read(), f.filename) for f in garment_files]

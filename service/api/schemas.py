@@ -267,7 +267,8 @@ class GarmentResponse(BaseModel):
     on: str | None = Field(default=None, description="Garments draped on an example avatar: its id")
     textured: bool = Field(default=False, description="Whether its GLBs carry texture coordinates and a texture")
     category: str | None = Field(default=None, description="Demo catalogue: top, bottom, suit, shoes, hat")
-    gender: str | None = Field(default=None, description="Demo catalogue: female, male or unisex")
+    gender: str | None = Field(default=None, description="Who it is made for: female, male or unisex (the upload's "
+                                                         "`gender`, or the demo catalogue's); null: unisex")
     catalogue_id: str | None = Field(default=None, description="Demo catalogue: the compiled item's id")
     swatch: str | None = Field(default=None, description="Demo catalogue: thumbnail colour #rrggbb (sRGB)")
     sizes: list[GarmentSizeResponse] = Field(default_factory=list, description=(

@@ -167,16 +167,16 @@ class GarmentService(DemoCatalogue):
 
     def create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
                            layer: int, texture: tuple[bytes, str | None] | None = None,
-                           chart: Chart | None = None) -> Garment:
+                           chart: Chart | None = None, gender: str | None = None) -> Garment:
         """:meth:`_create_from_meshes` within the process's memory budget for decoding uploads."""
         need = sum(upload_memory(data, fname) for fname, data in files) + (upload_memory(*texture) if texture else 0)
         with self.limits.memory(need):
             return self._create_from_meshes(files, name=name, owner=owner, color=color, layer=layer, texture=texture,
-                                            chart=chart)
+                                            chart=chart, gender=gender)
 
     def _create_from_meshes(self, files: list[tuple[str, bytes]], *, name: str, owner: str, color: str | None,
                             layer: int, texture: tuple[bytes, str | None] | None = None,
-                            chart: Chart | None = None) -> Garment:
+                            chart: Chart | None = None, gender: str | None = None) -> Garment:
         """A garment fitted by the retailer to every example avatar: one mesh per example, in
         the order of ``/v1/example-avatars``, same vertices and faces in each. The first file's
         OBJ texture coordinates (``vt``) and the optional ``texture`` (bytes, filename) give
@@ -193,11 +193,12 @@ class GarmentService(DemoCatalogue):
         # pre-fitted meshes are the retailer's own example fits: used as they are (not draped)
         return self._build_and_store(fits, faces, name=name, owner=owner, source="meshes", color=rgba, layer=layer,
                                      fabric=chart.fabric if chart is not None else SZ.DEFAULT_FABRIC,
-                                     unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout))
+                                     unit=unit, layout=layout, material=_upload_material(tex, rgba, color, layout),
+                                     gender=gender)
 
     def create_from_mhclo(self, mhclo: bytes, obj: bytes, *, name: str, owner: str, color: str | None,
                           layer: int, texture: tuple[bytes, str | None] | None = None,
-                          chart: Chart | None = None) -> Garment:
+                          chart: Chart | None = None, gender: str | None = None) -> Garment:
         """A MakeHuman garment, fitted to every example avatar through its binding; the OBJ's
         texture coordinates and the optional ``texture`` (bytes, filename) give its look. With a
         size ``chart``: the garment as bound to the mean avatar is the base size, graded to
@@ -213,6 +214,7 @@ class GarmentService(DemoCatalogue):
         record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source="mhclo",
                          color=[float(c) for c in rgba], layer=int(layer), textured=is_textured(material, layout),
                          n_vertices=int(fits.shape[1]), n_faces=int(len(faces)),
+                         gender=gender,
                          **(chart.record_fields() if chart is not None and chart.sizes
                             else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}))
         if self.settings.drape:  # draping on every example takes minutes: a queued build job
@@ -246,7 +248,7 @@ class GarmentService(DemoCatalogue):
         rest = strains = None
         if drape:  # its size: the garment as bound to the mean example avatar
             rest = fits[mean]
-            d = self.drape_to_examples(rest, faces, fits, record.fabric, progress)
+            d = self.drape_to_examples(rest, faces, fits, record.fabric, progress, record.gender)
             fits, strains = d.fits, d.strain_fits
         return self._store_one_size(record, fits, faces, layout, material, rest=rest, drape=drape, strain_fits=strains)
 
@@ -278,7 +280,8 @@ class GarmentService(DemoCatalogue):
         if drape:
             n = len(fits)
             draped = [self.drape_to_examples(rests[s], faces, f, chart.fabric,
-                                             progress.scaled(0.1 + 0.8 * s / n, 0.8 / n, f"size {chart.labels[s]}: "))
+                                             progress.scaled(0.1 + 0.8 * s / n, 0.8 / n, f"size {chart.labels[s]}: "),
+                                             record.gender)
                       for s, f in enumerate(fits)]
             fits, strains = [d.fits for d in draped], [d.strain_fits for d in draped]
         progress(0.9, "building the clothing bases")
@@ -299,11 +302,12 @@ class GarmentService(DemoCatalogue):
                                          "fit": fit.to_meta(), "example_fits": "drape" if drape else "warp"})
 
     def drape_to_examples(self, rest: np.ndarray, faces: np.ndarray, warp_fits: np.ndarray, fabric: str,
-                          progress: Progress | None = None) -> DrapedFits:
+                          progress: Progress | None = None, gender: str | None = None) -> DrapedFits:
         """The garment at its own size (``rest`` (N, 3), as uploaded on its body) settled on every
         example avatar by the cloth drape engine, each solve started from the warp fit there
         (``warp_fits`` (E, N, 3)), and on ``settings.drape_population`` population bodies
-        (started from the warp fits' basis there): the example fits (E, N, 3) of its clothing
+        (started from the warp fits' basis there; of the garment's ``gender`` mostly, where it has
+        one: ``tryon.population_sample``): the example fits (E, N, 3) of its clothing
         basis, those of the least-squares basis through all the drapes when there are population
         bodies, and those of its strain channel (``garments.draped.draped_example_fits``). The one place a garment meets the
         examples (per size, for graded garments). Raises ``DrapeError`` (degenerate rest shape,
@@ -311,7 +315,8 @@ class GarmentService(DemoCatalogue):
         ex = self.examples
         cb = None if progress is None else (lambda f, msg: progress(f, msg))
         d = draped_example_fits(self.model, ex.set, ex.vertices, rest, faces, warp_fits, fabric,
-                                self.settings.drape_population, progress=cb, workers=self.settings.drape_workers)
+                                self.settings.drape_population, progress=cb, workers=self.settings.drape_workers,
+                                gender=gender)
         log.info("draped on %d bodies: %.1fs, %d of them settled, %d population bodies left out (it would end "
                  "inside them)", len(d.drapes), sum(s["seconds"] for s in d.stats),
                  sum(bool(s["settled"]) for s in d.stats), sum("failed" in s for s in d.stats))
@@ -452,7 +457,7 @@ class GarmentService(DemoCatalogue):
                       avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
                       texture: tuple[bytes, str | None] | None = None, chart: Chart | None = None,
                       graded: list[tuple[bytes, str | None]] | None = None,
-                      garment_sizes: list[str] | None = None) -> Garment:
+                      garment_sizes: list[str] | None = None, gender: str | None = None) -> Garment:
         """:meth:`_create_draped` for a requester under its cap of queued jobs, within the
         process's memory budget for decoding uploads (both checked before anything is parsed)."""
         self.limits.check_jobs()
@@ -461,13 +466,13 @@ class GarmentService(DemoCatalogue):
         with self.limits.memory(need):
             return self._create_draped(garment, garment_name, on=on, avatar=avatar, avatar_name=avatar_name,
                                        name=name, owner=owner, color=color, layer=layer, texture=texture,
-                                       chart=chart, graded=graded, garment_sizes=garment_sizes)
+                                       chart=chart, graded=graded, garment_sizes=garment_sizes, gender=gender)
 
     def _create_draped(self, garment: bytes, garment_name: str | None, *, on: str | None, avatar: bytes | None,
                        avatar_name: str | None, name: str, owner: str, color: str | None, layer: int,
                        texture: tuple[bytes, str | None] | None = None, chart: Chart | None = None,
                        graded: list[tuple[bytes, str | None]] | None = None,
-                       garment_sizes: list[str] | None = None) -> Garment:
+                       garment_sizes: list[str] | None = None, gender: str | None = None) -> Garment:
         """One garment draped on one body (an example avatar ``on``, default ``mean``, or the
         retailer's own ``avatar`` of any topology): checked now (422 before any job), then
         carried to every example avatar by a queued build job (:meth:`run_build`). The garment
@@ -511,6 +516,7 @@ class GarmentService(DemoCatalogue):
                             else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}),
                          color=[float(c) for c in rgba], layer=int(layer), unit=unit,
                          textured=is_textured(_upload_material(tex, rgba, color, layout), layout),
+                         gender=gender,
                          up=upload.up, on=upload.on, n_vertices=int(len(v)), n_faces=int(len(faces)))
         return self._queue_build(record, upload.to_bytes())
 
@@ -590,7 +596,8 @@ class GarmentService(DemoCatalogue):
             progress(1.0 - share["basis"], "draping the garment on the example avatars")
             try:
                 d = self.drape_to_examples(garment, faces, fits, record.fabric,
-                                           progress.scaled(1.0 - share["basis"], 0.8 * share["basis"], "draping: "))
+                                           progress.scaled(1.0 - share["basis"], 0.8 * share["basis"], "draping: "),
+                                           record.gender)
                 fits, strains = d.fits, d.strain_fits
             except DrapeError as exc:
                 return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
@@ -639,7 +646,7 @@ class GarmentService(DemoCatalogue):
         chart = Chart([s.model_dump() for s in record.sizes or []], record.base_size or "", record.fabric)
         progress(start, f"grading {len(chart.sizes)} sizes")
         try:
-            bodies = sizing.chart_bodies(self.model, chart)
+            bodies = sizing.chart_bodies(self.model, chart, record.gender)
             if upload.graded is not None:
                 rests = np.asarray(upload.graded, np.float64)
                 if T is not None:

@@ -23,6 +23,11 @@ def heldout_avatars(model) -> np.ndarray:
     return model.mean[None].astype(np.float64) + z["offsets"].astype(np.float64) * float(z["scale"])
 
 
+def heldout_genders() -> list[str]:
+    """The gender of each of :func:`heldout_avatars`, in the same order."""
+    return [str(g) for g in np.load(HELDOUT_AVATARS)["gender"]]
+
+
 def shared_data_dir() -> Path:
     env = os.environ.get("TRYON_SHARED_DATA")
     if env:

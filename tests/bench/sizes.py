@@ -17,9 +17,10 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
   sizes, through ``POST /v1/garments`` and its build job in process (the embedded store, the
   default Settings otherwise: ``TRYON_DRAPE_POPULATION`` bodies, ``TRYON_DRAPE_WORKERS`` processes);
 - per-size basis try-on vs direct drape: the first garment's XS basis as the default build makes
-  it (``TRYON_DRAPE`` on: that size draped on the example avatars and the population bodies; and,
-  beside it, as built with the drape off: warp fits) tried on held-out customers (10, or
-  ``--limit``) vs that size's rest shape draped directly on each (the drape engine, from the
+  it (``TRYON_DRAPE`` on: that size draped on the example avatars and the population bodies, three
+  quarters women: the garment's gender; and, beside it, as built with the drape off: warp fits)
+  tried on held-out women (50, or ``--limit``; every size of the chart among them, a drape that
+  cannot go on the body counted and left out) vs that size's rest shape draped directly on each (the drape engine, from the
   warp basis's try-on, at the clearance of the build and of the exact drape job); vertex distance and the strain maps' difference
   (percentage points: the map as served, from the basis's strain channel, vs the drape's own; beside
   it the map measured on the tried-on positions).
@@ -35,7 +36,7 @@ from service.model.garments import sizing as S
 from service.model.body.model import load_body_model
 from service.model.garments.catalogue import load_catalogue
 from service.model.body.shape import avatar_from_measurements
-from service.model.drape import Config, precompute
+from service.model.drape import Config, DrapeError, precompute
 from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
 from service.settings import Settings
 from service.model.garments.tryon import (build_garment_basis, customer_body, example_set, example_vertices, strain_map,
@@ -46,7 +47,7 @@ from tests.bench.drape import _subdivide
 # (catalogue id, gender, fabric): tops of both genders, a knit and a woven
 GARMENTS = (("womens-tshirt", "female", "knit"), ("mens-tshirt", "male", "knit"), ("striped-shirt", "male", "woven"))
 ROUND_TRIP_EASE_CM = 1.0
-DRAPE_CUSTOMERS = 10  # held-out customers the per-size basis try-on is checked on against direct drapes
+DRAPE_CUSTOMERS = 50  # held-out customers (of the garment's gender) the per-size basis try-on is checked on
 DRAPE_POPULATION = Settings.model_fields["drape_population"].default  # population bodies of the size's drape build
 DRAPE_WORKERS = Settings.model_fields["drape_workers"].default  # ... draped in this many processes
 CHARTED = ("chest", "waist", "hip")
@@ -218,13 +219,18 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     # drape job does); the strain maps (per-vertex stretch against the size's rest shape) of both
     rest0 = np.asarray(g0["rests"][0], np.float64)
     draper = precompute(rest0, g0["faces"], GARMENTS[0][2], Config(clearance_m=DRAPE_CLEARANCE_M))
-    customers = bodies_cache[: min(len(bodies_cache), limit or DRAPE_CUSTOMERS)]
-    drapes = []
-    for _, cust in customers:
+    gender0 = GARMENTS[0][1]
+    customers = [avatar_from_measurements(model, p["measurements"]) for p in people
+                 if p["measurements"]["gender"] == gender0][: limit or DRAPE_CUSTOMERS]
+    drapes, drape_failed = [], 0
+    for cust in customers:
         cb = customer_body(model, model.project(cust.vertices))
         tried = np.asarray(try_on(basis, cb)[0], np.float64)
-        drapes.append((cb, draper.solve(model.body_vertices(cb.vertices).astype(np.float64), model.body_faces,
-                                        tried).vertices))
+        try:
+            drapes.append((cb, draper.solve(model.body_vertices(cb.vertices).astype(np.float64), model.body_faces,
+                                            tried).vertices))
+        except DrapeError:  # the size cannot go on this body (it would end inside it)
+            drape_failed += 1
     basis_vs_drape_warp = {**_basis_vs_drapes(basis, drapes, rest0, g0["faces"]),
                            "garment": GARMENTS[0][0], "size": chart.labels[0], "basis": "warp (TRYON_DRAPE=false)"}
     # the size's basis as the default build makes it (TRYON_DRAPE on): its rest shape draped on the
@@ -232,12 +238,13 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     t = time.perf_counter()
     ex = example_set(model)
     d = draped_example_fits(model, ex, example_vertices(model, ex), rest0, g0["faces"], fits, GARMENTS[0][2],
-                            DRAPE_POPULATION, workers=DRAPE_WORKERS)
+                            DRAPE_POPULATION, workers=DRAPE_WORKERS, gender=gender0)
     t_drape_build = time.perf_counter() - t
     basis_d = build_garment_basis(model, d.fits, g0["faces"], ex, rest=rest0, strain_fits=d.strain_fits)
     basis_vs_drape = {**_basis_vs_drapes(basis_d, drapes, rest0, g0["faces"]),
                       "garment": GARMENTS[0][0], "size": chart.labels[0],
-                      "basis": f"drape (TRYON_DRAPE on, {DRAPE_POPULATION} population bodies)",
+                      "basis": f"drape (TRYON_DRAPE on, {DRAPE_POPULATION} population bodies, 3/4 {gender0})",
+                      "drape_failed": drape_failed,
                       "build_s": t_drape_build, "drapes": len(d.drapes)}
     # the same size subdivided (each face into four) until it has 10k vertices or more
     faces10, fits10 = np.asarray(g0["faces"], np.int64), np.asarray(fits)

@@ -15,7 +15,7 @@ import numpy as np
 from service.model.drape import Config, drape_examples
 
 from . import garment as G
-from .tryon import population_weights, strain_maps
+from .tryon import population_sample, strain_maps
 
 
 # cloth this far off the skin in every drape a shopper sees (a basis's example drapes, a customer's
@@ -43,23 +43,24 @@ class DrapedFits:
 def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarray, rest: np.ndarray,
                         faces: np.ndarray, warp_fits: np.ndarray, fabric: str, population: int,
                         progress: Callable[[float, str], None] | None = None,
-                        clearance_m: float = DRAPE_CLEARANCE_M, workers: int = 1) -> DrapedFits:
+                        clearance_m: float = DRAPE_CLEARANCE_M, workers: int = 1,
+                        gender: str | None = None) -> DrapedFits:
     """The garment (its rest shape: its own size) draped on every example avatar, each solve
-    started from its warp fit there, and on ``population`` bodies drawn from the body model's
-    distribution (``tryon.population_weights``), started from the warp fits' basis there. With
+    started from its warp fit there, and on ``population`` people of the body model's training
+    population (``tryon.population_sample``; ``gender``: the garment's, ``female``, ``male`` or
+    None for unisex), started from the warp fits' basis there. With
     population bodies the fits are those of the least-squares basis through all the drapes: a
     drape is not linear in the body (tight on large bodies, hanging on small ones), and the
     central difference of two examples half a std from the mean extrapolates it badly. Raises
     ``DrapeError`` naming the example avatar that failed; a population body that fails is left
     out (its stats say ``failed``). The cloth rests ``clearance_m`` off the skin."""
     warp_fits = np.asarray(warp_fits, np.float64)
-    W = population_weights(examples, population)
+    people = population_sample(model, population, gender)  # (P, K): whole bodies
+    W = people[:, : examples.n]  # the components the basis has
     shapes, inits = np.asarray(example_avatars), warp_fits
     if len(W):
         g0, B0 = G.build_basis(warp_fits, examples)
-        padded = np.zeros((len(W), model.n_components))
-        padded[:, : examples.n] = W
-        shapes = np.concatenate([shapes, model.vertices(padded)])
+        shapes = np.concatenate([shapes, model.vertices(people)])
         inits = np.concatenate([warp_fits, [G.synthesize(g0, B0, w) for w in W]])
     bodies = np.stack([model.body_vertices(X) for X in shapes]).astype(np.float64)
     drapes, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
