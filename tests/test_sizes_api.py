@@ -210,11 +210,11 @@ def test_graded_meshes_uploaded(client: TestClient) -> None:
     large, _ = _on_mean_obj(client, 1.03)
     chart = {"S": CHART["48"], "L": CHART["52"]}
     r = client.post("/v1/garments", data={"name": "Graded", "size_chart": json.dumps(chart), "base_size": "S",
-                                          "garment_sizes": "L,S", "fabric": "stretch"},
+                                          "garment_sizes": "L,S", "fabric": "stretch", "gender": "unisex"},
                     files=[("garment", ("l.obj", large, "model/obj")), ("garment", ("s.obj", small, "model/obj"))],
                     headers=KEY)
     g = _build(client, r)
-    assert [s["label"] for s in g["sizes"]] == ["S", "L"] and g["fabric"] == "stretch"
+    assert [s["label"] for s in g["sizes"]] == ["S", "L"] and g["fabric"] == "stretch" and g["gender"] == "unisex"
     cid, auth = _customer(client, CHART["50"])
     rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
     s, lg = rep["sizes"]
