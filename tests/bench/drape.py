@@ -266,8 +266,8 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
     rows["drape_repeatability_mm"] = {"value": float(rep_mm.mean()), "p99": float(np.percentile(rep_mm, 99)),
                                       "bodies": len(rep), "start_noise_mm": 1000 * REPEAT_START_NOISE_M}
     er, ec = 1000 * np.concatenate(err_reg), 1000 * np.concatenate(err_cd)
-    per_gender = {f"{g}_mean_mm": float(1000 * np.concatenate([e for e, eg in zip(err_reg, err_gender) if eg == g]).mean())
-                  for g in sorted(set(err_gender))}
+    per_gender = {f"{g}_mean_mm": float(1000 * np.concatenate([e for e, eg in zip(err_reg, err_gender)
+                                                               if eg == g]).mean()) for g in sorted(set(err_gender))}
     rows["basis_vs_drape_mean_mm"] = {"value": float(er.mean()), "goal": 3.0, "heldout": len(err_reg),
                                       "heldout_failed": heldout_failed, "population": population,
                                       "garment_gender": shirt.gender, **per_gender,
