@@ -388,9 +388,11 @@ def test_the_strain_map_is_a_linear_channel_of_the_basis(model):
 
 
 def test_the_push_outs_compiled_diffusion_equals_scipys(model, monkeypatch):
-    """``garment.push_out`` diffuses its pushes through the smoother's columns of the pushed
-    vertices: the compiled loop (``kernels.columns_product``) gives scipy's ``S[:, bad] @ X``
-    bit for bit."""
+    """``garment.push_out``'s vertex pass (the planes of the bound body vertices and of the
+    crease anchors, the pushes diffused through the smoother's columns of the pushed vertices,
+    each topped up to its depth) in one compiled loop (``kernels.push_vertices``) gives what
+    numpy and scipy's ``S[:, bad] @ X`` give, bit for bit, and so does the diffusion alone
+    (``kernels.columns_product``, for bindings of several body vertices)."""
     from service.model.geometry import kernels
 
     if not kernels.AVAILABLE:
@@ -400,10 +402,14 @@ def test_the_push_outs_compiled_diffusion_equals_scipys(model, monkeypatch):
     shirt = D.make_demo_garments(model)["tshirt"]
     basis = T.build_garment_basis(model, np.stack([shirt.fit(model, E) for E in EX]), shirt.faces, ex)
     body = T.customer_body(model, model.population["weights"][7])
-    out = {}
-    for compiled in (True, False):
-        monkeypatch.setattr(G, "COMPILED", compiled)
-        v = 0.97 * np.asarray(basis.g)  # shrunk: many vertices inside, pushed out
-        out[compiled] = G.push_out(v, body.vertices, body.normals, body.push_binding(basis, v)[0], basis.smoother())
-    assert out[True][1] == out[False][1] > 100
-    np.testing.assert_array_equal(out[True][0], out[False][0])
+    v = 0.97 * np.asarray(basis.g)  # shrunk: many vertices inside, pushed out
+    nearest, anchors, under = body.push_binding(basis, v)
+    assert len(anchors[0]) and len(under[0])
+    several = body.nearest(v, 3).astype(np.int32)
+    for args in ((nearest,), (nearest, G.CLEARANCE, anchors, under, np.asarray(basis.faces)), (several,)):
+        out = {}
+        for compiled in (True, False):
+            monkeypatch.setattr(G, "COMPILED", compiled)
+            out[compiled] = G.push_out(v, body.vertices, body.normals, args[0], basis.smoother(), *args[1:])
+        assert out[True][1] == out[False][1] > 100
+        np.testing.assert_array_equal(out[True][0], out[False][0])

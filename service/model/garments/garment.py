@@ -198,6 +198,10 @@ def crease_anchors(garment: np.ndarray, idx: np.ndarray, nearest: np.ndarray, bo
     return idx, q.astype(np.float32), fn.astype(np.float32), (0.5 * gap).astype(np.float32)
 
 
+_NO_ANCHORS = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+               np.zeros(0, np.float32))
+
+
 def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, binding: np.ndarray,
              smoother: sp.csc_matrix | None = None, clearance: float = CLEARANCE,
              anchors: tuple[np.ndarray, ...] | None = None,
@@ -223,6 +227,22 @@ def push_out(garment: np.ndarray, body: np.ndarray, body_normals: np.ndarray, bi
     float32, number of vertices moved)."""
     G = np.asarray(garment, np.float32)
     body = np.asarray(body, np.float32)
+    if (COMPILED and kernels.AVAILABLE and binding.shape[1] == 1 and sp.isspmatrix_csc(smoother)
+            and body_normals.dtype == np.float32 and smoother.dtype == np.float32):
+        # the vertex pass below in one compiled loop (the same float32 operations in the same
+        # order: the same result bit for bit), ~2x faster on a 20k-vertex garment
+        if anchors is not None and len(anchors[0]):
+            a, q, qn, most = (np.asarray(anchors[0], np.int64), np.asarray(anchors[1], np.float32),
+                              np.asarray(anchors[2], np.float32), np.asarray(anchors[3], np.float32))
+        else:
+            a, q, qn, most = _NO_ANCHORS
+        disp = np.zeros_like(G)
+        n_bad = kernels.push_vertices(G, body, body_normals, np.ascontiguousarray(binding[:, 0]), np.float32(clearance),
+                                      a, q, qn, most, smoother.indptr, smoother.indices, smoother.data, disp)
+        if not n_bad:
+            return _push_faces(G, body, body_normals, under, faces, clearance)
+        out, n_faces = _push_faces(G + disp, body, body_normals, under, faces, clearance)
+        return out, n_bad + n_faces
     if binding.shape[1] == 1:
         nb = binding[:, 0]
     else:
