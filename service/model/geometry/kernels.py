@@ -49,6 +49,7 @@ def _compiled() -> SimpleNamespace:
                 # the helper first: the kernels that call it resolve it from this module's
                 # globals when they are compiled
                 globals()["_closest_on_triangle"] = jit(_closest_on_triangle)
+                globals()["_add_column"] = jit(_add_column)
                 _compiled_kernels = SimpleNamespace(closest_faces=jit(_closest_faces), face_bounds=jit(_face_bounds),
                                                     winding_numbers=jit(_winding_numbers),
                                                     pose_jacobian_into=jit(_pose_jacobian_into),
@@ -533,14 +534,18 @@ def _columns_product(indptr, indices, data, cols, X, out):
     each column's entries in stored order: the same sums, bit for bit), without building the
     column slice (the try-on's push-out diffuses the pushes of the vertices it moved)."""
     for c in range(cols.shape[0]):
-        j = cols[c]
-        x0, x1, x2 = X[c, 0], X[c, 1], X[c, 2]
-        for k in range(indptr[j], indptr[j + 1]):
-            i = indices[k]
-            v = data[k]
-            out[i, 0] += v * x0
-            out[i, 1] += v * x1
-            out[i, 2] += v * x2
+        _add_column(indptr, indices, data, cols[c], X[c, 0], X[c, 1], X[c, 2], out)
+
+
+def _add_column(indptr, indices, data, j, x0, x1, x2, out):
+    """out (M, 3) += S[:, j] * (x0, x1, x2) for a CSC matrix S (indptr, indices, data), its
+    entries in stored order."""
+    for k in range(indptr[j], indptr[j + 1]):
+        i = indices[k]
+        v = data[k]
+        out[i, 0] += v * x0
+        out[i, 1] += v * x1
+        out[i, 2] += v * x2
 
 
 def _push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indices, data, disp):
@@ -572,13 +577,7 @@ def _push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indi
         d = depth[j]
         if d > 0:
             nbad += 1
-            x0, x1, x2 = d * N[j, 0], d * N[j, 1], d * N[j, 2]
-            for k in range(indptr[j], indptr[j + 1]):
-                i = indices[k]
-                v = data[k]
-                disp[i, 0] += v * x0
-                disp[i, 1] += v * x1
-                disp[i, 2] += v * x2
+            _add_column(indptr, indices, data, j, d * N[j, 0], d * N[j, 1], d * N[j, 2], disp)
     for j in range(M):
         d = depth[j]
         if d > 0:
