@@ -28,6 +28,18 @@ def heldout_genders() -> list[str]:
     return [str(g) for g in np.load(HELDOUT_AVATARS)["gender"]]
 
 
+def surface_distances(a: np.ndarray, b: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(2M,) metres: each vertex of mesh a (M, 3) to the surface of mesh b (M, 3), then each of b
+    to a's, both with ``faces`` (F, 3): how far apart the two shapes are, whatever the cloth's
+    sliding along itself (which the vertex-to-vertex distance counts too)."""
+    from service.model.geometry.mesh import closest_points_on_mesh
+
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    _, qa, _ = closest_points_on_mesh(a, b, faces)
+    _, qb, _ = closest_points_on_mesh(b, a, faces)
+    return np.r_[np.linalg.norm(a - qa, axis=1), np.linalg.norm(b - qb, axis=1)]
+
+
 def shared_data_dir() -> Path:
     env = os.environ.get("TRYON_SHARED_DATA")
     if env:

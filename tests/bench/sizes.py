@@ -21,7 +21,8 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
   quarters women: the garment's gender; and, beside it, as built with the drape off: warp fits)
   tried on held-out women (50, or ``--limit``; every size of the chart among them, a drape that
   cannot go on the body counted and left out) vs that size's rest shape draped directly on each (the drape engine, from the
-  warp basis's try-on, at the clearance of the build and of the exact drape job); vertex distance and the strain maps' difference
+  warp basis's try-on, at the clearance of the build and of the exact drape job); vertex distance, shape distance
+  (each vertex to the other mesh's surface, both ways: the cloth sliding along the body does not count) and the strain maps' difference
   (percentage points: the map as served, from the basis's strain channel, vs the drape's own; beside
   it the map measured on the tried-on positions).
 """
@@ -41,7 +42,7 @@ from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
 from service.settings import Settings
 from service.model.garments.tryon import (build_garment_basis, customer_body, example_set, example_vertices, strain_map,
                                           strain_maps, try_on)
-from tests.bench.common import median_ms, read_ansur
+from tests.bench.common import median_ms, read_ansur, surface_distances
 from tests.bench.drape import _subdivide
 
 # (catalogue id, gender, fabric): tops of both genders, a knit and a woven
@@ -103,18 +104,21 @@ def five_size_build() -> dict:
 def _basis_vs_drapes(basis, drapes: list, rest: np.ndarray, faces: np.ndarray) -> dict:
     """A size's basis try-on (as served: synthesis + push-out) on each customer body vs that
     size draped directly there (``drapes``: (customer body, draped vertices)): vertex distance
-    (mm) and the strain maps' difference (points): the map as served (``tryon.strain_map``: the
+    (mm), shape distance (``common.surface_distances``, mm) and the strain maps' difference (points): the map as served (``tryon.strain_map``: the
     basis's strain channel) vs the drape's own (``tryon.strain_maps``), and beside it the map
     measured on the tried-on positions instead of the channel (``strain_from_positions_*``)."""
-    errs, strain_pts, pos_pts = [], [], []
+    errs, surf, strain_pts, pos_pts = [], [], [], []
     for cb, draped in drapes:
         tried = np.asarray(try_on(basis, cb)[0], np.float64)
         errs.append(np.linalg.norm(tried - draped, axis=1))
+        surf.append(surface_distances(tried, draped, faces))
         truth = strain_maps(rest, faces, [draped])[0]
         strain_pts.append(100 * np.abs(strain_map(basis, cb.weights, tried) - truth))
         pos_pts.append(100 * np.abs(strain_map(basis, cb.weights, tried, synthesised=False) - truth))
     e, sp, pp = 1000 * np.concatenate(errs), np.concatenate(strain_pts), np.concatenate(pos_pts)
+    es = 1000 * np.concatenate(surf)
     return {"customers": len(drapes), "mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, 99)),
+            "surface_mean_mm": float(es.mean()), "surface_p99_mm": float(np.percentile(es, 99)),
             "strain_mean_pts": float(sp.mean()), "strain_p99_pts": float(np.percentile(sp, 99)),
             "strain_from_positions_mean_pts": float(pp.mean()),
             "strain_from_positions_p99_pts": float(np.percentile(pp, 99))}
@@ -297,6 +301,9 @@ def format_result(r: dict) -> str:
             f"{r['basis_vs_drape'].get('strain_from_positions_mean_pts', float('nan')):.1f}, p99 "
             f"{r['basis_vs_drape'].get('strain_from_positions_p99_pts', float('nan')):.1f})",
             "mean <= 3 mm, p99 <= 12 mm; strain within 2 points")] if r.get("basis_vs_drape") else []),
+        *([("  ... shape to shape (each vertex to the other's surface, both ways)",
+            f"mean {r['basis_vs_drape']['surface_mean_mm']:.1f} mm, p99 {r['basis_vs_drape']['surface_p99_mm']:.1f} mm",
+            "(no goal)")] if "surface_mean_mm" in r.get("basis_vs_drape", {}) else []),
         *([("  ... the same size's basis built with the drape off (warp fits)",
             f"mean {r['basis_vs_drape_warp']['mean_mm']:.1f} mm, p99 {r['basis_vs_drape_warp']['p99_mm']:.1f} mm; "
             f"strain map {r['basis_vs_drape_warp']['strain_mean_pts']:.1f} points mean, p99 "
