@@ -219,6 +219,34 @@ def test_compiled_local_step_and_strain_limit_match_numpy(monkeypatch):
     assert np.array_equal(y1[[0, 5]], 1.1 * x[[0, 5]])  # pinned vertices stay
 
 
+def test_compiled_trust_region_and_move_match_numpy():
+    """The iteration's trust region and largest move in compiled loops (``kernels.clamp_steps``,
+    ``kernels.max_move``) give numpy's results bit for bit: steps longer than the limit shortened
+    onto it along themselves, the others untouched; and the local step without its energy (the
+    solves with a body skip it) gives the same right-hand side."""
+    from service.model.geometry import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((500, 3))
+    g = x + 0.01 * rng.standard_normal((500, 3))
+    limit = 0.012
+    step = np.linalg.norm(g - x, axis=1)
+    far = step > limit
+    ref = g.copy()
+    ref[far] = x[far] + (g[far] - x[far]) * (limit / step[far])[:, None]
+    got = g.copy()
+    assert kernels.clamp_steps(got, x, limit) == far.sum() > 0
+    assert np.array_equal(got, ref)
+    assert kernels.max_move(got, x) == float(np.sqrt(((got - x) ** 2).sum(1).max())) == pytest.approx(limit)
+    V, F = tube(0.15, 0.3, 24, 8, y0=0.1)
+    d = precompute(V, F, "knit")
+    y = V + 0.01 * rng.standard_normal(V.shape)
+    (r1, e1), (r2, e2) = d._local(y, 0.3, energy=False), d._local(y, 0.3)
+    assert np.array_equal(r1, r2) and np.isnan(e1) and np.isfinite(e2)
+
+
 def test_compiled_body_contact_matches_numpy(monkeypatch):
     """The compiled body contact (geometry.kernels.contact_project: push-out along the normal,
     friction against the move since the step's start) against the numpy path, on a tube shaken

@@ -59,7 +59,9 @@ class BodyModel:
         self.mean = data["mean"].astype(np.float32)
         self.components = data["components"].astype(np.float32)
         self.variances = data["variances"].astype(np.float64)
-        self.body_faces = data["body_faces"].astype(np.int32)
+        # C order (the file holds it in Fortran order): every closest-point search and drape
+        # otherwise copies it on each call to hand it to the compiled kernels
+        self.body_faces = np.ascontiguousarray(data["body_faces"], np.int32)
         self.n_body_vertices = int(self.meta["n_body_vertices"])
         self.lbs_indices = data["lbs_indices"].astype(np.int32)
         self.lbs_weights = data["lbs_weights"].astype(np.float32)

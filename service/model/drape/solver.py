@@ -306,10 +306,12 @@ class Draper:
              + self.L.T @ (self.w_bend[:, None] * r_b) - self.gravity_force)
         return float(e), g
 
-    def _local(self, x: np.ndarray, level: float = 1.0, gravity: bool = True) -> tuple[np.ndarray, float]:
+    def _local(self, x: np.ndarray, level: float = 1.0, gravity: bool = True,
+               energy: bool = True) -> tuple[np.ndarray, float]:
         """The local step's projections folded into the global right-hand side (N, 3) (PD Eq. 10
         right side, without the proximal term), and the energy E(x) (J) from the same residuals
-        (``gravity`` False: both without gravity).
+        (``gravity`` False: both without gravity; ``energy`` False: NaN instead of the energy,
+        which only Anderson's safeguard reads: the bending residual's sparse product saved).
         With ``COMPILED`` (and numba there) the membrane and the normals in compiled loops
         (``geometry.kernels.membrane``, ``vertex_normals``: equal to ~1e-15 relative)."""
         if COMPILED and kernels.AVAILABLE:
@@ -320,6 +322,8 @@ class Draper:
             kernels.vertex_normals(x, self.faces, n)
             pb = self.h0[:, None] * n
             rhs += self.L.T @ (self.w_bend[:, None] * pb)
+            if not energy:
+                return (rhs + self.gravity_force, np.nan) if gravity else (rhs, np.nan)
             e = (e_s + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
                  - float((self.gravity_force * x).sum()) * gravity)
             return (rhs + self.gravity_force, e) if gravity else (rhs, e)
@@ -399,17 +403,21 @@ class Draper:
                 # its vertices are held back where they were (the crossings of the start are allowed)
                 guard = not gravity and cfg.release_guard_rounds > 0
                 crossing0 = self._crossing_keys(x) if guard else None
-                rhs, e_x = self._local(x, level, gravity)
+                rhs, e_x = self._local(x, level, gravity, anderson)
                 for _ in range(budget):
                     it += 1
                     # one fixed-point map g = G(x): local/global step, then the position projections
                     tb = time.perf_counter()
                     g = self._global(rhs + self.w_prox[:, None] * x, x_pinned, k)
                     tc = time.perf_counter()
-                    step = np.linalg.norm(g - x, axis=1)
-                    far = step > cfg.max_step_m  # a trust region: no vertex jumps across a limb in one step
-                    if far.any():
-                        g[far] = x[far] + (g[far] - x[far]) * (cfg.max_step_m / step[far])[:, None]
+                    # a trust region: no vertex jumps across a limb in one step
+                    if COMPILED and kernels.AVAILABLE:
+                        kernels.clamp_steps(g, x, cfg.max_step_m)
+                    else:
+                        step = np.linalg.norm(g - x, axis=1)
+                        far = step > cfg.max_step_m
+                        if far.any():
+                            g[far] = x[far] + (g[far] - x[far]) * (cfg.max_step_m / step[far])[:, None]
                     n_over = self._strain_limit(g)
                     n_self = self._self_contact(g, refresh=(it - 1) % cfg.self_refresh == 0)
                     if body is not None:
@@ -422,8 +430,11 @@ class Draper:
                         n_reverted += self._hold_back(g, x, crossing0)
                     if len(self.pinned):
                         g[self.pinned] = x_pinned
-                    f = g - x
-                    move = float(np.sqrt((f ** 2).sum(1).max()))
+                    if anderson or not (COMPILED and kernels.AVAILABLE):
+                        f = g - x
+                        move = float(np.sqrt((f ** 2).sum(1).max()))
+                    else:  # (the residual f is read by Anderson's extrapolation only)
+                        f, move = None, float(kernels.max_move(g, x))
                     # Anderson acceleration of the fixed-point map (Peng et al., "Anderson Acceleration
                     # for Geometry Optimization and Physics Simulation", SIGGRAPH 2018, Alg. 1: an
                     # accelerated point that raises the energy is replaced by the plain step)
@@ -447,12 +458,12 @@ class Draper:
                     if overlap is not None:
                         # the next step's local projections (compiled, without the GIL) in a thread
                         # while this one searches the body's closest points of its start
-                        pending = overlap.submit(self._local, x_next, level, gravity)
+                        pending = overlap.submit(self._local, x_next, level, gravity, anderson)
                         self._search_body(body, x_next, it + 1)
                         rhs_next, e_next = pending.result()
                         searched = True
                     else:
-                        rhs_next, e_next = self._local(x_next, level, gravity)
+                        rhs_next, e_next = self._local(x_next, level, gravity, anderson)
                     if x_next is not g and e_next > e_x + cfg.anderson_energy_slack_j:
                         x_next = g
                         rhs_next, e_next = self._local(g, level, gravity)

@@ -59,7 +59,8 @@ def _compiled() -> SimpleNamespace:
                                                     faces_cross=jit(_faces_cross),
                                                     contact_project=jit(_contact_project),
                                                     columns_product=jit(_columns_product),
-                                                    push_vertices=jit(_push_vertices))
+                                                    push_vertices=jit(_push_vertices),
+                                                    clamp_steps=jit(_clamp_steps), max_move=jit(_max_move))
     return _compiled_kernels
 
 
@@ -498,6 +499,16 @@ def push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indic
     return _compiled().push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indices, data, disp)
 
 
+def clamp_steps(g, x, max_step):
+    """Compiled :func:`_clamp_steps`."""
+    return _compiled().clamp_steps(g, x, max_step)
+
+
+def max_move(g, x):
+    """Compiled :func:`_max_move`."""
+    return _compiled().max_move(g, x)
+
+
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel for the argument types the
     service passes: the Docker build runs it, so that no process of the image compiles them
@@ -524,6 +535,8 @@ def warm() -> None:
     V32, z1 = V.astype(np.float32), np.zeros(1, np.float32)
     S = (np.arange(4, dtype=np.int32), np.arange(3, dtype=np.int32), np.ones(3, np.float32))
     columns_product(*S, np.zeros(1, np.int64), np.zeros((1, 3), np.float32), np.zeros((3, 3), np.float32))
+    clamp_steps(V.copy(), V, 0.01)
+    max_move(V, V)
     push_vertices(V32, V32, V32, np.zeros(3, np.int32), np.float32(0.0), np.zeros(1, np.int64), V32[:1], V32[:1], z1,
                   *S, np.zeros((3, 3), np.float32))
 
@@ -587,3 +600,30 @@ def _push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indi
                 disp[j, 1] += short * N[j, 1]
                 disp[j, 2] += short * N[j, 2]
     return nbad
+
+
+def _clamp_steps(g, x, max_step):
+    """The drape's trust region (``drape.solver.Draper.solve``): each row of g (N, 3) float64
+    farther than max_step from its row of x moved back onto that distance along its step,
+    in place, with numpy's operations there (the same result bit for bit). Returns how many."""
+    n = 0
+    for i in range(g.shape[0]):
+        d0, d1, d2 = g[i, 0] - x[i, 0], g[i, 1] - x[i, 1], g[i, 2] - x[i, 2]
+        step = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if step > max_step:
+            s = max_step / step
+            g[i, 0], g[i, 1], g[i, 2] = x[i, 0] + d0 * s, x[i, 1] + d1 * s, x[i, 2] + d2 * s
+            n += 1
+    return n
+
+
+def _max_move(g, x):
+    """The largest row distance between g and x (N, 3) float64, as numpy's
+    ``sqrt(((g - x) ** 2).sum(1).max())``."""
+    best = 0.0
+    for i in range(g.shape[0]):
+        d0, d1, d2 = g[i, 0] - x[i, 0], g[i, 1] - x[i, 1], g[i, 2] - x[i, 2]
+        q = d0 * d0 + d1 * d1 + d2 * d2
+        if q > best or q != q:
+            best = q
+    return np.sqrt(best)
