@@ -98,7 +98,18 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         harness.stop_session_redis()
 
 
+# The full suite's longest test files, started first (docs/testing.md, "Figures measured": the
+# seconds of each): xdist hands out one file at a time (``--dist loadfile``,
+# ``--no-loadscope-reorder`` in .ci/test), and a long file handed out last runs alone at the end.
+LONGEST_FILES_FIRST = ("test_fitting.py", "test_web_client.py", "test_drape_api.py", "test_fitting_jobs.py",
+                       "test_faults.py", "test_build_smoke.py", "test_garments_draped_jobs.py", "test_bench_load.py",
+                       "test_hostile.py")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--full"):
+        rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+        items.sort(key=lambda it: rank.get(it.path.name, len(rank)))  # stable: each file's order kept
     if config.getoption("--full") or config.getoption("-m"):
         return
     quick = [it for it in items if "slow" not in it.keywords]
