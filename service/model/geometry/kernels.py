@@ -7,7 +7,8 @@ what ``fitting._pose_jacobian`` and ``nonrigid.point_to_plane_normal_equations``
 numpy, summed in their own order (equal to ~1e-15 relative; the tests compare them); so do the
 cloth drape's (:func:`membrane`, :func:`vertex_normals`, :func:`strain_limit_pass`,
 :func:`contact_project`: what ``drape.solver`` computes with numpy and sparse products). The
-try-on's push-out (:func:`columns_product`) sums what scipy's sparse product sums, in its order.
+try-on's push-out (:func:`push_vertices`, :func:`columns_product`) and the drape's trust region
+(:func:`clamp_steps`, :func:`max_move`) compute what numpy and scipy compute there, in their order.
 ``AVAILABLE`` is False where numba is not installed (or ``TRYON_NO_KERNELS`` is set): callers
 then use the numpy path.
 
