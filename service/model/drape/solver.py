@@ -26,7 +26,11 @@ where scikit-sparse is installed, else SuperLU) and reused for every body and ev
 A fixed point is a stationary point of E alone (the proximal term vanishes there). PD's fixed
 matrix is as stiff against rotations as against stretch, so stiff cloth that has to turn
 converges slowly: the membrane stiffness is continued from soft to the fabric's (one factor per
-level), and solves without a body are Anderson-accelerated (Peng et al. 2018). Contact and
+level), and solves without a body are Anderson-accelerated (Peng et al. 2018). With a body the
+softest level runs without friction and every soft level with part of the cloth's weight: the
+warp fit it starts from is made to measure (stretched on a body larger than the garment,
+compressed on a smaller one), and there the cloth lets that go and finds its place on the body
+before friction holds it. Contact and
 friction are position projections after each global step (the strain limit first, then
 self-contact, then the body; Macklin et al., "Unified Particle Physics for Real-Time
 Applications", 2014, Sec. 6.1 friction: tangential displacement cancelled up to mu times the
@@ -102,7 +106,12 @@ class Config:
     # without friction or gravity: a start made to measure (the warp fit, stretched on a body larger than the garment)
     # lets go of that stretch before friction holds the cloth where it lies; without gravity nothing that friction alone
     # holds up slides down meanwhile. Off by default: it makes drapes less repeatable (the same drape from a start
-    # moved by 2 mm ends 5.8 mm apart instead of 2.4: docs/drape.md, Figures)
+    # moved by 2 mm ended 5.8 mm apart instead of 2.4 with friction at every stiffness level: docs/drape.md)
+    frictionless_levels: int = 1  # with a body, the softest this many stiffness levels run without friction ...
+    soft_gravity_power: float = 0.5  # ... and each level below the fabric's carries level ** this of the cloth's
+    # weight: there the cloth lets go of the made-to-measure start's stretch and compression before friction holds it.
+    # Chosen by measurement on the men's T-shirt and 5 people against Newton (docs/drape.md, "The soft levels"):
+    # powers 0 / 0.5 / 1 put its hem up to 4.2 / 0.6 / 1.3 cm from Newton's (friction at every level: 3.3 cm)
     release_guard_rounds: int = 8  # in that stage, vertices of faces that newly cross another part of the cloth go back
     # to where they were, and their neighbours too, over up to this many widening rounds (0: no guard)
     final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
@@ -283,6 +292,7 @@ class Draper:
             # supernodal one's speed at garment sizes (10k vertices: 4.2 vs 8.0 ms)
             self.levels.append((float(level), factor_spd(K[self.free][:, self.free], mode="simplicial"), K_fp, slide))
         self.factor = self.levels[-1][1]
+        self._no_slide = np.zeros(N)
         self.gravity_force = self.mass[:, None] * np.asarray(cfg.gravity, np.float64)[None, :]
         # self-contact exclusions: vertex pairs within `self_rings` edges (always close in any drape)
         A = (self.incidence @ self.incidence.T).astype(bool).astype(np.int32)
@@ -306,12 +316,13 @@ class Draper:
              + self.L.T @ (self.w_bend[:, None] * r_b) - self.gravity_force)
         return float(e), g
 
-    def _local(self, x: np.ndarray, level: float = 1.0, gravity: bool = True,
+    def _local(self, x: np.ndarray, level: float = 1.0, gravity: float = 1.0,
                energy: bool = True) -> tuple[np.ndarray, float]:
         """The local step's projections folded into the global right-hand side (N, 3) (PD Eq. 10
         right side, without the proximal term), and the energy E(x) (J) from the same residuals
-        (``gravity`` False: both without gravity; ``energy`` False: NaN instead of the energy,
-        which only Anderson's safeguard reads: the bending residual's sparse product saved).
+        (``gravity``: the share of the cloth's weight in both, 0: none; ``energy`` False: NaN
+        instead of the energy, which only Anderson's safeguard reads: the bending residual's
+        sparse product saved).
         With ``COMPILED`` (and numba there) the membrane and the normals in compiled loops
         (``geometry.kernels.membrane``, ``vertex_normals``: equal to ~1e-15 relative)."""
         if COMPILED and kernels.AVAILABLE:
@@ -323,10 +334,10 @@ class Draper:
             pb = self.h0[:, None] * n
             rhs += self.L.T @ (self.w_bend[:, None] * pb)
             if not energy:
-                return (rhs + self.gravity_force, np.nan) if gravity else (rhs, np.nan)
+                return rhs + gravity * self.gravity_force, np.nan
             e = (e_s + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
                  - float((self.gravity_force * x).sum()) * gravity)
-            return (rhs + self.gravity_force, e) if gravity else (rhs, e)
+            return rhs + gravity * self.gravity_force, e
         Gxr = self.G @ x  # (2T, 3)
         Gx = Gxr.reshape(-1, 2, 3).transpose(0, 2, 1)  # (T, 3, 2)
         R = _polar(Gx).transpose(0, 2, 1).reshape(-1, 3)
@@ -338,7 +349,7 @@ class Draper:
         e = (0.5 * float((ws * ((Gxr - R) ** 2).sum(1)).sum())
              + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
              - float((self.gravity_force * x).sum()) * gravity)
-        return (rhs + self.gravity_force, e) if gravity else (rhs, e)
+        return rhs + gravity * self.gravity_force, e
 
     def _global(self, rhs: np.ndarray, x_pinned: np.ndarray, k: int) -> np.ndarray:
         """PD's global step with level ``k``'s factor (pinned vertices eliminated)."""
@@ -375,12 +386,17 @@ class Draper:
         # Anderson's extrapolation fights the contact projections (it re-enters the body and
         # undoes friction): used for solves without a body (pinned sheets) only
         anderson = cfg.anderson > 0 and body is None
-        # the stages: (stiffness level index, friction per unit depth, iteration budget, gravity);
-        # with a body and `release_iterations`, first those at the fabric's stiffness without
-        # friction or gravity: the start's stretch retracts, nothing slides down
-        stages = [(k, slide, None, True) for k, (_, _, _, slide) in enumerate(self.levels)]
+        # the stages: (stiffness level index, friction per unit depth, iteration budget, share of
+        # the cloth's weight); with a body, the softest levels without friction and every level
+        # below the fabric's with part of the weight (`frictionless_levels`, `soft_gravity_power`);
+        # with `release_iterations`, first a stage at the fabric's stiffness without friction or
+        # gravity: the start's stretch retracts, nothing slides down
+        soft = body is not None
+        stages = [(k, self._no_slide if soft and k < min(cfg.frictionless_levels, n_levels - 1) else slide, None,
+                   level ** cfg.soft_gravity_power if soft and k < n_levels - 1 else 1.0)
+                  for k, (level, _, _, slide) in enumerate(self.levels)]
         if body is not None and cfg.release_iterations > 0:
-            stages.insert(0, (n_levels - 1, np.zeros(self.n), min(cfg.release_iterations, cfg.max_iterations // 8), False))
+            stages.insert(0, (n_levels - 1, self._no_slide, min(cfg.release_iterations, cfg.max_iterations // 8), 0.0))
         n_reverted = 0
         # with a body, the next step's local projections run in a thread while the body's closest
         # points of its start are searched (both in compiled loops that release the GIL)
@@ -401,7 +417,7 @@ class Draper:
                 # the release stage retracts the cloth fast: a face that comes to cross another part
                 # of it (a sleeve pressed through the side panel in an armpit) would stay crossed, so
                 # its vertices are held back where they were (the crossings of the start are allowed)
-                guard = not gravity and cfg.release_guard_rounds > 0
+                guard = gravity == 0 and cfg.release_guard_rounds > 0
                 crossing0 = self._crossing_keys(x) if guard else None
                 rhs, e_x = self._local(x, level, gravity, anderson)
                 for _ in range(budget):
