@@ -395,7 +395,7 @@ class Draper:
         stages = [(k, self._no_slide if soft and k < min(cfg.frictionless_levels, n_levels - 1) else slide, None,
                    level ** cfg.soft_gravity_power if soft and k < n_levels - 1 else 1.0)
                   for k, (level, _, _, slide) in enumerate(self.levels)]
-        if body is not None and cfg.release_iterations > 0:
+        if soft and cfg.release_iterations > 0:
             stages.insert(0, (n_levels - 1, self._no_slide, min(cfg.release_iterations, cfg.max_iterations // 8), 0.0))
         n_reverted = 0
         # with a body, the next step's local projections run in a thread while the body's closest
