@@ -149,6 +149,56 @@ def test_a_solve_that_cannot_settle_fails_readably():
         d.solve(None, None, V[:-1])
 
 
+# a held-out ANSUR II woman (bench sizes' 36th) larger than EN 13402-3's XS in every girth
+XS_TOO_SMALL_FOR = {"gender": "female", "height_cm": 159.7, "weight_kg": 70.8, "chest_cm": 111.8, "waist_cm": 96.8,
+                    "hip_cm": 99.2, "thigh_cm": 59.7, "calf_cm": 37.1, "waist_height_cm": 96.3,
+                    "shoulder_width_cm": 37.4, "inseam_cm": 77.1, "arm_length_cm": 50.9}
+
+
+@pytest.mark.slow
+def test_a_size_too_small_is_solved_again_with_friction_or_fails_readably():
+    """The women's T-shirt graded to XS, started from its try-on on a woman of chest 112 cm
+    (XS: 76-80): with the default soft levels (no friction in the softest, part of the weight)
+    the cloth lets go of its made-to-measure start and is pulled into the armpits, ending inside
+    the body; the solve then runs again with friction and the full weight at every level
+    (``Config.fallbacks``) and ends outside it. Without the fallback: a readable failure."""
+    from service.application.sizes import Chart, chart_bodies, size_example_fits
+    from service.model.body.model import load_body_model
+    from service.model.body.shape import avatar_from_measurements
+    from service.model.garments import sizing as S
+    from service.model.garments.catalogue import load_catalogue
+    from service.model.garments.draped import DRAPE_CLEARANCE_M
+    from service.model.garments.tryon import build_garment_basis, customer_body, example_set, try_on
+
+    model = load_body_model()
+    item = next(i for i in load_catalogue().garments() if i.id == "womens-tshirt")
+    faces = np.asarray(item.faces, np.int64)
+    sizes, base = S.validate_chart(S.en13402_chart(), "M")
+    chart = Chart(sizes, base, "knit")
+    src = np.asarray(model.mean, np.float64)
+    bodies = chart_bodies(model, chart, "female")
+    rest = np.asarray(S.grade(model, item.binding.fit(src), faces, src, bodies, chart.base)[0], np.float64)
+    on = S.size_bodies_on(src, bodies, chart.base)
+    basis = build_garment_basis(model, size_example_fits(model, rest, faces, on[0]), faces, example_set(model), rest=rest)
+    cust = avatar_from_measurements(model, XS_TOO_SMALL_FOR)
+    cb = customer_body(model, model.project(cust.vertices))
+    BV = model.body_vertices(cb.vertices).astype(np.float64)
+    start = np.asarray(try_on(basis, cb)[0], np.float64)
+
+    with pytest.raises(DrapeError, match=r"mm inside the body \(limit 1.0 mm\): the garment cannot be placed"):
+        precompute(rest, faces, "knit", Config(clearance_m=DRAPE_CLEARANCE_M, fallbacks=())).solve(
+            BV, model.body_faces, start)
+    r = precompute(rest, faces, "knit", Config(clearance_m=DRAPE_CLEARANCE_M)).solve(BV, model.body_faces, start)
+    assert r.stats["fallback"] == {"frictionless_levels": 0, "soft_gravity_power": 0.0}
+    x = r.vertices.astype(np.float64)
+    w = geometry.winding_numbers(x, BV, model.body_faces)
+    inside = np.flatnonzero(w > 0.5)
+    _, q, _ = geometry.closest_points_on_mesh(x[inside], BV, model.body_faces)
+    assert (np.linalg.norm(x[inside] - q, axis=1) <= 0.001).all()
+    # the garment kept its size: stretched around a body larger than it (median edge 7.5 % long)
+    assert np.median(edge_strain(rest, faces, x)) > 0.04
+
+
 def test_drape_examples_keeps_the_garment_size_on_each_body():
     """drape_examples (what a build calls for every example avatar): one factorisation, one
     solve per body, each from its warp fit; a failing body names its example."""

@@ -29,7 +29,9 @@ Rows (goals from issue 43):
   directly on each from its warp fit there (goal mean <= 3 mm, p99 <= 12 mm; a held-out drape
   that fails, the shirt too small to go on, is counted and left out), and per gender; beside it
   the central-difference basis of the 65 example drapes alone (the paper's);
-- ``whole_build_s``: that build (257 drapes + the basis), 2 cores (goal <= 5 min);
+- ``whole_build_s``: that build (257 drapes + the basis), 2 cores (goal <= 5 min); beside it the
+  crossing face pairs its drapes kept, the solves that fell back to friction at every level and
+  the population bodies left out (``build_*``);
 - ``ease_vs_newton_mm`` / ``hem_vs_newton_cm``: that T-shirt draped from its warp fit on 5 held-out
   people here and by Newton VBD on CPU (2 simulated seconds, damped), both keeping the cloth 3 mm
   off the skin (Newton's particle radius, our clearance), Newton's material matched to ours
@@ -297,7 +299,14 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
                                          "heldout": len(err_surface)}
     rows["whole_build_s"] = {"value": build_s, "goal": 300.0, "drapes": len(dfits.drapes),
                              "n_vertices": len(s_rest),
-                             "median_drape_s": float(np.median([st["seconds"] for st in dfits.stats]))}
+                             "median_drape_s": float(np.median([st["seconds"] for st in dfits.stats])),
+                             # the build's own drapes (examples and population bodies, not in the rows
+                             # above): crossings left, solves that fell back, bodies left out
+                             "build_self_intersections": int(sum(st.get("self_intersections", 0) for st in dfits.stats)),
+                             "build_drapes_with_crossings": int(sum(st.get("self_intersections", 0) > 0
+                                                                    for st in dfits.stats)),
+                             "build_fallbacks": int(sum("fallback" in st for st in dfits.stats)),
+                             "build_failed": int(sum("failed" in st for st in dfits.stats))}
 
     # 8. a catalogue garment on 5 held-out bodies vs Newton VBD: ease at each girth region, hem height
     if newton and why is None:
