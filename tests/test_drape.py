@@ -158,7 +158,7 @@ XS_TOO_SMALL_FOR = {"gender": "female", "height_cm": 159.7, "weight_kg": 70.8, "
 @pytest.mark.slow
 def test_a_size_too_small_is_solved_again_with_friction_or_fails_readably():
     """The women's T-shirt graded to XS, started from its try-on on a woman of chest 112 cm
-    (XS: 76-80): with the default soft levels (no friction in the softest, part of the weight)
+    (XS: 78-86): with the default soft levels (no friction in the softest, part of the weight)
     the cloth lets go of its made-to-measure start and is pulled into the armpits, ending inside
     the body; the solve then runs again with friction and the full weight at every level
     (``Config.fallbacks``) and ends outside it. Without the fallback: a readable failure."""
@@ -197,6 +197,21 @@ def test_a_size_too_small_is_solved_again_with_friction_or_fails_readably():
     assert (np.linalg.norm(x[inside] - q, axis=1) <= 0.001).all()
     # the garment kept its size: stretched around a body larger than it (median edge 7.5 % long)
     assert np.median(edge_strain(rest, faces, x)) > 0.04
+
+
+def test_population_drapes_that_fell_back_are_left_out_of_the_basis():
+    """``draped.fitted_drapes``: an example avatar's drape is always in the fit, a population
+    body's only if it settled outside with the solver's own soft levels (not NaN, no
+    ``fallback`` in its stats), and the stats say why one was left out."""
+    from service.model.garments.draped import fitted_drapes
+
+    fell_back = {"fallback": {"frictionless_levels": 0, "soft_gravity_power": 0.0}}
+    drapes = np.zeros((6, 4, 3))
+    drapes[3] = np.nan
+    stats = [{}, dict(fell_back), {}, {"failed": "ends inside"}, dict(fell_back), {"settled": True}]
+    ok = fitted_drapes(drapes, stats, n_examples=2)
+    assert ok.tolist() == [True, True, True, False, False, True]
+    assert "left_out" in stats[4] and "left_out" not in stats[1] and "left_out" not in stats[5]
 
 
 def test_drape_examples_keeps_the_garment_size_on_each_body():
