@@ -100,8 +100,9 @@ class Settings(BaseSettings):
         description="With TRYON_DRAPE on: people of the body model's training population (three quarters of the "
         "garment's gender, half each for unisex) a garment is also draped on at its build, the clothing basis then "
         "being the least-squares line through "
-        "the example and population drapes (a drape is not linear in the body); 0: central differences of the "
-        "examples alone.",
+        "the example and population drapes (a drape is not linear in the body), leaving out a body the garment does "
+        "not go on or goes on only with friction at every stiffness level; 0: central differences of the examples "
+        "alone.",
     )
     drape_workers: int = Field(
         default=2,
