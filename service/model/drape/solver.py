@@ -120,9 +120,9 @@ class Config:
     # Chosen by measurement on the men's T-shirt and 5 people against Newton (docs/drape.md, "The soft levels"):
     # powers 0 / 0.5 / 1 put its hem up to 4.2 / 0.6 / 1.3 cm from Newton's (friction at every level: 3.3 cm)
     fallbacks: tuple[tuple[int, float], ...] = ((0, 0.0),)  # (frictionless_levels, soft_gravity_power) of the solves
-    # tried, in turn, after one that ends inside the body (Draper.solve): the women's
-    # T-shirt in XS ended 1.1 and 1.5 mm inside 2 of 50 held-out women, none with friction and the full weight at every
-    # level (docs/drape.md); () : none
+    # tried, in turn, after one that ends inside the body (Draper.solve): with friction and the full weight at every
+    # level a size too small for the body stays about where its start put it instead of being pulled into a crease
+    # (docs/drape.md); (): none
     release_guard_rounds: int = 8  # in that stage, vertices of faces that newly cross another part of the cloth go back
     # to where they were, and their neighbours too, over up to this many widening rounds (0: no guard)
     final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
@@ -384,8 +384,7 @@ class Draper:
         at every level: the cloth stays about where that start put it) until one ends outside;
         its stats say ``fallback`` (the soft levels it ran) and count every solve's time. Only
         then: drapes from the other soft levels rest differently, and a clothing basis fitted
-        through a mix of both misses direct drapes by more (men's T-shirt, also solving again the
-        population drapes that kept crossings: 6.6 -> 7.3 mm mean, docs/drape.md)."""
+        through a mix of both misses direct drapes by more (docs/drape.md)."""
         cfg = self.config
         t0 = time.perf_counter()
         own = (cfg.frictionless_levels, cfg.soft_gravity_power)
