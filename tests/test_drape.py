@@ -161,12 +161,14 @@ def test_a_size_too_small_is_solved_again_with_friction_or_fails_readably():
     (XS: 78-86): with the default soft levels (no friction in the softest, part of the weight)
     the cloth lets go of its made-to-measure start and is pulled into the armpits, ending inside
     the body; the solve then runs again with friction and the full weight at every level
-    (``Config.fallbacks``) and ends outside it. Without the fallback: a readable failure."""
+    (``Config.fallbacks``) and ends outside it. Without the fallback: a readable failure, and
+    in a build's population bodies (``drape_examples`` past ``required``) a body left out."""
     from service.application.sizes import Chart, chart_bodies, size_example_fits
     from service.model.body.model import load_body_model
     from service.model.body.shape import avatar_from_measurements
     from service.model.garments import sizing as S
     from service.model.garments.catalogue import load_catalogue
+    from service.model.drape import drape_examples
     from service.model.garments.draped import DRAPE_CLEARANCE_M
     from service.model.garments.tryon import build_garment_basis, customer_body, example_set, try_on
 
@@ -197,21 +199,22 @@ def test_a_size_too_small_is_solved_again_with_friction_or_fails_readably():
     assert (np.linalg.norm(x[inside] - q, axis=1) <= 0.001).all()
     # the garment kept its size: stretched around a body larger than it (median edge 7.5 % long)
     assert np.median(edge_strain(rest, faces, x)) > 0.04
+    # a build's population bodies (past ``required``) are solved without the fallback: the body
+    # fails and is left out of the basis's fit, without a second solve
+    fits, stats = drape_examples(rest, faces, np.stack([start, start]), np.stack([BV, BV]), model.body_faces, "knit",
+                                 config=Config(clearance_m=DRAPE_CLEARANCE_M), required=1)
+    assert "fallback" in stats[0] and np.isfinite(fits[0]).all()
+    assert "mm inside the body" in stats[1]["failed"] and np.isnan(fits[1]).all()
 
 
-def test_population_drapes_that_fell_back_are_left_out_of_the_basis():
+def test_population_drapes_that_failed_are_left_out_of_the_basis():
     """``draped.fitted_drapes``: an example avatar's drape is always in the fit, a population
-    body's only if it settled outside with the solver's own soft levels (not NaN, no
-    ``fallback`` in its stats), and the stats say why one was left out."""
+    body's only if it settled outside it (not NaN)."""
     from service.model.garments.draped import fitted_drapes
 
-    fell_back = {"fallback": {"frictionless_levels": 0, "soft_gravity_power": 0.0}}
     drapes = np.zeros((6, 4, 3))
-    drapes[3] = np.nan
-    stats = [{}, dict(fell_back), {}, {"failed": "ends inside"}, dict(fell_back), {"settled": True}]
-    ok = fitted_drapes(drapes, stats, n_examples=2)
-    assert ok.tolist() == [True, True, True, False, False, True]
-    assert "left_out" in stats[4] and "left_out" not in stats[1] and "left_out" not in stats[5]
+    drapes[[1, 3]] = np.nan
+    assert fitted_drapes(drapes, n_examples=2).tolist() == [True, True, True, False, True, True]
 
 
 def test_drape_examples_keeps_the_garment_size_on_each_body():

@@ -318,9 +318,9 @@ class GarmentService(DemoCatalogue):
                                 self.settings.drape_population, progress=cb, workers=self.settings.drape_workers,
                                 gender=gender)
         log.info("draped on %d bodies: %.1fs, %d of them settled, %d population bodies left out (it would end "
-                 "inside them, or went on only with friction at every stiffness level)", len(d.stats),
+                 "inside them without friction in the soft levels)", len(d.stats),
                  sum(s["seconds"] for s in d.stats), sum(bool(s["settled"]) for s in d.stats),
-                 sum("failed" in s or "left_out" in s for s in d.stats))
+                 sum("failed" in s for s in d.stats))
         return d
 
     def _fits_from_meshes(self, files: list[tuple[str, bytes]]) -> tuple[np.ndarray, np.ndarray, str]:

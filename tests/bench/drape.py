@@ -301,7 +301,8 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
                              "n_vertices": len(s_rest),
                              "median_drape_s": float(np.median([st["seconds"] for st in dfits.stats])),
                              # the build's own drapes (examples and population bodies, not in the rows
-                             # above): crossings left, solves that fell back, bodies left out
+                             # above): crossings left, example avatars' solves that fell back, population
+                             # bodies left out (solved without the fallback: those that would need it fail)
                              "build_self_intersections": int(sum(st.get("self_intersections", 0) for st in dfits.stats)),
                              "build_drapes_with_crossings": int(sum(st.get("self_intersections", 0) > 0
                                                                     for st in dfits.stats)),

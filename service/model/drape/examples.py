@@ -16,8 +16,8 @@ from .solver import Config, Draper, DrapeError, precompute
 
 MIN_SOLVES_PER_WORKER = 4  # fewer solves than this per process: not worth forking for
 
-# what a forked process solves: (draper, inits, bodies, body faces), set just before the fork
-_FORKED: tuple[Draper, np.ndarray, np.ndarray, np.ndarray] | None = None
+# what a forked process solves: (draper, inits, bodies, body faces, required), set just before the fork
+_FORKED: tuple[Draper, np.ndarray, np.ndarray, np.ndarray, int] | None = None
 
 
 def _child_signals() -> None:
@@ -28,10 +28,12 @@ def _child_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _solve(draper: Draper, body: np.ndarray, body_faces: np.ndarray, init: np.ndarray) -> tuple[np.ndarray | None, dict]:
-    """One drape: (vertices (N, 3) float32 or None, stats or {"failed": why})."""
+def _solve(draper: Draper, body: np.ndarray, body_faces: np.ndarray, init: np.ndarray,
+           fallbacks: bool) -> tuple[np.ndarray | None, dict]:
+    """One drape (``Draper.solve``'s ``fallbacks``): (vertices (N, 3) float32 or None, stats or
+    {"failed": why})."""
     try:
-        r = draper.solve(body, body_faces, init)
+        r = draper.solve(body, body_faces, init, fallbacks)
     except DrapeError as exc:
         return None, {"failed": str(exc), "seconds": 0.0, "settled": False}
     return r.vertices, r.stats
@@ -40,21 +42,23 @@ def _solve(draper: Draper, body: np.ndarray, body_faces: np.ndarray, init: np.nd
 def _solve_one(i: int) -> tuple[int, np.ndarray | None, dict]:
     """Solve i of the forked set: (i, vertices or None, stats)."""
     assert _FORKED is not None
-    draper, inits, bodies, body_faces = _FORKED
-    return (i, *_solve(draper, bodies[i], body_faces, inits[i]))
+    draper, inits, bodies, body_faces, required = _FORKED
+    return (i, *_solve(draper, bodies[i], body_faces, inits[i], i < required))
 
 
-def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: np.ndarray, workers: int):
-    """(i, vertices or None, stats) of every body, in the order they finish."""
+def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: np.ndarray, workers: int,
+            required: int):
+    """(i, vertices or None, stats) of every body, in the order they finish; the bodies from
+    ``required`` on solved without the drape's fallbacks."""
     global _FORKED
     n = len(bodies)
     if workers <= 1 or n < 2 * MIN_SOLVES_PER_WORKER or "fork" not in multiprocessing.get_all_start_methods():
         for i in range(n):
-            yield (i, *_solve(draper, bodies[i], body_faces, inits[i]))
+            yield (i, *_solve(draper, bodies[i], body_faces, inits[i], i < required))
         return
     if kernels.AVAILABLE:
         kernels.warm()  # compiled (or loaded) before the fork, not once per process behind a lock
-    _FORKED = (draper, inits, bodies, body_faces)
+    _FORKED = (draper, inits, bodies, body_faces, required)
     try:
         with multiprocessing.get_context("fork").Pool(min(workers, n // MIN_SOLVES_PER_WORKER),
                                                       initializer=_child_signals) as pool:
@@ -72,14 +76,17 @@ def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodie
     once, solved per body, in ``workers`` processes. Returns the draped fits (E, N, 3) float32
     and each solve's stats (the same whatever ``workers``). Raises :class:`DrapeError` naming
     the example that failed, among the first ``required`` bodies (default all); a later body
-    that fails gets NaN fits and ``{"failed": reason}``."""
+    that fails gets NaN fits and ``{"failed": reason}``. The later bodies are solved without the
+    drape's fallbacks (``Draper.solve``): a build leaves out of its basis's fit the population
+    drapes that would need one (``garments.draped.fitted_drapes``), so it does not spend a second
+    solve on them."""
     inits = np.asarray(inits)
     if inits.ndim != 3 or inits.shape[1:] != np.shape(rest) or len(inits) != len(bodies):
         raise DrapeError(f"expected one start shape per example body; got {inits.shape} for {len(bodies)} bodies")
     draper = precompute(rest, faces, fabric, config)
     out = np.empty(inits.shape, np.float32)
     stats: list[dict] = [{} for _ in range(len(bodies))]
-    solves = _solves(draper, inits, bodies, body_faces, workers)
+    solves = _solves(draper, inits, bodies, body_faces, workers, len(bodies) if required is None else required)
     try:
         for done, (i, verts, st) in enumerate(solves, start=1):
             if verts is None:

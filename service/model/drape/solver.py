@@ -373,7 +373,7 @@ class Draper:
         return out
 
     def solve(self, body_vertices: np.ndarray | None, body_faces: np.ndarray | None,
-              init_vertices: np.ndarray) -> DrapeResult:
+              init_vertices: np.ndarray, fallbacks: bool = True) -> DrapeResult:
         """The garment at static equilibrium on one body, from ``init_vertices`` (N, 3) (e.g. the
         warp fit; pinned vertices stay where they are there). ``body_vertices`` None: no body.
         Raises :class:`DrapeError` when it diverges or ends inside the body.
@@ -384,12 +384,13 @@ class Draper:
         at every level: the cloth stays about where that start put it) until one ends outside;
         its stats say ``fallback`` (the soft levels it ran) and count every solve's time. Only
         then: drapes from the other soft levels rest differently, and a clothing basis fitted
-        through a mix of both misses direct drapes by more (docs/drape.md)."""
+        through a mix of both misses direct drapes by more (docs/drape.md). ``fallbacks`` False:
+        none is tried (a build's population bodies, whose drapes that need one it leaves out)."""
         cfg = self.config
         t0 = time.perf_counter()
         own = (cfg.frictionless_levels, cfg.soft_gravity_power)
         failure: _InsideError | None = None
-        for soft in [own] + [tuple(f) for f in cfg.fallbacks if tuple(f) != own]:
+        for soft in [own] + [tuple(f) for f in cfg.fallbacks if fallbacks and tuple(f) != own]:
             try:
                 r = self._solve(body_vertices, body_faces, init_vertices, *soft)
             except _InsideError as exc:

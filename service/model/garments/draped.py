@@ -32,7 +32,7 @@ class DrapedFits:
     its strain channel (``tryon.build_garment_basis``), fitted to the drapes' own strain maps;
     drapes (E + P, M, 3): every drape the basis is fitted through (examples first, then the
     population bodies of ``weights`` (P, N)); stats: one per body tried (a population body that
-    failed: ``{"failed": reason}``; one left out of the fit: ``left_out``)."""
+    failed, left out of the fit: ``{"failed": reason}``)."""
     fits: np.ndarray
     drapes: np.ndarray
     weights: np.ndarray
@@ -40,19 +40,15 @@ class DrapedFits:
     strain_fits: np.ndarray
 
 
-def fitted_drapes(drapes: np.ndarray, stats: list[dict], n_examples: int) -> np.ndarray:
+def fitted_drapes(drapes: np.ndarray, n_examples: int) -> np.ndarray:
     """(E + P,) bool: the drapes (E + P, M, 3) a basis is fitted through. The example avatars'
     (the first ``n_examples``) always; a population body's only if its drape settled outside it
-    (not NaN: too small for it, it would end inside) with the soft levels of the solver's own
-    settings: one that went on only with friction at every stiffness level (``fallback`` in its
-    ``stats``, one per body) rests where its start put it, and on the largest bodies, at the edge
-    of the fit, such drapes tilt the line for everyone (the women's T-shirt XS, 9 of 192: 4.8 ->
-    6.2 mm mean off held-out direct drapes). Those are marked ``left_out`` in their stats."""
+    (not NaN). ``drape_examples`` solves those bodies without the drape's fallback, so a body
+    the garment goes on only with friction at every stiffness level (a size too small for it)
+    fails and is left out too: such a drape rests where its start put it, and on the largest
+    bodies, at the edge of the fit, it tilts the line for everyone (the women's T-shirt XS, 9 of
+    192: 4.8 -> 6.2 mm mean off held-out direct drapes)."""
     ok = np.isfinite(drapes).all(axis=(1, 2))
-    for i, st in enumerate(stats[n_examples:], n_examples):
-        if "fallback" in st:
-            ok[i] = False
-            st["left_out"] = "went on only with friction at every stiffness level (the drape's fallback)"
     ok[:n_examples] = True
     return ok
 
@@ -86,7 +82,7 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
                                    required=len(warp_fits), workers=workers)
     fits = drapes[: len(warp_fits)]
     if len(W):
-        ok = fitted_drapes(drapes, stats, len(warp_fits))
+        ok = fitted_drapes(drapes, len(warp_fits))
         drapes, W = drapes[ok], W[ok[len(warp_fits):]]
         weights = np.vstack([examples.weights(), W])
         g, B = G.regress_basis(drapes, weights, examples.sigma)
