@@ -217,6 +217,57 @@ def test_population_drapes_that_failed_are_left_out_of_the_basis():
     assert fitted_drapes(drapes, n_examples=2).tolist() == [True, True, True, False, True, True]
 
 
+def _button(centre: np.ndarray, size: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """A small closed box (8 vertices, 12 faces) of side ``size`` around ``centre`` (3,)."""
+    c = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64) * size / 2
+    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                  [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int64)
+    return c + centre, F
+
+
+def test_small_parts_ride_on_the_cloth_or_stay_instead_of_falling():
+    """A garment's small separate pieces (a button, a buckle: ``Config.part_max_extent_m``) do
+    not drape: one near the cloth rides on it (rigidly, in the frame of the cloth face nearest
+    its centre), one far from any cloth stays where the start put it beside the body. Draped as
+    cloth, held by nothing, the button falls off."""
+    from service.model.drape.solver import small_parts
+
+    na, nh, Rg, Rb = 32, 6, 0.15, 0.155
+    V, F = tube(Rg, 0.2, na, nh)
+    BV, BF = cylinder(Rb, -0.3, 0.6, n_around=64, n_height=12)
+    start = V.copy()
+    start[:, [0, 2]] *= (Rb + 0.002) / Rg
+    near, fn = _button(np.array([Rb + 0.017, 0.1, 0.0]))  # its centre 1.5 cm off the tube's outside
+    far, ff = _button(np.array([0.0, 0.45, Rb + 0.012]))  # 25 cm above the tube, beside the body
+    rest = np.vstack([V, near, far])
+    faces = np.vstack([F, fn + len(V), ff + len(V) + 8])
+    init = np.vstack([start, near, far])
+    parts, host = small_parts(rest, faces, Config().part_max_extent_m)
+    assert [p.tolist() for p in parts] == [list(range(len(V), len(V) + 8)), list(range(len(V) + 8, len(V) + 16))]
+    assert host.tolist() == list(range(len(F)))
+    only, all = small_parts(near, fn, 0.05)  # a garment of small pieces only drapes as cloth
+    assert only == [] and all.tolist() == list(range(len(fn)))
+    r = precompute(rest, faces, "knit").solve(BV, BF, init)
+    x = r.vertices.astype(np.float64)
+    assert r.stats["small_parts"] == 2 and r.stats["self_intersections"] == r.stats["part_crossings"] == 0
+    tube_moved = np.abs(x[: len(V), 1] - init[: len(V), 1]).max()
+    # the near button kept its place on the cloth: its height moved with the tube, its shape and
+    # its distance off the cloth are its own
+    assert abs(x[len(V):len(V) + 8, 1].mean() - 0.1) <= tube_moved + 1e-3
+    assert np.allclose(np.linalg.norm(x[len(V):len(V) + 8] - x[len(V):len(V) + 8].mean(0), axis=1),
+                       np.linalg.norm(near - near.mean(0), axis=1), atol=1e-6)
+    r_xz = np.linalg.norm(x[len(V):len(V) + 8][:, [0, 2]].mean(0))
+    r_tube = np.linalg.norm(x[: len(V)][:, [0, 2]], axis=1).mean()
+    assert abs(r_xz - r_tube - 0.015) < 0.003, (r_xz, r_tube)
+    assert np.array_equal(x[len(V) + 8:], far.astype(np.float32))  # the far one: where it started
+    # draped as cloth (no small parts), the button falls off
+    try:
+        loose = precompute(rest, faces, "knit", Config(part_max_extent_m=0.0)).solve(BV, BF, init).vertices
+        assert loose[len(V):len(V) + 8, 1].mean() < 0.1 - 0.05
+    except DrapeError as exc:
+        assert "diverged" in str(exc)
+
+
 def test_drape_examples_keeps_the_garment_size_on_each_body():
     """drape_examples (what a build calls for every example avatar): one factorisation, one
     solve per body, each from its warp fit; a failing body names its example."""

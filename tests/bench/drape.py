@@ -24,14 +24,15 @@ Rows (goals from issue 43):
   bound to the mean avatar) built as the service builds it with ``TRYON_DRAPE`` on (draped on the
   65 example avatars and ``TRYON_DRAPE_POPULATION`` (default 192) people of the body model's
   training population, three quarters of them men: the garment's gender; the least-squares
-  basis: ``garments.draped.draped_example_fits``), its basis synthesis on held-out avatars (ANSUR
+  basis: ``garments.draped.draped_example_fits``), its try-on as served (``tryon.try_on``: the
+  basis synthesis, then the push-out of the body) on held-out avatars (ANSUR
   II people the body model never saw, of both genders; 50, or ``--limit``) vs the garment draped
   directly on each from its warp fit there (goal mean <= 3 mm, p99 <= 12 mm; a held-out drape
   that fails, the shirt too small to go on, is counted and left out), and per gender; beside it
   the central-difference basis of the 65 example drapes alone (the paper's);
 - ``whole_build_s``: that build (257 drapes + the basis), 2 cores (goal <= 5 min); beside it the
-  crossing face pairs its drapes kept, the solves that fell back to friction at every level and
-  the population bodies left out (``build_*``);
+  crossing face pairs its drapes kept, the example avatars' solves that fell back to friction at
+  every level and the population bodies left out (``build_*``);
 - ``ease_vs_newton_mm`` / ``hem_vs_newton_cm``: that T-shirt draped from its warp fit on 5 held-out
   people here and by Newton VBD on CPU (2 simulated seconds, damped), both keeping the cloth 3 mm
   off the skin (Newton's particle radius, our clearance), Newton's material matched to ours
@@ -225,10 +226,9 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
                                  r.vertices.astype(np.float64) - rb.vertices, axis=1).mean())}
 
     # 7. the clothing basis through drapes vs direct drapes on held-out people; the build's time
-    from service.model.garments import garment as G
     from service.model.drape import Config
     from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
-    from service.model.garments.tryon import build_garment_basis, example_set as _example_set
+    from service.model.garments.tryon import build_garment_basis, customer_body, example_set as _example_set, try_on
     from service.settings import Settings
     from service.model.drape import DrapeError
     from tests.bench.common import heldout_avatars, heldout_genders, surface_distances
@@ -243,7 +243,8 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
                                 workers=Settings.model_fields["drape_workers"].default, gender=shirt.gender)
     basis = build_garment_basis(m, dfits.fits, sF, ex)
     build_s = time.perf_counter() - t0
-    g0, B0 = G.build_basis(dfits.drapes[: len(E)], ex)
+    # the baseline: the basis of the example drapes' central differences alone (no population)
+    basis_cd = build_garment_basis(m, dfits.drapes[: len(E)], sF, ex)
     H = heldout_avatars(m)[: (limit or HELDOUT_PEOPLE)]
     H_gender = heldout_genders()[: len(H)]
     W = m.project(H)
@@ -262,10 +263,12 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
             heldout_failed += 1
             continue
         record("mens_tshirt_heldout", s_rest, sF, BVh, m.body_faces, r)
-        tried = G.synthesize(basis.g, basis.B, w)
+        # the try-on as the service serves it (the basis, then the push-out of the body)
+        cb = customer_body(m, w)
+        tried = try_on(basis, cb)[0]
         err_reg.append(np.linalg.norm(tried - r.vertices, axis=1))
         err_surface.append(surface_distances(tried, r.vertices, sF))
-        err_cd.append(np.linalg.norm(G.synthesize(g0, B0, w) - r.vertices, axis=1))
+        err_cd.append(np.linalg.norm(try_on(basis_cd, cb)[0] - r.vertices, axis=1))
         err_gender.append(gender)
     # the direct drape's own repeatability: the same drape from a start moved by ~2 mm (friction
     # and folds give cloth many resting shapes): the floor under the basis's figure
@@ -278,7 +281,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
         a = heldout_draper.solve(BVh, m.body_faces, init).vertices
         b = heldout_draper.solve(BVh, m.body_faces, init + rng.normal(0, REPEAT_START_NOISE_M, init.shape)).vertices
         rep.append(1000 * np.linalg.norm(a - b, axis=1))
-        c = heldout_draper.solve(BVh, m.body_faces, G.synthesize(basis.g, basis.B, w).astype(np.float64)).vertices
+        c = heldout_draper.solve(BVh, m.body_faces, try_on(basis, customer_body(m, w))[0].astype(np.float64)).vertices
         dep.append(1000 * np.linalg.norm(a - c, axis=1))
     rep_mm, dep_mm = np.concatenate(rep), np.concatenate(dep)
     rows["drape_repeatability_mm"] = {"value": float(rep_mm.mean()), "p99": float(np.percentile(rep_mm, 99)),

@@ -11,7 +11,9 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
   their measurements, as the service makes them);
 - monotonic: at every girth region of every (person, garment), ease grows and strain falls with size;
 - timings in process: the fit report of one garment, the customer's girths (once per body),
-  grading, one size's example fits (the build's unit of work), the try-on of one size;
+  grading, one size's example fits (the build's unit of work), the try-on of one size, and of
+  a 10k-vertex one (the catalogue's white T-shirt subdivided once: 11,102 vertices; beside it the
+  first garment's size subdivided twice, 20,394 vertices);
 - the garment build with the drape, end to end (skipped with ``--limit``): the MakeHuman casual
   suit (``male_casualsuit04``, 1,696 vertices, knit) as a ``.mhclo`` upload with the 5 EN 13402-3
   sizes, through ``POST /v1/garments`` and its build job in process (the embedded store, the
@@ -44,6 +46,18 @@ from service.model.garments.tryon import (build_garment_basis, customer_body, ex
                                           strain_maps, try_on)
 from tests.bench.common import median_ms, read_ansur, surface_distances
 from tests.bench.drape import _subdivide
+
+TEN_K_GARMENT = "white-tshirt"  # the catalogue garment whose one subdivision has ~10k vertices (11,102)
+
+
+def _subdivided(fits: np.ndarray, faces: np.ndarray, at_least: int) -> tuple[np.ndarray, np.ndarray]:
+    """Example fits (E, M, 3) and faces (F, 3) subdivided (each face into four, the new vertices
+    at edge midpoints of every fit) until they have ``at_least`` vertices: (fits, faces)."""
+    faces, fits = np.asarray(faces, np.int64), np.asarray(fits)
+    while fits.shape[1] < at_least:
+        _, faces, par = _subdivide(fits[0], faces)
+        fits = np.concatenate([fits, 0.5 * (fits[:, par[:, 0]] + fits[:, par[:, 1]])], axis=1)
+    return fits, faces
 
 # (catalogue id, gender, fabric): tops of both genders, a knit and a woven
 GARMENTS = (("womens-tshirt", "female", "knit"), ("mens-tshirt", "male", "knit"), ("striped-shirt", "male", "woven"))
@@ -250,14 +264,17 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
                       "basis": f"drape (TRYON_DRAPE on, {DRAPE_POPULATION} population bodies, 3/4 {gender0})",
                       "drape_failed": drape_failed,
                       "build_s": t_drape_build, "drapes": len(d.drapes)}
-    # the same size subdivided (each face into four) until it has 10k vertices or more
-    faces10, fits10 = np.asarray(g0["faces"], np.int64), np.asarray(fits)
-    while fits10.shape[1] < 10_000:
-        _, faces10, par = _subdivide(fits10[0], faces10)
-        fits10 = np.concatenate([fits10, 0.5 * (fits10[:, par[:, 0]] + fits10[:, par[:, 1]])], axis=1)
-    basis10 = build_garment_basis(model, fits10, faces10, example_set(model))
+    # a 10k-vertex size: the catalogue's white T-shirt (2,822 vertices) subdivided once (each face
+    # into four: 11,102 vertices, the drape bench's 10k garment); and the size above subdivided
+    # until it has 10k vertices or more (1,311 -> 20,394: twice the goal's size)
+    white = next(i for i in load_catalogue().garments() if i.id == TEN_K_GARMENT)
+    EX = example_vertices(model, ex)
+    basis10 = build_garment_basis(model, *_subdivided(np.stack([white.fit_to(X) for X in EX]), white.faces, 10_000), ex)
+    basis20 = build_garment_basis(model, *_subdivided(np.asarray(fits), g0["faces"], 10_000), ex)
     try_on(basis10, body)
     tryon10_ms = median_ms(lambda: try_on(basis10, body), repeats)
+    try_on(basis20, body)
+    tryon20_ms = median_ms(lambda: try_on(basis20, body), repeats)
     build = five_size_build() if not limit else None
     return {
         "build_5_sizes": build,
@@ -276,7 +293,9 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
         "timings": {"fit_report_ms": report_ms, "customer_girths_ms": 1000 * float(np.median(t_girths)),
                     "grading_5_sizes_s": float(np.median(t_grade)), "one_size_example_fits_s": t_fits,
                     "one_size_try_on_ms": tryon_ms, "try_on_vertices": int(basis.n_vertices),
-                    "one_size_try_on_10k_ms": tryon10_ms, "try_on_10k_vertices": int(basis10.n_vertices)},
+                    "one_size_try_on_10k_ms": tryon10_ms, "try_on_10k_vertices": int(basis10.n_vertices),
+                    "try_on_10k_garment": TEN_K_GARMENT,
+                    "one_size_try_on_20k_ms": tryon20_ms, "try_on_20k_vertices": int(basis20.n_vertices)},
     }
 
 
@@ -312,8 +331,11 @@ def format_result(r: dict) -> str:
          "once per customer body)", "<= 5 ms"),
         (f"try-on of one size, {t['try_on_vertices']} vertices, in process", f"{t['one_size_try_on_ms']:.2f} ms",
          "<= 2 ms at 10k"),
-        *([(f"try-on of one size, {t['try_on_10k_vertices']} vertices (subdivided), in process",
-            f"{t['one_size_try_on_10k_ms']:.2f} ms", "<= 2 ms")] if "one_size_try_on_10k_ms" in t else []),
+        *([(f"try-on of one size, {t['try_on_10k_vertices']} vertices ({t.get('try_on_10k_garment', 'a size')} "
+            "subdivided), in process", f"{t['one_size_try_on_10k_ms']:.2f} ms", "<= 2 ms")]
+          if "one_size_try_on_10k_ms" in t else []),
+        *([(f"  ... the size above subdivided twice, {t['try_on_20k_vertices']} vertices",
+            f"{t['one_size_try_on_20k_ms']:.2f} ms", "(no goal)")] if "one_size_try_on_20k_ms" in t else []),
         ("garment build: grading 5 sizes + one size's example fits", f"{t['grading_5_sizes_s']:.1f} s + "
          f"{t['one_size_example_fits_s']:.1f} s per size (warp; x5 sizes)", "<= 15 min for 5 sizes"),
         *([(f"garment build with the drape: {b['garment']} (.mhclo, {b['n_vertices']} vertices, {b['fabric']}) "

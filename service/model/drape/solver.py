@@ -130,6 +130,11 @@ class Config:
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
+    part_max_extent_m: float = 0.05  # a connected piece of the garment no larger than this (a button, a buckle, a
+    # label) does not drape: it rides on the cloth nearest to it at the start (its vertices keep their place in that
+    # cloth's faces' frames), or, farther than `part_attach_m` from any, stays where the start put it on the body;
+    # draped it would fall, held by nothing (its thread is not in the mesh)
+    part_attach_m: float = 0.05
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
 
 
@@ -311,6 +316,7 @@ class Draper:
         for _ in range(cfg.self_rings - 1):
             near = (near @ A).astype(bool).astype(np.int32)
         self.near = near.tocsr()
+        self.parts, self.host_faces = small_parts(rest, faces, cfg.part_max_extent_m)
         self.precompute_s = time.perf_counter() - t0
 
     # energy and gradient (for references and diagnostics) ------------------------------------
@@ -416,6 +422,7 @@ class Draper:
         x_pinned = x[self.pinned]
         if body is not None:
             x = body.outside(x)
+        parts = _PartBinding.of(x, self.faces, self.parts, self.host_faces, body is not None, cfg.part_attach_m)
         moves: list[float] = []
         it = 0
         n_self = n_over = 0
@@ -486,6 +493,8 @@ class Draper:
                         n_reverted += self._hold_back(g, x, crossing0)
                     if len(self.pinned):
                         g[self.pinned] = x_pinned
+                    if parts is not None:
+                        parts.place(g)
                     if anderson or not (COMPILED and kernels.AVAILABLE):
                         f = g - x
                         move = float(np.sqrt((f ** 2).sum(1).max()))
@@ -507,6 +516,8 @@ class Draper:
                             x_next, _ = body.project(x_next, None, None)
                         if len(self.pinned):
                             x_next[self.pinned] = x_pinned
+                        if parts is not None:
+                            parts.place(x_next)
                     f_prev, g_prev = f, g
                     td = time.perf_counter()
                     t_contact += td - tc
@@ -568,6 +579,11 @@ class Draper:
                 body.refresh_near(x, cfg.contact_near_m, 0.0, cfg.contact_walk_m)
                 x, _ = body.project(x, None, None)
         tangled = self._untangle(x, body)
+        part_crossings = 0
+        if parts is not None:
+            parts.place(x)
+            # the parts' faces crossing the cloth (a button sewn through it, as the asset may have it at rest)
+            part_crossings = len(geometry.intersecting_face_pairs(x, self.faces)) - tangled[1]
         if body is not None:
             d = body.signed_distance(x, exact=True)
             max_inside = float(max(0.0, -d.min()))
@@ -578,6 +594,7 @@ class Draper:
         stats = {"iterations": it, "settled": bool(settled), "last_move_mm": 1000 * moves[-1] if moves else 0.0,
                  "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self),
                  "over_limit_edges": int(n_over), "untangled_pairs": tangled[0], "self_intersections": tangled[1],
+                 "small_parts": len(self.parts), "part_crossings": int(part_crossings),
                  "anderson_restarts": restarts, "held_back": n_reverted, "energy_j": e,
                  "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s, "local_s": t_local,
                  "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
@@ -621,12 +638,14 @@ class Draper:
         """The settled cloth's self-intersections (where its parts were pressed together, as the
         sleeve and the side panel in an armpit: the vertex-vertex self-contact does not hold
         faces apart) smoothed out locally (``geometry.untangle``; pinned vertices stay), the body
-        contact applied after each round (it may push the layers into each other again). In
-        place; returns the intersecting face pairs before and after."""
+        contact applied after each round (it may push the layers into each other again). The
+        small parts (:func:`small_parts`) are left out: they are placed after. In place; returns
+        the intersecting face pairs of the cloth before and after."""
         cfg = self.config
         if cfg.untangle_rounds <= 0:
             return 0, 0
-        pairs = geometry.intersecting_face_pairs(x, self.faces)
+        cloth = self.faces[self.host_faces]
+        pairs = geometry.intersecting_face_pairs(x, cloth)
         if not len(pairs):
             return 0, 0
 
@@ -637,7 +656,7 @@ class Draper:
             body.refresh_near(v, cfg.contact_near_m, 0.0, cfg.contact_walk_m)
             return body.project(v, None, None)[0]
 
-        x[:], left = geometry.untangle(x, self.faces, cfg.untangle_rounds, keep=self._pin_mask,
+        x[:], left = geometry.untangle(x, cloth, cfg.untangle_rounds, keep=self._pin_mask,
                                        after=contact if body is not None else None, pairs=pairs)
         return len(pairs), left
 
@@ -707,6 +726,79 @@ class Draper:
         push = 0.5 * (gap - dist)[:, None] * u
         x += _scatter_add(np.concatenate([i, j]), np.concatenate([-push, push]), len(x))
         return int(close.sum())
+
+
+def small_parts(rest: np.ndarray, faces: np.ndarray, max_extent_m: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """The garment's (rest (N, 3), faces (F, 3)) connected pieces whose bounding box is at most
+    ``max_extent_m`` on every side (buttons, buckles, labels), as vertex index arrays, and the
+    indices (H,) of the faces of the other pieces (the cloth they ride on); ([], all faces) when
+    every piece is that small (a garment of buttons drapes as cloth)."""
+    label = geometry.vertex_components(faces, len(rest))
+    used = np.unique(faces)
+    small = []
+    for c in np.unique(label[used]):
+        ids = np.flatnonzero(label == c)
+        if np.ptp(rest[ids], axis=0).max() <= max_extent_m:
+            small.append(ids)
+    host = ~np.isin(label[faces[:, 0]], [label[p[0]] for p in small])
+    if not small or not host.any():
+        return [], np.arange(len(faces))
+    return small, np.flatnonzero(host)
+
+
+@dataclass
+class _PartBinding:
+    """Where a solve carries the garment's small parts (:func:`small_parts`): the vertices
+    ``ride`` (K,) on the cloth faces ``face`` (K, 3) (vertex ids), at barycentric ``bary`` (K, 3)
+    plus ``offset`` (K, 3) in the face's frame (edge, in-plane normal to it, face normal); the
+    vertices ``stay`` (S,) at ``fixed`` (S, 3) (beside the body, away from any cloth)."""
+    ride: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    offset: np.ndarray
+    stay: np.ndarray
+    fixed: np.ndarray
+
+    @staticmethod
+    def _frames(x: np.ndarray, face: np.ndarray) -> np.ndarray:
+        """(K, 3, 3) orthonormal frames (rows: first edge, in-plane normal to it, face normal)."""
+        a, b, c = x[face[:, 0]], x[face[:, 1]], x[face[:, 2]]
+        t1 = b - a
+        t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+        nf = np.cross(b - a, c - a)
+        nf /= np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-12)
+        return np.stack([t1, np.cross(nf, t1), nf], axis=1)
+
+    @classmethod
+    def of(cls, x: np.ndarray, faces: np.ndarray, parts: list[np.ndarray], host_faces: np.ndarray, body: bool,
+           attach_m: float) -> "_PartBinding | None":
+        """The binding of the small ``parts`` at the start x (N, 3): each part rides on the cloth
+        (``host_faces`` of ``faces``) when its vertices are within ``attach_m`` of the cloth point
+        nearest its centre (median; or when there is no body), else stays where it is. None
+        without parts."""
+        if not parts:
+            return None
+        hf = faces[host_faces]
+        hv, local = np.unique(hf, return_inverse=True)
+        ids = np.concatenate(parts)
+        # each part rigidly in the frame of the cloth face nearest to its centre (per vertex, the
+        # faces under a button would shear it through the cloth when the cloth folds)
+        centre = np.stack([x[p].mean(axis=0) for p in parts])
+        fi, q, bary = geometry.closest_points_on_mesh(centre, x[hv], local.reshape(-1, 3))
+        dist = np.array([np.median(np.linalg.norm(x[p] - qp, axis=1)) for p, qp in zip(parts, q)])
+        per = np.repeat(np.arange(len(parts)), [len(p) for p in parts])  # (K,) the part of each vertex
+        ride = ((not body) | (dist <= attach_m))[per]
+        face = hf[fi[per[ride]]]
+        offset = np.einsum("kij,kj->ki", cls._frames(x, face), x[ids[ride]] - q[per[ride]])
+        return cls(ids[ride], face, bary[per[ride]], offset, ids[~ride], x[ids[~ride]].copy())
+
+    def place(self, x: np.ndarray) -> None:
+        """Put the parts where the binding says on the cloth x (N, 3), in place."""
+        if len(self.ride):
+            q = np.einsum("kc,kcj->kj", self.bary, x[self.face])
+            x[self.ride] = q + np.einsum("kij,ki->kj", self._frames(x, self.face), self.offset)
+        if len(self.stay):
+            x[self.stay] = self.fixed
 
 
 class _Body:

@@ -15,14 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull
 
 from service.model.body import measurements as M
 from service.model.body.model import BONES
 from service.model.garments.garment import bind_to_body, laplacian_smoother, push_out
-from service.model.geometry.mesh import vertex_normals
+from service.model.geometry.mesh import vertex_components, vertex_normals
 
 B = {b: i for i, b in enumerate(BONES)}
 EASE = {"tshirt": 0.012, "trousers": 0.010}
@@ -60,9 +58,7 @@ class DemoGarment:
 
 
 def _largest_component(faces: np.ndarray) -> np.ndarray:
-    n = faces.max() + 1
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
-    _, lab = connected_components(sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    lab = vertex_components(faces, faces.max() + 1)
     keep = lab[faces[:, 0]] == np.bincount(lab[faces[:, 0]]).argmax()
     return faces[keep]
 

@@ -22,6 +22,15 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
+def vertex_components(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n,) the connected piece of the mesh (faces (F, 3) over n vertices) each vertex is in,
+    labels 0..; a vertex in no face is a piece of its own."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    return connected_components(sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
+                                directed=False)[1]
+
+
 def vertex_mean_strain(vertices: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray) -> np.ndarray:
     """(V,) per-vertex stretch: the mean over each vertex's edges (E, 2) of |edge| / rest
     length (E,) - 1 (positive stretched, negative compressed; 0 on a vertex with no edge)."""
