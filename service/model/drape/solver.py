@@ -583,7 +583,9 @@ class Draper:
         if parts is not None:
             parts.place(x)
             # the parts' faces crossing the cloth (a button sewn through it, as the asset may have it at rest)
-            part_crossings = len(geometry.intersecting_face_pairs(x, self.faces)) - tangled[1]
+            cloth = np.zeros(len(self.faces), bool)
+            cloth[self.host_faces] = True
+            part_crossings = int((~cloth[geometry.intersecting_face_pairs(x, self.faces)]).any(axis=1).sum())
         if body is not None:
             d = body.signed_distance(x, exact=True)
             max_inside = float(max(0.0, -d.min()))
