@@ -316,7 +316,10 @@ class Draper:
         for _ in range(cfg.self_rings - 1):
             near = (near @ A).astype(bool).astype(np.int32)
         self.near = near.tocsr()
-        self.parts, self.host_faces = small_parts(rest, faces, cfg.part_max_extent_m)
+        self.parts, host = small_parts(rest, faces, cfg.part_max_extent_m)
+        self.cloth_faces = faces[host]  # (H, 3) the faces the parts ride on (all faces without parts)
+        self.part_face = np.ones(len(faces), bool)  # (F,) True on the parts' faces
+        self.part_face[host] = False
         self.precompute_s = time.perf_counter() - t0
 
     # energy and gradient (for references and diagnostics) ------------------------------------
@@ -422,7 +425,7 @@ class Draper:
         x_pinned = x[self.pinned]
         if body is not None:
             x = body.outside(x)
-        parts = _PartBinding.of(x, self.faces, self.parts, self.host_faces, body is not None, cfg.part_attach_m)
+        parts = _PartBinding.of(x, self.cloth_faces, self.parts, body is not None, cfg.part_attach_m)
         moves: list[float] = []
         it = 0
         n_self = n_over = 0
@@ -583,9 +586,7 @@ class Draper:
         if parts is not None:
             parts.place(x)
             # the parts' faces crossing the cloth (a button sewn through it, as the asset may have it at rest)
-            cloth = np.zeros(len(self.faces), bool)
-            cloth[self.host_faces] = True
-            part_crossings = int((~cloth[geometry.intersecting_face_pairs(x, self.faces)]).any(axis=1).sum())
+            part_crossings = int(self.part_face[geometry.intersecting_face_pairs(x, self.faces)].any(axis=1).sum())
         if body is not None:
             d = body.signed_distance(x, exact=True)
             max_inside = float(max(0.0, -d.min()))
@@ -646,7 +647,7 @@ class Draper:
         cfg = self.config
         if cfg.untangle_rounds <= 0:
             return 0, 0
-        cloth = self.faces[self.host_faces]
+        cloth = self.cloth_faces
         pairs = geometry.intersecting_face_pairs(x, cloth)
         if not len(pairs):
             return 0, 0
@@ -772,15 +773,14 @@ class _PartBinding:
         return np.stack([t1, np.cross(nf, t1), nf], axis=1)
 
     @classmethod
-    def of(cls, x: np.ndarray, faces: np.ndarray, parts: list[np.ndarray], host_faces: np.ndarray, body: bool,
+    def of(cls, x: np.ndarray, hf: np.ndarray, parts: list[np.ndarray], body: bool,
            attach_m: float) -> "_PartBinding | None":
         """The binding of the small ``parts`` at the start x (N, 3): each part rides on the cloth
-        (``host_faces`` of ``faces``) when its vertices are within ``attach_m`` of the cloth point
+        (faces ``hf`` (H, 3)) when its vertices are within ``attach_m`` of the cloth point
         nearest its centre (median; or when there is no body), else stays where it is. None
         without parts."""
         if not parts:
             return None
-        hf = faces[host_faces]
         hv, local = np.unique(hf, return_inverse=True)
         ids = np.concatenate(parts)
         # each part rigidly in the frame of the cloth face nearest to its centre (per vertex, the
