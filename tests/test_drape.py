@@ -268,6 +268,48 @@ def test_small_parts_ride_on_the_cloth_or_stay_instead_of_falling():
         assert "diverged" in str(exc)
 
 
+def test_layers_lying_on_each_other_are_tied_instead_of_sliding_apart():
+    """Two pieces of cloth lying on each other at rest (a band 4 mm over a tube, as a bib over a
+    shirt) are tied where they lie together (``Config.tie_m``): the outer one does not slide
+    along the inner one, and the body contact keeps it its gap over the inner one (it rests
+    farther off the body), so the layers do not cross. Untied, the band slides down the
+    frictionless inner layer and off it."""
+    from service.model.drape.solver import layer_ties
+
+    na, Rg, Rb, gap = 32, 0.152, 0.155, 0.004
+    V, F = tube(Rg, 0.2, na, 8)
+    B, FB = tube(Rg + gap, 0.1, na, 4, y0=0.05)
+    rest = np.vstack([V, B])
+    faces = np.vstack([F, FB + len(V)])
+    init = rest.copy()
+    init[:, [0, 2]] *= (Rb + 0.002) / Rg  # both stretched onto the body as the warp fit would
+    BV, BF = cylinder(Rb, -0.3, 0.6, n_around=64, n_height=12)
+    tv, tf, tb = layer_ties(rest, faces, Config().tie_m)
+    assert len(tv) == len(V[(V[:, 1] > 0.04) & (V[:, 1] < 0.16)]) + len(B)  # both ways, within 1 cm
+    assert np.allclose(tb.sum(1), 1.0) and (tb >= 0).all()
+    assert len(layer_ties(V, F, 0.01)[0]) == 0  # one piece: nothing to tie
+    band = slice(len(V), None)
+    label = geometry.vertex_components(faces, len(rest))
+
+    def between_layers(x):
+        pairs = geometry.intersecting_face_pairs(x, faces)
+        return int((label[faces[pairs[:, 0], 0]] != label[faces[pairs[:, 1], 0]]).sum()) if len(pairs) else 0
+
+    r = precompute(rest, faces, "knit").solve(BV, BF, init)
+    x = r.vertices.astype(np.float64)
+    assert r.stats["layer_ties"] == len(tv) and r.stats["max_penetration_mm"] <= 1.0
+    slide = (x[band, 1] - init[band, 1]).mean() - (x[: len(V), 1] - init[: len(V), 1]).mean()
+    assert abs(slide) < 0.003, slide
+    assert between_layers(x) == 0
+    r_band = np.linalg.norm(x[band][:, [0, 2]], axis=1).mean()
+    r_tube = np.linalg.norm(x[: len(V)][:, [0, 2]], axis=1).max()
+    assert r_band - r_tube > 0.002, (r_band, r_tube)  # the band rests over the tube, not pressed into it
+    loose = precompute(rest, faces, "knit", Config(tie_m=0.0)).solve(BV, BF, init)
+    assert loose.stats["layer_ties"] == 0
+    xl = loose.vertices.astype(np.float64)
+    assert (xl[band, 1] - init[band, 1]).mean() - (xl[: len(V), 1] - init[: len(V), 1]).mean() < -0.1  # fell off
+
+
 def test_drape_examples_keeps_the_garment_size_on_each_body():
     """drape_examples (what a build calls for every example avatar): one factorisation, one
     solve per body, each from its warp fit; a failing body names its example."""
@@ -384,7 +426,7 @@ def test_compiled_body_contact_matches_numpy(monkeypatch):
     """The compiled body contact (geometry.kernels.contact_project: push-out along the normal,
     friction against the move since the step's start) against the numpy path, on a tube shaken
     around a cylinder it partly enters: the same positions and contact set, with and without
-    friction."""
+    friction, with one clearance and with one per vertex."""
     from service.model.drape import solver
     from service.model.geometry import kernels
 
@@ -401,7 +443,9 @@ def test_compiled_body_contact_matches_numpy(monkeypatch):
         monkeypatch.setattr(solver, "COMPILED", compiled)
         body = solver._Body(BV, BF, solver.Config(clearance_m=0.002))
         body.refresh(x_prev)
-        out[compiled] = body.project(x, x_prev, slide), body.project(x, None, None)
+        out[compiled] = [body.project(x, x_prev, slide), body.project(x, None, None)]
+        body.clearance = np.linspace(0.001, 0.006, len(V))  # per vertex (an outer layer's: farther off)
+        out[compiled].append(body.project(x, x_prev, slide))
     for (a, ca), (b, cb) in zip(out[True], out[False]):
         assert np.array_equal(ca, cb) and 0 < ca.sum() < len(V)
         assert np.allclose(a, b, rtol=0, atol=1e-15)

@@ -52,6 +52,12 @@ Rows (goals from issue 43):
 - ``drape_start_dependence_mm``: the same 5 drapes repeated from another reasonable start, the
   basis try-on there (where the exact drape job starts) instead of the warp fit: mean (and p99)
   distance between the two (no goal: how far "the" direct drape is defined at all);
+- ``layered_slide_cm``: the demo dungarees (a T-shirt whose front MakeHuman cut away under the
+  bib, and the dungarees over it: two pieces of cloth and 4 small parts, woven) draped on 3
+  example avatars with its layers tied where they lie together (``Config.tie_m``): how far the
+  two pieces slid apart (the difference of their median height changes, worst body; no goal);
+  beside it the same drapes untied (the baseline of the same run), the face pairs crossing
+  between the pieces of cloth and the solves' seconds;
 - ``walking_step_stretch``: the catalogue's bottoms (skirts, trousers) as plain GLBs posed by
   their skin weights alone in the page's four poses on five bodies (``tryon bench tryon``'s
   pose-stretch measure): the 99.9th-percentile edge stretch of the worst garment, body and pose
@@ -71,6 +77,8 @@ NEWTON_RADIUS_M = 0.003  # Newton's cloth particle radius (its contact thickness
 REPEAT_BODIES = 5  # held-out people the direct drape is repeated on from a perturbed start
 HELDOUT_PEOPLE = 50  # held-out people the basis try-on is checked on against direct drapes (the issue's figure)
 REPEAT_START_NOISE_M = 0.002  # the perturbation: normal noise of this standard deviation per coordinate
+LAYERED_GARMENT = "dungarees"  # the catalogue's garment of layered pieces (a T-shirt under a bib, 2,497 + 1,115 v)
+LAYERED_BODIES = 3  # the example avatars it is draped on (the mean and the first two)
 
 
 def self_intersections(V: np.ndarray, F: np.ndarray) -> int:
@@ -225,6 +233,10 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
                              "vs_baseline_mean_mm": float(1000 * np.linalg.norm(
                                  r.vertices.astype(np.float64) - rb.vertices, axis=1).mean())}
 
+    # 6b. a garment of layered pieces (the demo dungarees: a T-shirt under a bib, 4 small parts) on
+    # example avatars, its layers tied where they lie together; the baseline: untied, same run
+    rows["layered_slide_cm"] = _layered(m, E)
+
     # 7. the clothing basis through drapes vs direct drapes on held-out people; the build's time
     from service.model.drape import Config
     from service.model.garments.draped import DRAPE_CLEARANCE_M, draped_example_fits
@@ -376,6 +388,50 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True) -> dict:
 
     rows["inside_vertices"] = {"value": inside, "goal": 0}
     rows["self_intersections"] = {"value": selfx, "goal": 0}
+    return out
+
+
+def _layered(m, E: np.ndarray) -> dict:
+    """The ``layered_slide_cm`` row: the catalogue's ``LAYERED_GARMENT`` draped (at the build's
+    clearance, in its demo fabric) on the first ``LAYERED_BODIES`` example avatars with its
+    layers tied (``Config.tie_m``) and untied: how far its two largest pieces of cloth slid
+    apart (the difference of their median height changes, cm, worst body), the face pairs
+    crossing between its pieces of cloth (small parts left out: a button may be sewn through the
+    cloth at rest) and the solves' seconds."""
+    from service.application.demo import DEMO_FABRICS
+    from service.model.drape import Config, precompute
+    from service.model.drape.solver import small_parts
+    from service.model.garments.catalogue import load_catalogue
+    from service.model.garments.draped import DRAPE_CLEARANCE_M
+    from service.model.geometry import mesh as geometry
+
+    item = next(i for i in load_catalogue().garments() if i.id == LAYERED_GARMENT)
+    F = item.faces.astype(np.int64)
+    rest = item.binding.fit(np.asarray(m.mean, np.float64)).astype(np.float64)
+    fabric = DEMO_FABRICS.get(item.id, "woven")
+    label = geometry.vertex_components(F, len(rest))
+    _, host = small_parts(rest, F, Config().part_max_extent_m)
+    cloth = F[host]
+    pieces, counts = np.unique(label[cloth[:, 0]], return_counts=True)
+    a, b = pieces[np.argsort(counts)[::-1][:2]]
+    out: dict = {"garment": LAYERED_GARMENT, "fabric": fabric, "n_vertices": len(rest), "bodies": LAYERED_BODIES}
+    for name, tie in (("tied", Config().tie_m), ("untied", 0.0)):
+        draper = precompute(rest, F, fabric, Config(clearance_m=DRAPE_CLEARANCE_M, tie_m=tie))
+        slides, crossings, seconds = [], [], []
+        for i in range(LAYERED_BODIES):
+            init = item.binding.fit(E[i]).astype(np.float64)
+            r = draper.solve(m.body_vertices(E[i]).astype(np.float64), m.body_faces, init)
+            x = r.vertices.astype(np.float64)
+            dy = x[:, 1] - init[:, 1]
+            slides.append(100 * abs(float(np.median(dy[label == a]) - np.median(dy[label == b]))))
+            pairs = geometry.intersecting_face_pairs(x, cloth)
+            crossings.append(int((label[cloth[pairs[:, 0], 0]] != label[cloth[pairs[:, 1], 0]]).sum()) if len(pairs)
+                             else 0)
+            seconds.append(r.stats["seconds"])
+        out[name] = {"slide_cm": [round(v, 2) for v in slides], "crossings": crossings,
+                     "seconds_median": float(np.median(seconds)), "ties": int(len(draper.tie_vertex))}
+    out["value"] = float(max(out["tied"]["slide_cm"]))
+    out["baseline_untied_cm"] = float(max(out["untied"]["slide_cm"]))
     return out
 
 

@@ -6,6 +6,7 @@ The garment's rest shape (edge lengths, angles, curvature as uploaded) is its si
     E(x) = sum_t  k_s A_t / 2 ||F_t(x) - R_t||^2               in-plane stretch and shear (PD Sec. 5, Eq. 13: triangle strain)
          + sum_i  B / (2 A_i) ||(L x)_i - h0_i n_i(x)||^2      bending against the rest mean curvature (PD Sec. 5, Eq. 15)
          - sum_i  m_i g . x_i                                  gravity
+         + sum_k  w_k / 2 ||(T x)_k - h_k n_k(x)||^2           layer ties (where pieces of cloth lie on each other)
 
 is minimised subject to a strain limit (no edge longer than the fabric's stretch limit allows:
 Provot, "Deformation constraints in a mass-spring model to describe rigid cloth behavior", GI
@@ -13,7 +14,12 @@ Provot, "Deformation constraints in a mass-spring model to describe rigid cloth 
 ``clearance`` outside the body), Coulomb friction against the body and vertex-vertex
 self-contact. F_t is the deformation gradient of triangle t (3 x 2, against its rest frame),
 R_t its closest rotation, L the rest cotangent Laplacian, h0_i the rest signed mean-curvature
-magnitude, n_i the current vertex normal, m_i = rho A_i.
+magnitude, n_i the current vertex normal, m_i = rho A_i. A layer tie k (``layer_ties``) holds
+a vertex of one piece of cloth to its closest point on another piece at rest, (T x)_k being the
+vertex's offset from that point (barycentric in the anchor face), n_k the anchor face's normal
+and h_k the offset's height along it, kept on its rest side and at least its rest gap: the
+layers may part, not slide along each other (PD's projection onto a set that moves with x, as
+the bending's).
 
 Static equilibrium is reached by proximal local/global iterations: each iteration adds
 w_i / 2 ||x_i - x_i^k||^2 with w_i = m_i / h^2 (an implicit Euler step with all velocity damped,
@@ -135,6 +141,10 @@ class Config:
     # cloth's faces' frames), or, farther than `part_attach_m` from any, stays where the start put it on the body;
     # draped it would fall, held by nothing (its thread is not in the mesh)
     part_attach_m: float = 0.05
+    tie_m: float = 0.01  # a vertex of one piece of cloth lying within this of another piece at rest (a bib over a
+    # shirt, a jacket's lining, layered panels) is tied to its closest point there: it may part from that layer but
+    # not slide along it (the friction between layers that holds them where they lie together; 0: off) ...
+    tie_stiffness: float = 1.0  # ... with this multiple of the membrane's stiffness at the vertex (k_s A_i / l_i^2)
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
 
 
@@ -285,8 +295,29 @@ class Draper:
         free[pinned] = False
         self.free = np.flatnonzero(free)
         self._pin_mask = ~free
+        self.parts, host = small_parts(rest, faces, cfg.part_max_extent_m)
+        self.cloth_faces = faces[host]  # (H, 3) the faces the parts ride on (all faces without parts)
+        self.part_face = np.ones(len(faces), bool)  # (F,) True on the parts' faces
+        self.part_face[host] = False
+        # layer ties: T (K, N) gives each tied vertex's offset from its anchor point on the other layer
+        self.tie_vertex, self.tie_face, self.tie_bary = layer_ties(rest, self.cloth_faces, cfg.tie_m)
+        K_ties = len(self.tie_vertex)
+        cols = np.concatenate([self.tie_vertex[:, None], self.tie_face], axis=1)  # (K, 4)
+        vals = np.concatenate([np.ones((K_ties, 1)), -self.tie_bary], axis=1)
+        self.T = sp.csr_matrix((vals.ravel(), (np.repeat(np.arange(K_ties), 4), cols.ravel())), shape=(K_ties, N))
+        mean_edge = np.bincount(self.edges.ravel(), np.repeat(self.edge_rest, 2), minlength=N) / np.maximum(
+            np.bincount(self.edges.ravel(), minlength=N), 1)
+        iv = self.tie_vertex
+        # each tied vertex's signed height over its anchor face at rest (its side of the other layer), at most
+        # the self-contact's gap
+        t = rest[self.tie_face]
+        n0 = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-30)
+        h0 = ((self.T @ rest) * n0).sum(1)
+        self.tie_gap = np.where(h0 >= 0, 1.0, -1.0) * np.minimum(np.abs(h0), cfg.self_contact_m)  # (K,) m
+        self.w_tie = cfg.tie_stiffness * ks * self.vertex_area[iv] / np.maximum(mean_edge[iv], 1e-6) ** 2  # (K,) N/m
         Ks = (G.T @ sp.diags(self.w_stretch) @ G).tocsr()
-        Kr = (L.T @ sp.diags(self.w_bend) @ L + sp.diags(self.w_prox)).tocsr()
+        Kr = (L.T @ sp.diags(self.w_bend) @ L + sp.diags(self.w_prox) + self.T.T @ sp.diags(self.w_tie) @ self.T).tocsr()
         # stiffness continuation: one factor per level (the membrane scaled by `level`, PD's
         # matrix with the same bending and proximal terms); the soft levels let the cloth turn
         # and hang (PD's fixed matrix is as stiff against rotations as against stretch), the last
@@ -316,10 +347,6 @@ class Draper:
         for _ in range(cfg.self_rings - 1):
             near = (near @ A).astype(bool).astype(np.int32)
         self.near = near.tocsr()
-        self.parts, host = small_parts(rest, faces, cfg.part_max_extent_m)
-        self.cloth_faces = faces[host]  # (H, 3) the faces the parts ride on (all faces without parts)
-        self.part_face = np.ones(len(faces), bool)  # (F,) True on the parts' faces
-        self.part_face[host] = False
         self.precompute_s = time.perf_counter() - t0
 
     # energy and gradient (for references and diagnostics) ------------------------------------
@@ -330,11 +357,54 @@ class Draper:
         r_s = (Gx - _polar(Gx)).transpose(0, 2, 1).reshape(-1, 3)
         n = _normals(x, self.faces, self.incidence)
         r_b = self.L @ x - self.h0[:, None] * n
+        d, p = self._tie_projection(x)
+        r_t = d - p
         e = (0.5 * (self.w_stretch * (r_s ** 2).sum(1)).sum()
-             + 0.5 * (self.w_bend * (r_b ** 2).sum(1)).sum() - (self.gravity_force * x).sum())
+             + 0.5 * (self.w_bend * (r_b ** 2).sum(1)).sum() + 0.5 * (self.w_tie * (r_t ** 2).sum(1)).sum()
+             - (self.gravity_force * x).sum())
         g = (self.G.T @ (self.w_stretch[:, None] * r_s)
-             + self.L.T @ (self.w_bend[:, None] * r_b) - self.gravity_force)
+             + self.L.T @ (self.w_bend[:, None] * r_b) + self.T.T @ (self.w_tie[:, None] * r_t) - self.gravity_force)
         return float(e), g
+
+    def _layer_clearance(self, body: "_Body", x: np.ndarray) -> np.ndarray:
+        """(N,) m: each vertex's clearance off the body, ``Config.clearance_m`` plus, for a tied
+        vertex of the outer layer at the start x (N, 3) (farther from the body than its anchor
+        point), its gap over the inner one (:attr:`tie_gap`): the body contact does not press
+        the outer layer into the inner one where both rest on the body."""
+        out = np.full(self.n, self.config.clearance_m)
+        if not len(self.tie_vertex):
+            return out
+        body.refresh(x)
+        sd_vertex = body.signed_distance(x)[self.tie_vertex]
+        anchor = (x[self.tie_face] * self.tie_bary[:, :, None]).sum(1)
+        q, n, _ = body._query(anchor)
+        outer = sd_vertex > ((anchor - q) * n).sum(1)
+        out[self.tie_vertex[outer]] += np.abs(self.tie_gap[outer])
+        return out
+
+    def _tie_projection(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The layer ties' offsets d = T x (K, 3) (each tied vertex from its anchor point on the
+        other layer) and their projections (K, 3) onto the anchor face's current normal line:
+        the closest offsets that part the layers without sliding one along the other."""
+        d = self.T @ x
+        if not len(d):
+            return d, d
+        t = x[self.tie_face]  # (K, 3 corners, 3)
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        # on the side of the other layer it lies on at rest, at least as far off it (up to the self-contact's gap)
+        side = np.sign(self.tie_gap)
+        h = side * np.maximum(side * (d * n).sum(1), np.abs(self.tie_gap))
+        return d, h[:, None] * n
+
+    def _tie_rhs(self, x: np.ndarray, energy: bool) -> tuple[np.ndarray | float, float]:
+        """The ties' share of the local step's right-hand side, T^T W p (N, 3) (0.0 without
+        ties), and of the energy (J; NaN unless ``energy``)."""
+        if not len(self.tie_vertex):
+            return 0.0, 0.0
+        d, p = self._tie_projection(x)
+        e = 0.5 * float((self.w_tie * ((d - p) ** 2).sum(1)).sum()) if energy else np.nan
+        return self.T.T @ (self.w_tie[:, None] * p), e
 
     def _local(self, x: np.ndarray, level: float = 1.0, gravity: float = 1.0,
                energy: bool = True) -> tuple[np.ndarray, float]:
@@ -353,9 +423,11 @@ class Draper:
             kernels.vertex_normals(x, self.faces, n)
             pb = self.h0[:, None] * n
             rhs += self.L.T @ (self.w_bend[:, None] * pb)
+            r_t, e_t = self._tie_rhs(x, energy)
+            rhs += r_t
             if not energy:
                 return rhs + gravity * self.gravity_force, np.nan
-            e = (e_s + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
+            e = (e_s + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum()) + e_t
                  - float((self.gravity_force * x).sum()) * gravity)
             return rhs + gravity * self.gravity_force, e
         Gxr = self.G @ x  # (2T, 3)
@@ -366,7 +438,9 @@ class Draper:
         n = _normals(x, self.faces, self.incidence)
         pb = self.h0[:, None] * n
         rhs += self.L.T @ (self.w_bend[:, None] * pb)
-        e = (0.5 * float((ws * ((Gxr - R) ** 2).sum(1)).sum())
+        r_t, e_t = self._tie_rhs(x, True)
+        rhs += r_t
+        e = (0.5 * float((ws * ((Gxr - R) ** 2).sum(1)).sum()) + e_t
              + 0.5 * float((self.w_bend * ((self.L @ x - pb) ** 2).sum(1)).sum())
              - float((self.gravity_force * x).sum()) * gravity)
         return rhs + gravity * self.gravity_force, e
@@ -424,6 +498,7 @@ class Draper:
         body = _Body(body_vertices, body_faces, cfg) if body_vertices is not None and len(body_vertices) else None
         x_pinned = x[self.pinned]
         if body is not None:
+            body.clearance = self._layer_clearance(body, x)
             x = body.outside(x)
         parts = _PartBinding.of(x, self.cloth_faces, self.parts, body is not None, cfg.part_attach_m)
         moves: list[float] = []
@@ -486,6 +561,7 @@ class Draper:
                             g[far] = x[far] + (g[far] - x[far]) * (cfg.max_step_m / step[far])[:, None]
                     n_over = self._strain_limit(g)
                     n_self = self._self_contact(g, refresh=(it - 1) % cfg.self_refresh == 0)
+                    self._tie_contact(g)
                     if body is not None:
                         # tangent planes at the closest points of the (outside) start of the step
                         if not searched:
@@ -598,6 +674,7 @@ class Draper:
                  "max_penetration_mm": 1000 * max_inside, "self_contact_pairs": int(n_self),
                  "over_limit_edges": int(n_over), "untangled_pairs": tangled[0], "self_intersections": tangled[1],
                  "small_parts": len(self.parts), "part_crossings": int(part_crossings),
+                 "layer_ties": int(len(self.tie_vertex)),
                  "anderson_restarts": restarts, "held_back": n_reverted, "energy_j": e,
                  "seconds": time.perf_counter() - t0, "precompute_s": self.precompute_s, "local_s": t_local,
                  "global_s": t_global, "contact_s": t_contact, "factor": self.factor.backend, "levels": n_levels,
@@ -697,6 +774,31 @@ class Draper:
             x += acc / np.maximum(np.bincount(ends, minlength=self.n), 1)[:, None]
         return first
 
+    def _tie_contact(self, x: np.ndarray) -> int:
+        """Tied vertices that came nearer to their anchor face than their rest gap (or through
+        it) pushed back, half the vertex, half the anchor face's corners (by their barycentric
+        weights), along the face normal (position-based, as the self-contact). In place; returns
+        the ties pushed."""
+        if not len(self.tie_vertex):
+            return 0
+        d = self.T @ x
+        t = x[self.tie_face]
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        side = np.sign(self.tie_gap)
+        short = np.abs(self.tie_gap) - side * (d * n).sum(1)  # (K,) m: how far it is to be pushed
+        k = np.flatnonzero(short > 0)
+        if not len(k):
+            return 0
+        push = (0.5 * short[k] * side[k])[:, None] * n[k]
+        b = self.tie_bary[k]
+        wsum = (b ** 2).sum(1, keepdims=True)  # the anchor point moves by -push with the corners moved b_j / |b|^2
+        idx = np.concatenate([self.tie_vertex[k], self.tie_face[k].ravel()])
+        val = np.concatenate([push, (-(b / wsum)[:, :, None] * push[:, None, :]).reshape(-1, 3)])
+        cnt = np.bincount(idx, minlength=self.n)
+        x += _scatter_add(idx, val, self.n) / np.maximum(cnt, 1)[:, None]
+        return len(k)
+
     def _self_contact(self, x: np.ndarray, refresh: bool) -> int:
         """Push apart garment vertices of distant parts (not within ``self_rings`` edges) that are
         closer than ``self_contact_m`` (or than they are at rest, if closer), half each along
@@ -747,6 +849,32 @@ def small_parts(rest: np.ndarray, faces: np.ndarray, max_extent_m: float) -> tup
     if not small or not host.any():
         return [], np.arange(len(faces))
     return small, np.flatnonzero(host)
+
+
+def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the garment's pieces of cloth (rest (N, 3); ``faces`` (F, 3): the cloth's, without
+    the small parts) lie on each other: every vertex within ``tie_m`` of a face of another
+    connected piece at rest, with that piece's closest point to it. Returns the tied vertices
+    (K,) int64, their anchor faces' vertices (K, 3) int64 and the anchor points' barycentric
+    weights there (K, 3) float64 (empty for a garment of one piece, or ``tie_m`` 0)."""
+    none = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3))
+    if tie_m <= 0:
+        return none
+    label = geometry.vertex_components(faces, len(rest))
+    face_label = label[faces[:, 0]]
+    pieces = np.unique(face_label)
+    if len(pieces) < 2:
+        return none
+    vs, fs, bs = [], [], []
+    for c in pieces:
+        others = faces[face_label != c]
+        mine = np.unique(faces[face_label == c])
+        face, q, bary = geometry.closest_points_on_mesh(rest[mine], rest, others)
+        near = np.linalg.norm(q - rest[mine], axis=1) < tie_m
+        vs.append(mine[near])
+        fs.append(others[face[near]])
+        bs.append(np.clip(bary[near], 0.0, 1.0) / np.clip(bary[near], 0.0, 1.0).sum(1, keepdims=True))
+    return np.concatenate(vs), np.concatenate(fs).astype(np.int64), np.concatenate(bs)
 
 
 @dataclass
@@ -819,6 +947,7 @@ class _Body:
         inc = sp.csr_matrix((np.ones(F.size), (F.reshape(-1), np.repeat(np.arange(len(F)), 3))), shape=(len(V), len(F)))
         self.normals = _normals(V, F, inc)
         self.q = self.n = self.face = None
+        self.clearance: np.ndarray | None = None  # (N,) m per garment vertex (None: cfg.clearance_m for every one)
         self.face_pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # refresh_faces
 
     def refresh_faces(self, x: np.ndarray, faces: np.ndarray, near_m: float) -> None:
@@ -916,20 +1045,21 @@ class _Body:
         return ((x - self.q) * self.n).sum(1)
 
     def project(self, x: np.ndarray, x_prev: np.ndarray | None, slide: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Vertices within ``clearance`` of the body (or inside) moved out along the surface
-        normal; with ``x_prev``, their tangential move since then cancelled up to ``slide`` (N,)
+        """Vertices within their clearance (:attr:`clearance`, else ``cfg.clearance_m``) of the
+        body (or inside) moved out along the surface normal; with ``x_prev``, their tangential move since then cancelled up to ``slide`` (N,)
         times the correction (Coulomb friction as in Macklin et al. 2014 Eq. 24-25, the ratio
         from the forces: :attr:`Draper.slide_per_depth`). Returns (x, contact mask)."""
+        clearance = self.clearance if self.clearance is not None else np.full(len(x), self.cfg.clearance_m)
         if COMPILED and kernels.AVAILABLE:
             out, c = np.empty((len(x), 3)), np.empty(len(x), np.bool_)
             friction = x_prev is not None and slide is not None
-            if not kernels.contact_project(np.ascontiguousarray(x, np.float64), self.q, self.n, self.cfg.clearance_m,
+            if not kernels.contact_project(np.ascontiguousarray(x, np.float64), self.q, self.n, clearance,
                                            x_prev if friction else x, slide if friction else self.reach, friction,
                                            out, c):
                 return x, c
             return out, c
         d = self.signed_distance(x)
-        depth = self.cfg.clearance_m - d
+        depth = clearance - d
         c = depth > 0
         if not c.any():
             return x, c

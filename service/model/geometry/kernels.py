@@ -418,8 +418,8 @@ def _strain_limit_pass(x, edges, edge_max, inv_mass, acc, count):
 
 
 def _contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact):
-    """The drape's body contact (``drape.solver._Body.project``): each vertex of x (N, 3) float64
-    closer than ``clearance`` to its tangent plane (closest body point q (N, 3), unit normal n
+    """The drape's body contact (``drape.solver._Body.project``): each vertex i of x (N, 3) float64
+    closer than ``clearance[i]`` (N,) to its tangent plane (closest body point q (N, 3), unit normal n
     (N, 3)) moved out along n; with ``friction``, its tangential move since x_prev (N, 3) cancelled
     up to slide (N,) times that correction. out (N, 3) float64 and contact (N,) bool out.
     Returns the number of vertices in contact."""
@@ -427,7 +427,7 @@ def _contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact):
     for i in range(x.shape[0]):
         n0, n1, n2 = n[i, 0], n[i, 1], n[i, 2]
         x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
-        depth = clearance - ((x0 - q[i, 0]) * n0 + (x1 - q[i, 1]) * n1 + (x2 - q[i, 2]) * n2)
+        depth = clearance[i] - ((x0 - q[i, 0]) * n0 + (x1 - q[i, 1]) * n1 + (x2 - q[i, 2]) * n2)
         if not depth > 0:
             contact[i] = False
             out[i, 0], out[i, 1], out[i, 2] = x0, x1, x2
