@@ -310,6 +310,52 @@ def test_layers_lying_on_each_other_are_tied_instead_of_sliding_apart():
     assert (xl[band, 1] - init[band, 1]).mean() - (xl[: len(V), 1] - init[: len(V), 1]).mean() < -0.1  # fell off
 
 
+def _folded_strip(length: float = 0.2, width: float = 0.04, gap: float = 0.005, step: float = 0.005):
+    """A strip of cloth folded back on itself (a hem turned up, a collar folded over): a sheet in
+    x-z, ``length`` long, a half turn of diameter ``gap`` at x = ``length``, and the same length
+    back ``gap`` above. Returns vertices, faces and each vertex's arc length from the start."""
+    turn = np.pi * gap / 2
+    s = np.linspace(0.0, 2 * length + turn, int(round((2 * length + turn) / step)) + 1)
+    a = np.clip((s - length) / turn, 0.0, 1.0) * np.pi
+    x = np.where(s <= length, s, np.where(s >= length + turn, 2 * length + turn - s, length + gap / 2 * np.sin(a)))
+    y = np.where(s <= length, 0.0, np.where(s >= length + turn, gap, gap / 2 * (1 - np.cos(a))))
+    zs = np.linspace(0.0, width, int(round(width / step)) + 1)
+    V = np.array([[xi, yi, z] for xi, yi in zip(x, y) for z in zs])
+    nz = len(zs)
+    F = []
+    for i in range(len(s) - 1):
+        for k in range(nz - 1):
+            a0, a1, b0, b1 = i * nz + k, i * nz + k + 1, (i + 1) * nz + k, (i + 1) * nz + k + 1
+            F += [[a0, b0, b1], [a0, b1, a1]]
+    return V, np.array(F, np.int64), np.repeat(s, nz)
+
+
+def test_layer_ties_of_one_piece_only_far_from_its_fold_and_not_where_cloth_touches():
+    """One piece folded over on itself is tied where its two layers lie on each other farther than
+    3 tie distances apart along the cloth (not at the fold, whose two sides are the same sheet
+    bending), with the offsets across the gap; a single vertex touching another part (a patch of
+    fewer than ``TIE_MIN_PATCH``) is not a layer."""
+    from service.model.drape.solver import TIE_MIN_PATCH, layer_ties
+
+    V, F, s = _folded_strip()
+    tv, tf, tb = layer_ties(V, F, 0.01)
+    length, turn = 0.2, np.pi * 0.005 / 2
+    along = np.minimum(np.abs(s - length), np.abs(s - length - turn))  # from the fold, along the cloth
+    # the other layer is 5 mm away across the gap, its anchor point more than 3 cm away along the cloth
+    anchor = (V[tf] * tb[:, :, None]).sum(1)
+    assert len(tv) and np.allclose(np.abs(anchor[:, 1] - V[tv, 1]), 0.005, atol=1e-9)
+    assert (np.linalg.norm(anchor[:, [0, 2]] - V[tv][:, [0, 2]], axis=1) < 0.005).all()
+    assert (np.abs(s[tf] - s[tv][:, None]).min(1) > 0.02).all()  # (the graph distance over the edges: > 3 cm)
+    far = (along > 0.035) & (V[:, 0] > 1e-9)  # beyond 3 cm from the fold both ways (each layer's own far end)
+    assert set(np.flatnonzero(far)) <= set(tv.tolist())
+    assert not set(np.flatnonzero(along < 0.01)) & set(tv.tolist())
+    # a touch: one sheet and one vertex of another piece's tip lying on it (fewer than TIE_MIN_PATCH tied)
+    sheet = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0, 0.1], [0.1, 0, 0.1]], float)
+    tip = np.array([[0.05, 0.002, 0.05], [0.05, 0.05, 0.1], [0.05, 0.05, 0.0]])
+    faces = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6]])
+    assert TIE_MIN_PATCH > 1 and len(layer_ties(np.vstack([sheet, tip]), faces, 0.01)[0]) == 0
+
+
 def test_drape_examples_keeps_the_garment_size_on_each_body():
     """drape_examples (what a build calls for every example avatar): one factorisation, one
     solve per body, each from its warp fit; a failing body names its example."""

@@ -112,23 +112,27 @@ def _far_mhclo(mhclo: bytes, factor: float) -> bytes:
 def test_demo_catalogue_is_draped_in_the_background(tmp_path_factory: pytest.TempPathFactory) -> None:
     """The demo catalogue at the start: built through its binding (``example_fits: warp``), then
     ``drape_demo`` (what ``tryon drape-demo`` runs) re-builds it through the drape in place: same
-    id, new ETag, ``example_fits: drape``; a second run has nothing to do."""
+    id, new ETag, ``example_fits: drape``; a second run has nothing to do. A hat is not cloth: it
+    keeps its binding's basis."""
     with redis_db() as db:
         settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("demo-drape"), REDIS_URL=redis_url(db),
-                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="fedora", TRYON_DRAPE=True,
-                            TRYON_DRAPE_POPULATION=0, TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="pencil-skirt,fedora", TRYON_DRAPE=True,
+                            TRYON_DEMO_SIZES=False, TRYON_DRAPE_POPULATION=0,
+                            TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
         assert settings.runs_demo_drape()
         with TestClient(create_app(settings), raise_server_exceptions=True) as c:
-            before = c.get("/v1/garments").json()
-            assert [g["example_fits"] for g in before] == ["warp"]
+            before = {g["name"]: g for g in c.get("/v1/garments").json()}
+            skirt = next(g for g in before.values() if g["category"] == "bottom")
+            hat = next(g for g in before.values() if g["category"] == "hat")
+            assert [g["example_fits"] for g in before.values()] == ["warp", "warp"]
             garments = c.app.state.context.garments
-            assert [rec.id for _, rec in garments.demo_to_drape()] == [before[0]["id"]]
-            assert garments.drape_demo() == [before[0]["id"]]
-            after = c.get("/v1/garments").json()
-            assert after[0]["id"] == before[0]["id"] and after[0]["etag"] != before[0]["etag"]
-            assert after[0]["example_fits"] == "drape" and garments.demo_to_drape() == []
-            assert garments.drape_demo() == []
-            assert c.get(f"/v1/garments/{after[0]['id']}/basis.glb").status_code == 200
+            assert [rec.id for _, rec in garments.demo_to_drape()] == [skirt["id"]]
+            assert garments.drape_demo() == [skirt["id"]]
+            after = {g["id"]: g for g in c.get("/v1/garments").json()}
+            assert after[skirt["id"]]["etag"] != skirt["etag"] and after[skirt["id"]]["example_fits"] == "drape"
+            assert after[hat["id"]]["etag"] == hat["etag"] and after[hat["id"]]["example_fits"] == "warp"
+            assert garments.demo_to_drape() == [] and garments.drape_demo() == []
+            assert c.get(f"/v1/garments/{skirt['id']}/basis.glb").status_code == 200
 
 
 def test_tryon_serve_drapes_the_demo_in_a_background_process() -> None:
@@ -139,7 +143,8 @@ def test_tryon_serve_drapes_the_demo_in_a_background_process() -> None:
 
     from tests.harness import run_server
 
-    with run_server(None, TRYON_DRAPE="true", TRYON_DEMO_ITEMS="fedora", TRYON_DRAPE_POPULATION="0") as s:
+    with run_server(None, TRYON_DRAPE="true", TRYON_DEMO_ITEMS="pencil-skirt", TRYON_DEMO_SIZES="false",
+                    TRYON_DRAPE_POPULATION="0") as s:
         first = s.client.get("/v1/garments").json()
         assert [g["example_fits"] for g in first] in (["warp"], ["drape"])
         deadline = time.monotonic() + 300
@@ -148,7 +153,7 @@ def test_tryon_serve_drapes_the_demo_in_a_background_process() -> None:
             assert s.client.get(f"/v1/garments/{first[0]['id']}/basis.glb").status_code == 200
             time.sleep(2)
         log = s.log_path.read_text()
-        assert "demo garment fedora draped" in log and "demo catalogue: 1 garments draped" in log
+        assert "demo garment pencil-skirt draped" in log and "demo catalogue: 1 garments draped" in log
 
 
 def _collapsed_mhclo(mhclo: bytes, obj: bytes) -> bytes:

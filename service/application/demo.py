@@ -34,6 +34,9 @@ DEMO_LOCK_S = 600
 DEMO_FABRICS = {"womens-tshirt": "knit", "cropped-tee": "knit", "mens-tshirt": "knit", "longsleeve-tee": "knit",
                 "white-tshirt": "knit", "sports-trousers": "stretch"}
 GENDERS = ("female", "male")
+# demo items that are not cloth (a felt hat, leather shoes): not draped, they keep their binding's basis (draped as
+# cloth, the fedora's crown and brim fell onto the head like a knitted cap)
+NOT_CLOTH = ("shoes", "hat")
 # the lock's time: one demo garment draped in its 5 sizes on every example avatar (~13 min for a
 # 1,700-vertex garment on 2 cores, the ~7,500-vertex suit about an hour), with room
 DEMO_DRAPE_LOCK_S = 4 * 3600
@@ -152,9 +155,12 @@ class DemoCatalogue:
 
     def demo_to_drape(self) -> list[tuple[CatalogueItem, Garment]]:
         """The demo garments (catalogue item, record) not yet built through the drape: tops and
-        bottoms first (a useful catalogue for both genders soonest), the smallest meshes first."""
+        bottoms first (a useful catalogue for both genders soonest), the smallest meshes first;
+        not the items that are not cloth (``NOT_CLOTH``: shoes, hats)."""
         out = []
         for item in self.demo_items():
+            if item.category in NOT_CLOTH:
+                continue
             gid = self.repo.demo_id(item.id)
             rec = self.repo.get(gid) if gid else None
             if rec is not None and rec.example_fits != "drape" and rec.is_current(self.model.version):

@@ -72,6 +72,8 @@ from .fabrics import Fabric, fabric as _fabric
 
 GRAVITY_M_S2 = 9.81  # standard gravity
 FACE_CONTACT_MIN_COS = 0.5  # body-vertex / cloth-face contact only where both rest on skin facing within 60 degrees
+TIE_MIN_PATCH = 4  # ... over a patch of at least this many neighbouring vertices (fewer: a touch, not a layer)
+TIE_MIN_COS = 0.8  # layers lie along each other: a tied vertex's normal within ~37 degrees of its anchor face's (either way)
 FACE_CONTACT_MAX_LATERAL_M = 0.004  # ... and where the cloth point is within this of the body vertex's normal line
 COMPILED = True  # the local step and the strain limit in compiled loops (geometry.kernels) where numba is there
 
@@ -851,30 +853,84 @@ def small_parts(rest: np.ndarray, faces: np.ndarray, max_extent_m: float) -> tup
     return small, np.flatnonzero(host)
 
 
-def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where the garment's pieces of cloth (rest (N, 3); ``faces`` (F, 3): the cloth's, without
-    the small parts) lie on each other: every vertex within ``tie_m`` of a face of another
-    connected piece at rest, with that piece's closest point to it. Returns the tied vertices
-    (K,) int64, their anchor faces' vertices (K, 3) int64 and the anchor points' barycentric
-    weights there (K, 3) float64 (empty for a garment of one piece, or ``tie_m`` 0)."""
+def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float | None = None,
+               min_cos: float = TIE_MIN_COS, min_patch: int = TIE_MIN_PATCH) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the garment's cloth (rest (N, 3); ``faces`` (F, 3): the cloth's, without the small
+    parts) lies on itself in layers: every vertex within ``tie_m`` of a face that lies along it
+    (the face's normal within ``min_cos`` of the vertex's, either way, and the offset to it
+    along both: across a gap, not beside the vertex on the same sheet) and belongs to another
+    connected piece, or to its own piece but farther than ``apart_m`` (default 3 ``tie_m``)
+    from it along the cloth (a lapel folded over the front it is cut from, a shirt front under
+    a jacket sewn to it at the collar; not the two sides of a fold or a seam), with that face's
+    closest point to it; only where such vertices make patches of ``min_patch`` or more (over
+    the cloth's edges): a layer, not a touch. Returns the tied vertices (K,) int64, their anchor faces' vertices
+    (K, 3) int64 and the anchor points' barycentric weights there (K, 3) float64 (empty where
+    nothing lies in layers, or ``tie_m`` 0)."""
     none = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3))
-    if tie_m <= 0:
+    if tie_m <= 0 or not len(faces):
         return none
-    label = geometry.vertex_components(faces, len(rest))
-    face_label = label[faces[:, 0]]
-    pieces = np.unique(face_label)
-    if len(pieces) < 2:
+    from scipy.sparse.csgraph import connected_components, dijkstra
+
+    apart = 3 * tie_m if apart_m is None else apart_m
+    n = len(rest)
+    label = geometry.vertex_components(faces, n)
+    centre, fn, radius = geometry.face_bounds(rest, faces)
+    vn = geometry.vertex_normals(rest, faces)
+    used = np.unique(faces)
+    # candidate (vertex, face) pairs: the faces whose bounding disks come within tie_m
+    near = cKDTree(centre).query_ball_point(rest[used], tie_m + float(radius.max()))
+    counts = np.fromiter((len(c) for c in near), np.int64, len(near))
+    vi = np.repeat(used, counts)
+    fi = np.fromiter((f for c in near for f in c), np.int64, int(counts.sum()))
+    keep = (faces[fi] != vi[:, None]).all(1) & (np.abs((vn[vi] * fn[fi]).sum(1)) >= min_cos)
+    vi, fi = vi[keep], fi[keep]
+    tri = rest[faces[fi]]
+    q = geometry.closest_point_on_triangles(rest[vi], tri[:, 0], tri[:, 1], tri[:, 2])
+    u = q - rest[vi]
+    d = np.linalg.norm(u, axis=1)
+    u /= np.maximum(d, 1e-12)[:, None]
+    # ... across the gap between them (the offset along both normals), not beside the vertex on the same sheet
+    keep = (d < tie_m) & (np.abs((u * vn[vi]).sum(1)) >= min_cos) & (np.abs((u * fn[fi]).sum(1)) >= min_cos)
+    vi, fi, q, d = vi[keep], fi[keep], q[keep], d[keep]
+    same = label[vi] == label[faces[fi, 0]]
+    if same.any():
+        # one piece's own layers: only faces farther than `apart` along the cloth (graph distance over the edges)
+        e = geometry.mesh_edges(faces)
+        w = np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1)
+        graph = sp.csr_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                         np.concatenate([e[:, 1], e[:, 0]]))), shape=(n, n))
+        sources, inverse = np.unique(vi[same], return_inverse=True)
+        close = np.zeros(int(same.sum()), bool)
+        rows = np.flatnonzero(same)
+        for start in range(0, len(sources), 256):  # 256 sources' distance rows at a time
+            chunk = sources[start:start + 256]
+            dist = dijkstra(graph, indices=chunk, limit=apart)
+            sel = np.flatnonzero((inverse >= start) & (inverse < start + len(chunk)))
+            close[sel] = np.isfinite(dist[inverse[sel] - start][:, None, :].repeat(3, 1)[
+                np.arange(len(sel))[:, None], np.arange(3)[None, :], faces[fi[rows[sel]]]]).any(1)
+        keep = np.ones(len(vi), bool)
+        keep[rows[close]] = False
+        vi, fi, q, d = vi[keep], fi[keep], q[keep], d[keep]
+    if not len(vi):
         return none
-    vs, fs, bs = [], [], []
-    for c in pieces:
-        others = faces[face_label != c]
-        mine = np.unique(faces[face_label == c])
-        face, q, bary = geometry.closest_points_on_mesh(rest[mine], rest, others)
-        near = np.linalg.norm(q - rest[mine], axis=1) < tie_m
-        vs.append(mine[near])
-        fs.append(others[face[near]])
-        bs.append(np.clip(bary[near], 0.0, 1.0) / np.clip(bary[near], 0.0, 1.0).sum(1, keepdims=True))
-    return np.concatenate(vs), np.concatenate(fs).astype(np.int64), np.concatenate(bs)
+    order = np.lexsort((d, vi))  # each vertex's nearest face first
+    first = np.ones(len(order), bool)
+    first[1:] = vi[order][1:] != vi[order][:-1]
+    pick = order[first]
+    # layers are patches: a tied vertex whose tied neighbours (over the cloth's edges) make a patch of fewer than
+    # `min_patch` vertices is a touch (a sleeve's underside on the side panel in the armpit), not a layer
+    tied = np.zeros(n, bool)
+    tied[vi[pick]] = True
+    e = geometry.mesh_edges(faces)
+    e = e[tied[e[:, 0]] & tied[e[:, 1]]]
+    _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    size = np.bincount(comp[vi[pick]], minlength=n)
+    pick = pick[size[comp[vi[pick]]] >= min_patch]
+    if not len(pick):
+        return none
+    tri = rest[faces[fi[pick]]]
+    bary = np.clip(geometry.barycentric(q[pick], tri[:, 0], tri[:, 1], tri[:, 2]), 0.0, 1.0)
+    return vi[pick], faces[fi[pick]].astype(np.int64), bary / bary.sum(1, keepdims=True)
 
 
 @dataclass
