@@ -878,10 +878,18 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
     vn = geometry.vertex_normals(rest, faces)
     used = np.unique(faces)
     # candidate (vertex, face) pairs: the faces whose bounding disks come within tie_m
-    near = cKDTree(centre).query_ball_point(rest[used], tie_m + float(radius.max()))
-    counts = np.fromiter((len(c) for c in near), np.int64, len(near))
-    vi = np.repeat(used, counts)
-    fi = np.fromiter((f for c in near for f in c), np.int64, int(counts.sum()))
+    near = cKDTree(rest[used]).sparse_distance_matrix(cKDTree(centre), tie_m + float(radius.max()),
+                                                       output_type="ndarray")
+    vi, fi = used[near["i"]], near["j"].astype(np.int64)
+    # a cheap bound first: the offset to the closest point runs along the face normal within min_cos only if the
+    # vertex's projection onto the face's plane is within tan(acos(min_cos)) |h| of the face's disk (h: its height
+    # over the plane); a face beside the vertex on the same sheet (h ~ 0) is not
+    w = rest[vi] - centre[fi]
+    h = np.abs(np.einsum("ij,ij->i", w, fn[fi]))
+    lateral = np.sqrt(np.maximum(np.einsum("ij,ij->i", w, w) - h * h, 0.0))
+    slope = np.sqrt(max(1.0 / min_cos ** 2 - 1.0, 0.0))
+    keep = (h < tie_m) & (lateral - radius[fi] <= slope * h + 1e-12)
+    vi, fi = vi[keep], fi[keep]
     keep = (faces[fi] != vi[:, None]).all(1) & (np.abs((vn[vi] * fn[fi]).sum(1)) >= min_cos)
     vi, fi = vi[keep], fi[keep]
     tri = rest[faces[fi]]
@@ -893,9 +901,12 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
     keep = (d < tie_m) & (np.abs((u * vn[vi]).sum(1)) >= min_cos) & (np.abs((u * fn[fi]).sum(1)) >= min_cos)
     vi, fi, q, d = vi[keep], fi[keep], q[keep], d[keep]
     same = label[vi] == label[faces[fi, 0]]
+    if not len(vi):
+        return none
+    edges = geometry.mesh_edges(faces)
     if same.any():
         # one piece's own layers: only faces farther than `apart` along the cloth (graph distance over the edges)
-        e = geometry.mesh_edges(faces)
+        e = edges
         w = np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1)
         graph = sp.csr_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]),
                                                          np.concatenate([e[:, 1], e[:, 0]]))), shape=(n, n))
@@ -913,7 +924,7 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
         vi, fi, q, d = vi[keep], fi[keep], q[keep], d[keep]
     if not len(vi):
         return none
-    order = np.lexsort((d, vi))  # each vertex's nearest face first
+    order = np.lexsort((fi, d, vi))  # each vertex's nearest face first (of equals, the first face)
     first = np.ones(len(order), bool)
     first[1:] = vi[order][1:] != vi[order][:-1]
     pick = order[first]
@@ -921,8 +932,7 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
     # `min_patch` vertices is a touch (a sleeve's underside on the side panel in the armpit), not a layer
     tied = np.zeros(n, bool)
     tied[vi[pick]] = True
-    e = geometry.mesh_edges(faces)
-    e = e[tied[e[:, 0]] & tied[e[:, 1]]]
+    e = edges[tied[edges[:, 0]] & tied[edges[:, 1]]]
     _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
     size = np.bincount(comp[vi[pick]], minlength=n)
     pick = pick[size[comp[vi[pick]]] >= min_patch]
