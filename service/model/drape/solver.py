@@ -72,9 +72,10 @@ from .fabrics import Fabric, fabric as _fabric
 
 GRAVITY_M_S2 = 9.81  # standard gravity
 FACE_CONTACT_MIN_COS = 0.5  # body-vertex / cloth-face contact only where both rest on skin facing within 60 degrees
-TIE_MIN_PATCH = 4  # ... over a patch of at least this many neighbouring vertices (fewer: a touch, not a layer)
-TIE_MIN_COS = 0.8  # layers lie along each other: a tied vertex's normal within ~37 degrees of its anchor face's (either way)
 FACE_CONTACT_MAX_LATERAL_M = 0.004  # ... and where the cloth point is within this of the body vertex's normal line
+TIE_MIN_COS = 0.8  # layers lie along each other: a tied vertex's normal within ~37 degrees of its anchor face's (either
+# way), and the offset between them along both
+TIE_MIN_PATCH = 4  # ... over a patch of at least this many neighbouring vertices (fewer: a touch, not a layer)
 COMPILED = True  # the local step and the strain limit in compiled loops (geometry.kernels) where numba is there
 
 
@@ -143,9 +144,10 @@ class Config:
     # cloth's faces' frames), or, farther than `part_attach_m` from any, stays where the start put it on the body;
     # draped it would fall, held by nothing (its thread is not in the mesh)
     part_attach_m: float = 0.05
-    tie_m: float = 0.01  # a vertex of one piece of cloth lying within this of another piece at rest (a bib over a
-    # shirt, a jacket's lining, layered panels) is tied to its closest point there: it may part from that layer but
-    # not slide along it (the friction between layers that holds them where they lie together; 0: off) ...
+    tie_m: float = 0.01  # a vertex lying within this of another layer of the cloth at rest (another piece: a bib over
+    # a shirt; or its own piece far along the cloth: a placket, a folded collar; `layer_ties`) is tied to its closest
+    # point there: it may part from that layer but not slide along it (the friction between layers that holds them
+    # where they lie together; 0: off) ...
     tie_stiffness: float = 1.0  # ... with this multiple of the membrane's stiffness at the vertex (k_s A_i / l_i^2)
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
 
@@ -312,10 +314,8 @@ class Draper:
         iv = self.tie_vertex
         # each tied vertex's signed height over its anchor face at rest (its side of the other layer), at most
         # the self-contact's gap
-        t = rest[self.tie_face]
-        n0 = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-30)
-        h0 = ((self.T @ rest) * n0).sum(1)
+        d0, n0 = self._tie_offsets(rest)
+        h0 = (d0 * n0).sum(1)
         self.tie_gap = np.where(h0 >= 0, 1.0, -1.0) * np.minimum(np.abs(h0), cfg.self_contact_m)  # (K,) m
         self.w_tie = cfg.tie_stiffness * ks * self.vertex_area[iv] / np.maximum(mean_edge[iv], 1e-6) ** 2  # (K,) N/m
         Ks = (G.T @ sp.diags(self.w_stretch) @ G).tocsr()
@@ -384,16 +384,20 @@ class Draper:
         out[self.tie_vertex[outer]] += np.abs(self.tie_gap[outer])
         return out
 
-    def _tie_projection(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _tie_offsets(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The layer ties' offsets d = T x (K, 3) (each tied vertex from its anchor point on the
-        other layer) and their projections (K, 3) onto the anchor face's current normal line:
-        the closest offsets that part the layers without sliding one along the other."""
-        d = self.T @ x
-        if not len(d):
-            return d, d
+        other layer) and their anchor faces' unit normals (K, 3) at x (N, 3)."""
         t = x[self.tie_face]  # (K, 3 corners, 3)
         n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        return self.T @ x, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+    def _tie_projection(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The layer ties' offsets d (K, 3) (:meth:`_tie_offsets`) and their projections (K, 3)
+        onto the anchor face's current normal line: the closest offsets that part the layers
+        without sliding one along the other."""
+        if not len(self.tie_vertex):
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        d, n = self._tie_offsets(x)
         # on the side of the other layer it lies on at rest, at least as far off it (up to the self-contact's gap)
         side = np.sign(self.tie_gap)
         h = side * np.maximum(side * (d * n).sum(1), np.abs(self.tie_gap))
@@ -783,10 +787,7 @@ class Draper:
         the ties pushed."""
         if not len(self.tie_vertex):
             return 0
-        d = self.T @ x
-        t = x[self.tie_face]
-        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        d, n = self._tie_offsets(x)
         side = np.sign(self.tie_gap)
         short = np.abs(self.tie_gap) - side * (d * n).sum(1)  # (K,) m: how far it is to be pushed
         k = np.flatnonzero(short > 0)
@@ -863,9 +864,9 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
     from it along the cloth (a lapel folded over the front it is cut from, a shirt front under
     a jacket sewn to it at the collar; not the two sides of a fold or a seam), with that face's
     closest point to it; only where such vertices make patches of ``min_patch`` or more (over
-    the cloth's edges): a layer, not a touch. Returns the tied vertices (K,) int64, their anchor faces' vertices
-    (K, 3) int64 and the anchor points' barycentric weights there (K, 3) float64 (empty where
-    nothing lies in layers, or ``tie_m`` 0)."""
+    the cloth's edges): a layer, not a touch. Returns the tied vertices (K,) int64, their anchor
+    faces' vertices (K, 3) int64 and the anchor points' barycentric weights there (K, 3) float64
+    (empty where nothing lies in layers, or ``tie_m`` 0)."""
     none = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3))
     if tie_m <= 0 or not len(faces):
         return none
@@ -900,9 +901,9 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
     # ... across the gap between them (the offset along both normals), not beside the vertex on the same sheet
     keep = (d < tie_m) & (np.abs((u * vn[vi]).sum(1)) >= min_cos) & (np.abs((u * fn[fi]).sum(1)) >= min_cos)
     vi, fi, q, d = vi[keep], fi[keep], q[keep], d[keep]
-    same = label[vi] == label[faces[fi, 0]]
     if not len(vi):
         return none
+    same = label[vi] == label[faces[fi, 0]]
     edges = geometry.mesh_edges(faces)
     if same.any():
         # one piece's own layers: only faces farther than `apart` along the cloth (graph distance over the edges)
@@ -917,8 +918,7 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
             chunk = sources[start:start + 256]
             dist = dijkstra(graph, indices=chunk, limit=apart)
             sel = np.flatnonzero((inverse >= start) & (inverse < start + len(chunk)))
-            close[sel] = np.isfinite(dist[inverse[sel] - start][:, None, :].repeat(3, 1)[
-                np.arange(len(sel))[:, None], np.arange(3)[None, :], faces[fi[rows[sel]]]]).any(1)
+            close[sel] = np.isfinite(dist[(inverse[sel] - start)[:, None], faces[fi[rows[sel]]]]).any(1)
         keep = np.ones(len(vi), bool)
         keep[rows[close]] = False
         vi, fi, q, d = vi[keep], fi[keep], q[keep], d[keep]
@@ -1112,8 +1112,8 @@ class _Body:
 
     def project(self, x: np.ndarray, x_prev: np.ndarray | None, slide: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Vertices within their clearance (:attr:`clearance`, else ``cfg.clearance_m``) of the
-        body (or inside) moved out along the surface normal; with ``x_prev``, their tangential move since then cancelled up to ``slide`` (N,)
-        times the correction (Coulomb friction as in Macklin et al. 2014 Eq. 24-25, the ratio
+        body (or inside) moved out along the surface normal; with ``x_prev``, their tangential
+        move since then cancelled up to ``slide`` (N,) times the correction (Coulomb friction as in Macklin et al. 2014 Eq. 24-25, the ratio
         from the forces: :attr:`Draper.slide_per_depth`). Returns (x, contact mask)."""
         clearance = self.clearance if self.clearance is not None else np.full(len(x), self.cfg.clearance_m)
         if COMPILED and kernels.AVAILABLE:
