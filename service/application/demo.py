@@ -34,8 +34,8 @@ DEMO_LOCK_S = 600
 DEMO_FABRICS = {"womens-tshirt": "knit", "cropped-tee": "knit", "mens-tshirt": "knit", "longsleeve-tee": "knit",
                 "white-tshirt": "knit", "sports-trousers": "stretch"}
 GENDERS = ("female", "male")
-# demo items that are not cloth (a felt hat, leather shoes): not draped, they keep their binding's basis (draped as
-# cloth, the fedora's crown and brim fell onto the head like a knitted cap)
+# demo items that are not cloth (a felt hat, leather shoes): not draped, they keep their binding's basis (the cloth
+# drape would let a hat's crown and brim fall onto the head like a knitted cap)
 NOT_CLOTH = ("shoes", "hat")
 # the lock's time: one demo garment draped in its 5 sizes on every example avatar (~13 min for a
 # 1,700-vertex garment on 2 cores, the ~7,500-vertex suit about an hour), with room

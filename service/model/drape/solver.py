@@ -907,10 +907,7 @@ def layer_ties(rest: np.ndarray, faces: np.ndarray, tie_m: float, apart_m: float
     edges = geometry.mesh_edges(faces)
     if same.any():
         # one piece's own layers: only faces farther than `apart` along the cloth (graph distance over the edges)
-        e = edges
-        w = np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1)
-        graph = sp.csr_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]),
-                                                         np.concatenate([e[:, 1], e[:, 0]]))), shape=(n, n))
+        graph = geometry.edge_length_graph(rest, faces)
         sources, inverse = np.unique(vi[same], return_inverse=True)
         close = np.zeros(int(same.sum()), bool)
         rows = np.flatnonzero(same)

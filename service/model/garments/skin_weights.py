@@ -75,7 +75,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
-from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges, vertex_normals
+from service.model.geometry.mesh import closest_points_on_mesh, edge_length_graph, mesh_edges, vertex_normals
 from service.model.body.lbs import skin
 from service.model.geometry.solvers import factor_spd
 
@@ -197,10 +197,7 @@ def weight_jumps(vertices: np.ndarray, faces: np.ndarray, W: np.ndarray, reliabl
     seeds = np.unique(e[jump])
     if not len(seeds):
         return np.zeros(len(X), bool)
-    n = len(X)
-    graph = sp.coo_matrix((np.r_[length, length], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                          shape=(n, n)).tocsr()
-    d = dijkstra(graph, directed=False, indices=seeds, min_only=True, limit=radius)
+    d = dijkstra(edge_length_graph(X, faces), directed=False, indices=seeds, min_only=True, limit=radius)
     return np.isfinite(d)
 
 

@@ -22,6 +22,16 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
+def edge_length_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+    """(V, V) symmetric: each edge of the mesh (vertices (V, 3), faces (F, 3)) weighted by its
+    length, for distances along the surface (``scipy.sparse.csgraph.dijkstra``)."""
+    X = np.asarray(vertices, np.float64)
+    e = mesh_edges(faces)
+    length = np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)
+    return sp.coo_matrix((np.r_[length, length], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                         shape=(len(X), len(X))).tocsr()
+
+
 def vertex_components(faces: np.ndarray, n: int) -> np.ndarray:
     """(n,) the connected piece of the mesh (faces (F, 3) over n vertices) each vertex is in,
     labels 0..; a vertex in no face is a piece of its own."""
