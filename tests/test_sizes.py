@@ -136,6 +136,34 @@ def test_girths_of_a_garment_that_has_no_region(model) -> None:
     assert "hip" in got and not got & {"chest", "upper_arm", "thigh", "shoulders"}
 
 
+def test_a_closed_girth_is_a_loop_not_a_chain_leaving_the_cloth() -> None:
+    """A tube's section is its girth either way. Slit open (a C, 2 cm apart: a chain that leaves
+    the cloth, as a section through an armpit running into a sleeve's cuff) it still counts by
+    default (the overlapping fronts of a buttoned shirt) but not when ``closed``; cut along a
+    seam whose two sides are separate vertices at the same place, it is a loop both ways."""
+    from tests.drape_cases import tube
+
+    V, F = tube(0.15, 0.2, n_around=64, n_height=4)
+    region = S.Region(np.array([0.0, 1.0, 0.0]), 0.125, np.array([0.0, 0.125, 0.0]))  # between two rings
+    full = S.GarmentSections(F, len(V)).girth(V, region)
+    assert full == pytest.approx(2 * np.pi * 0.15, rel=0.01)
+    assert S.GarmentSections(F, len(V)).girth(V, region, closed=True) == full
+    # the seam: the faces between the last and the first column use copies of the first column
+    seam = np.arange(5) * 64
+    Vs = np.vstack([V, V[seam]])
+    copy = {int(v): len(V) + k for k, v in enumerate(seam)}
+    last = (F % 64 == 63).any(axis=1) & (F % 64 == 0).any(axis=1)  # the faces from the last column to the first
+    Fs = F.copy()
+    Fs[last] = np.vectorize(lambda v: copy.get(int(v), int(v)))(F[last])
+    for closed in (False, True):
+        assert S.GarmentSections(Fs, len(Vs)).girth(Vs, region, closed) == pytest.approx(full, rel=1e-6)
+    # the C: drop the last column of faces (the opening is 2 pi 0.15 / 64 = 1.5 cm wide)
+    Fc = F[~last]
+    open_chain = S.GarmentSections(Fc, len(V)).girth(V, region)
+    assert open_chain == pytest.approx(full * 63 / 64, rel=0.01)
+    assert S.GarmentSections(Fc, len(V)).girth(V, region, closed=True) is None
+
+
 def test_fit_map_colour_scales() -> None:
     """Strain: blue at rest, green half way, red at the fabric's limit (and beyond); ease: red
     at contact, green at the fabric's designed gap, blue where it hangs."""

@@ -81,6 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", choices=("anatomical", "free"), default="anatomical",
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
     ap.add_argument("--no-newton", action="store_true", help="drape: skip the Newton VBD reference row")
+    ap.add_argument("--newton-full-contact", type=int, default=0, metavar="N",
+                    help="drape: also settle the T-shirt on the N of its 5 reference people with the largest chests "
+                         "with Newton's self-contact and the body's faces in its contact (5-7 minutes a person on CPU)")
     ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
     from tests.bench.fitting import before_kinds
 
@@ -105,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
              "before": args.before, "poses": args.poses, "fit_params": args.fit_params, "known": args.known,
              "via_file": args.via_file} if args.suite == "fitting" else {}
     if args.suite == "drape":
-        extra = {"newton": not args.no_newton}
+        extra = {"newton": not args.no_newton, "newton_full": args.newton_full_contact}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")

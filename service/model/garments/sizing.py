@@ -75,6 +75,9 @@ REGION_MEASUREMENT = {"chest": "chest_cm", "waist": "waist_cm", "hip": "hip_cm",
 # the garment section around a region must cover every one of these angular sectors around the
 # body section's centre (the garment goes all around there), else it has no such region
 COVER_SECTORS = 12
+# metres: a section's open ends this close to one another are the two sides of a seam (the loop
+# goes on); farther apart, the section leaves the cloth there (a hem, a cuff) and is not a girth
+SECTION_SEAM_GAP_M = 0.005
 
 
 @dataclass(frozen=True)
@@ -410,10 +413,12 @@ class GarmentSections:
         fkey = fe[..., 0] * n_vertices + fe[..., 1]
         self.face_edges = order[np.searchsorted(key, fkey, sorter=order)]  # (F, 3) edge ids
 
-    def girth(self, V: np.ndarray, region: Region) -> float | None:
+    def girth(self, V: np.ndarray, region: Region, closed: bool = False) -> float | None:
         """The cloth's length (metres) along the plane section of the garment V (M, 3) that
         encloses the region's centre (the innermost such loop), or None when no section of
-        the garment goes all around it there (or one also encloses ``region.exclude``)."""
+        the garment goes all around it there (or one also encloses ``region.exclude``).
+        An open chain counts (the two fronts of a buttoned shirt or an open jacket overlap
+        without meeting) unless ``closed`` (a garment closed all around: see :func:`_closed`)."""
         V = np.asarray(V, np.float64)
         e = self.edges
         s = V @ region.normal - region.offset
@@ -442,9 +447,12 @@ class GarmentSections:
         c2 = np.array([region.centre @ e1, region.centre @ e2])
         x2 = None if region.exclude is None else np.array([region.exclude @ e1, region.exclude @ e2])
         best = None
+        deg = np.bincount(inv.ravel(), minlength=n)  # chain ends: degree 1
         for c in range(ncomp):
             m = slab == c
             a, b = p2[inv[m, 0]], p2[inv[m, 1]]
+            if closed and not _closed(P[ids[(lab == c) & (deg == 1)]]):
+                continue
             if not _encloses(a, b, c2) or not _covers(p2[lab == c], c2):
                 continue
             if x2 is not None and _encloses(a, b, x2):
@@ -453,6 +461,21 @@ class GarmentSections:
             if best is None or length < best:
                 best = length
         return best
+
+
+def _closed(ends: np.ndarray) -> bool:
+    """Whether a chain of section segments whose open ends are ``ends`` (K, 3) is a loop: no
+    open end, or each one within ``SECTION_SEAM_GAP_M`` of another (a seam whose two sides are
+    separate vertices). A chain that leaves the cloth through a hem or cuff is not a girth, even
+    where the even-odd rule finds the region's centre inside it (the section through an armpit
+    running into a sleeve)."""
+    if not len(ends):
+        return True
+    if len(ends) % 2:
+        return False
+    d = np.linalg.norm(ends[:, None] - ends[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return bool((d.min(axis=1) <= SECTION_SEAM_GAP_M).all())
 
 
 def _encloses(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> bool:
@@ -472,12 +495,14 @@ def _covers(points: np.ndarray, p: np.ndarray) -> bool:
     return len(np.unique(sec)) == COVER_SECTORS
 
 
-def garment_girths(sections: GarmentSections, rest: np.ndarray, regions: dict[str, Region]) -> np.ndarray:
+def garment_girths(sections: GarmentSections, rest: np.ndarray, regions: dict[str, Region],
+                   closed: bool = False) -> np.ndarray:
     """(R,) the garment's girths (cm) at ``GIRTH_REGIONS`` on the body it sits on (its rest
-    shape (M, 3) and that body's ``regions``); NaN where it has no such region."""
+    shape (M, 3) and that body's ``regions``); NaN where it has no such region (``closed``:
+    :meth:`GarmentSections.girth`)."""
     out = np.full(len(GIRTH_REGIONS), np.nan)
     for i, r in enumerate(GIRTH_REGIONS):
-        g = sections.girth(rest, regions[r])
+        g = sections.girth(rest, regions[r], closed)
         if g is not None:
             out[i] = 100.0 * g
     return out
