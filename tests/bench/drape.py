@@ -354,10 +354,10 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
         hem_diff, hem_diff_full, newton_s, full_s, speeds = [], [], [], [], []
         ref_inside = full_inside = 0
         people = heldout_avatars(m)[: NEWTON_BODIES]
-        full_people: set[int] = set()
-        if newton_full:
-            chest = [SZ.region_spec(m).regions(X)["chest"].body_girth for X in people]
-            full_people = {int(i) for i in np.argsort(chest)[::-1][:newton_full]}
+        spec = SZ.region_spec(m)
+        people_regs = [spec.regions(X) for X in people]
+        chest = [r["chest"].body_girth for r in people_regs]
+        full_people = {int(i) for i in np.argsort(chest)[::-1][:newton_full]}
         for person, X in enumerate(people):
             BVh = m.body_vertices(X).astype(np.float64)
             init = shirt.binding.fit(X).astype(np.float64)
@@ -366,7 +366,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
             ref = garment_on_body(s_rest, sF, start, BVh, m.body_faces, knit.density_kg_per_m2,
                                   knit.stretch_stiffness_n_per_m, knit.bending_stiffness_nm, knit.friction,
                                   seconds=NEWTON_SECONDS, radius_m=NEWTON_RADIUS_M)
-            regs = SZ.region_spec(m).regions(X)
+            regs = people_regs[person]
             # the T-shirt is closed all around: a section that runs into a sleeve is no girth
             ours_girths.append(SZ.garment_girths(sec, ours, regs, closed=True))
             ref_g = SZ.garment_girths(sec, ref["vertices"], regs, closed=True)
