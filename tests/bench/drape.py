@@ -43,13 +43,20 @@ Rows (goals from issue 43):
   same largest difference with our drape under Newton's contact model (``vertex_contact_max_mm``:
   vertices kept off the body, no body-vertex / cloth-face pass, which lifts our cloth by the
   body's details between its vertices);
-- ``ease_vs_newton_full_contact_mm`` (with ``--newton-full-contact N``; 5-7 minutes a person on
+- ``ease_vs_newton_full_contact_mm`` (with ``--newton-full-contact N``; 4-7 minutes a person on
   CPU): our drapes of the N of those 5 people with the largest chests against Newton VBD with the
   contacts ours has (no goal; ``drape_newton.garment_on_body(full_contact=True)``): its
   self-contact on and the body's faces near the shirt a fixed cloth in it, so that body vertices
   stay out of the cloth's faces and the cloth out of itself; the largest ease difference, each
   person's, the girths ours has that the reference's section cannot measure (``unmeasured``) and
   the hem height difference (``hem_cm``);
+- ``membrane_energy_vs_newton``: those drapes under our energy (``Draper.energy_terms``): the
+  median over the 5 people of our drape's membrane energy (in-plane stretch and shear against the
+  rest shape) over Newton's, each person's ratio (and against the full-contact reference where it
+  ran), the total energies, and the shares of triangles compressed past the fabric's
+  ``compress_limit_pct`` or stretched past its ``stretch_limit_pct`` (``Draper.principal_stretches``;
+  medians; no goal: the two drapes' resting states compared under one energy: where ours is
+  higher, it did not reach the state Newton found);
 - ``basis_vs_drape_surface_mm``: the same pairs measured shape to shape, not vertex to vertex:
   each vertex's distance to the other mesh's surface, both ways (mean, p99; no goal): the
   vertex distance also counts the cloth sliding along the body, which the shape does not show;
@@ -353,6 +360,8 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
         full_ours: list[np.ndarray] = []
         hem_diff, hem_diff_full, newton_s, full_s, speeds = [], [], [], [], []
         ref_inside = full_inside = 0
+        # the drapes' state under our energy: ours, Newton's (plain) and Newton's with our contacts
+        physics: dict[str, list[dict]] = {"ours": [], "newton": [], "newton_full_contact": []}
         people = heldout_avatars(m)[: NEWTON_BODIES]
         spec = SZ.region_spec(m)
         people_regs = [spec.regions(X) for X in people]
@@ -374,6 +383,8 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
             ours_v = vertex_draper.solve(BVh, m.body_faces, init).vertices.astype(np.float64)
             ease_diff_vertex.append(SZ.garment_girths(sec, ours_v, regs, closed=True) - ref_g)
             hem_diff.append(100 * abs(ours[:, 1].min() - ref["vertices"][:, 1].min()))
+            physics["ours"].append(_cloth_state(shirt_draper, ours))
+            physics["newton"].append(_cloth_state(shirt_draper, ref["vertices"]))
             ref_inside += _inside(ref["vertices"], BVh, m.body_faces)
             newton_s.append(ref["seconds"])
             speeds.append(ref["max_speed_m_s"])
@@ -389,6 +400,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
             hem_diff_full.append(100 * abs(ours[:, 1].min() - full["vertices"][:, 1].min()))
             full_inside += _inside(full["vertices"], BVh, m.body_faces)
             full_s.append(full["seconds"])
+            physics["newton_full_contact"].append({"person": person, **_cloth_state(shirt_draper, full["vertices"])})
         def per_region(diffs: list[np.ndarray]) -> dict[str, float]:
             D = np.abs(np.array(diffs))  # (bodies, regions) cm, NaN where the shirt has no such region
             return {r: float(10 * np.nanmax(D[:, i])) for i, r in enumerate(SZ.GIRTH_REGIONS)
@@ -420,6 +432,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
                 "unmeasured": int((np.isfinite(np.array(full_ours)) & ~np.isfinite(np.array(ease_diff_full))).sum()),
                 "hem_cm": float(max(hem_diff_full)), "hem_bodies_cm": [round(float(h), 2) for h in hem_diff_full],
                 "newton_s_median": float(np.median(full_s)), "newton_inside_vertices": full_inside}
+        rows["membrane_energy_vs_newton"] = _physics_row(physics)
     else:
         rows["ease_vs_newton_mm"] = {"value": None, "goal": 5.0, "skipped": why or "skipped (--no-newton)"}
 
@@ -439,6 +452,39 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
     rows["inside_vertices"] = {"value": inside, "goal": 0}
     rows["self_intersections"] = {"value": selfx, "goal": 0}
     return out
+
+
+def _cloth_state(draper, x: np.ndarray) -> dict:
+    """A drape x (N, 3) of ``draper``'s garment under our energy: its membrane energy (J: in-plane
+    stretch and shear against the rest shape), total energy (J, gravity's potential included) and
+    the shares of its triangles compressed past the fabric's ``compress_limit_pct`` (cloth buckles
+    instead) and stretched past its ``stretch_limit_pct``."""
+    x = np.asarray(x, np.float64)
+    terms = draper.energy_terms(x)
+    s = draper.principal_stretches(x)
+    fab = draper.fabric
+    return {"membrane_j": terms["membrane"], "energy_j": sum(terms.values()),
+            "compressed_share": float((s[:, 1] < 1 - fab.compress_limit_pct / 100).mean()),
+            "overstretched_share": float((s[:, 0] > 1 + fab.stretch_limit_pct / 100).mean())}
+
+
+def _physics_row(physics: dict[str, list[dict]]) -> dict:
+    """The ``membrane_energy_vs_newton`` row: the median over the people of our drape's membrane
+    energy over Newton's (both under our energy), each person's, and the triangle shares of
+    :func:`_cloth_state` (medians) for ours and each reference."""
+    ours, plain, full = physics["ours"], physics["newton"], physics["newton_full_contact"]
+    ratio = [o["membrane_j"] / max(n["membrane_j"], 1e-12) for o, n in zip(ours, plain)]
+    row = {"value": float(np.median(ratio)), "bodies": len(ratio),
+           "bodies_ratio": [round(r, 2) for r in ratio]}
+    for name, states in (("ours", ours), ("newton", plain), ("newton_full_contact", full)):
+        if not states:
+            continue
+        for key in ("membrane_j", "energy_j", "compressed_share", "overstretched_share"):
+            row[f"{name}_{key}_median"] = float(np.median([st[key] for st in states]))
+    if full:
+        row["full_contact_ratio"] = [round(ours[st["person"]]["membrane_j"] / max(st["membrane_j"], 1e-12), 2)
+                                     for st in full]
+    return row
 
 
 def _layered(m, E: np.ndarray) -> dict:

@@ -146,7 +146,7 @@ def garment_on_body(rest: np.ndarray, F: np.ndarray, init: np.ndarray, BV: np.nd
     the drape engine does (its self-contact and its body-vertex / cloth-face pass); the plain
     particle-shape contact lets body vertices through the cloth's faces between its vertices and
     lets the cloth pass through itself. Self-contacts are found once a step; a step costs ~0.3 s
-    on CPU (Warp runs the kernels on one core), 5-7 minutes a body on 2 cores. With 2 steps a frame
+    on CPU (Warp runs the kernels on one core), 4-7 minutes a body on 2 cores. With 2 steps a frame
     instead of 10 (5 times fewer VBD iterations) its shirt had not converged: stretched 3-5 %
     and hanging 2-3 cm lower on the loose people. Returns the final vertices, the largest speed
     at the end and the wall time."""

@@ -352,21 +352,47 @@ class Draper:
         self.precompute_s = time.perf_counter() - t0
 
     # energy and gradient (for references and diagnostics) ------------------------------------
-    def energy(self, x: np.ndarray) -> tuple[float, np.ndarray]:
-        """E(x) (J) and its gradient (N, 3) without contact and strain limit (the PD energy the solver minimises;
-        the projections are minimisers, so their derivative terms vanish: PD Sec. 3)."""
+    def _residuals(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The energy's residuals at x (N, 3): membrane (2T, 3) F_t - R_t by gradient column,
+        bending (N, 3) (L x)_i - h0_i n_i, layer ties (K, 3)."""
         Gx = (self.G @ x).reshape(-1, 2, 3).transpose(0, 2, 1)
         r_s = (Gx - _polar(Gx)).transpose(0, 2, 1).reshape(-1, 3)
         n = _normals(x, self.faces, self.incidence)
         r_b = self.L @ x - self.h0[:, None] * n
         d, p = self._tie_projection(x)
-        r_t = d - p
-        e = (0.5 * (self.w_stretch * (r_s ** 2).sum(1)).sum()
-             + 0.5 * (self.w_bend * (r_b ** 2).sum(1)).sum() + 0.5 * (self.w_tie * (r_t ** 2).sum(1)).sum()
-             - (self.gravity_force * x).sum())
+        return r_s, r_b, d - p
+
+    def energy_terms(self, x: np.ndarray) -> dict[str, float]:
+        """The terms of E(x) (J) at x (N, 3): ``membrane`` (in-plane stretch and shear against
+        the rest shape), ``bending``, ``ties`` and ``gravity`` (the potential, -sum m_i g . x_i);
+        e.g. to compare drapes of the same garment from different solvers under one energy."""
+        x = np.asarray(x, np.float64)
+        return self._terms(x, *self._residuals(x))
+
+    def _terms(self, x: np.ndarray, r_s: np.ndarray, r_b: np.ndarray, r_t: np.ndarray) -> dict[str, float]:
+        return {"membrane": float(0.5 * (self.w_stretch * (r_s ** 2).sum(1)).sum()),
+                "bending": float(0.5 * (self.w_bend * (r_b ** 2).sum(1)).sum()),
+                "ties": float(0.5 * (self.w_tie * (r_t ** 2).sum(1)).sum()),
+                "gravity": float(-(self.gravity_force * x).sum())}
+
+    def energy(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """E(x) (J) and its gradient (N, 3) without contact and strain limit (the PD energy the solver minimises;
+        the projections are minimisers, so their derivative terms vanish: PD Sec. 3)."""
+        r_s, r_b, r_t = self._residuals(x)
+        e = sum(self._terms(x, r_s, r_b, r_t).values())
         g = (self.G.T @ (self.w_stretch[:, None] * r_s)
              + self.L.T @ (self.w_bend[:, None] * r_b) + self.T.T @ (self.w_tie[:, None] * r_t) - self.gravity_force)
         return float(e), g
+
+    def principal_stretches(self, x: np.ndarray) -> np.ndarray:
+        """(T, 2) each triangle's principal stretches at x (N, 3), largest first: the singular
+        values of its deformation gradient F_t against the rest shape (1: at rest; below 1:
+        compressed in-plane, which cloth does not sustain: it buckles instead)."""
+        F = (self.G @ np.asarray(x, np.float64)).reshape(-1, 2, 3)  # (T, 2 columns, 3)
+        c00, c01, c11 = (F[:, 0] ** 2).sum(1), (F[:, 0] * F[:, 1]).sum(1), (F[:, 1] ** 2).sum(1)
+        half_tr, det = 0.5 * (c00 + c11), c00 * c11 - c01 ** 2
+        root = np.sqrt(np.maximum(half_tr ** 2 - det, 0.0))  # the eigenvalues of F^T F: half_tr +- root
+        return np.sqrt(np.maximum(np.stack([half_tr + root, half_tr - root], 1), 0.0))
 
     def _layer_clearance(self, body: "_Body", x: np.ndarray) -> np.ndarray:
         """(N,) m: each vertex's clearance off the body, ``Config.clearance_m`` plus, for a tied
