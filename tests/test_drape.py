@@ -128,6 +128,28 @@ def test_energy_terms_and_principal_stretches_against_their_definitions():
     assert sum(terms.values()) == pytest.approx(d.energy(x)[0], rel=1e-12)
 
 
+def test_the_bench_compares_drapes_under_our_energy():
+    """``tryon bench drape``'s ``membrane_energy_vs_newton`` row on sheets whose state is known:
+    squeezed 10 % along x every triangle is compressed past the knit's 3 %, stretched 30 % every
+    one is past its 25 % limit, at rest neither; the row's value is the median of ours over the
+    reference's membrane energies, person by person (a reference's person index kept)."""
+    from tests.bench.drape import _cloth_state, _physics_row
+
+    V, F = square(0.2, 5, y=0.0)
+    d = precompute(V, F, "knit")
+    rest, squeezed, stretched = (_cloth_state(d, V * [a, 1.0, 1.0]) for a in (1.0, 0.90, 1.30))
+    assert rest["membrane_j"] == pytest.approx(0.0, abs=1e-15)
+    assert rest["compressed_share"] == rest["overstretched_share"] == 0.0
+    assert squeezed["compressed_share"] == 1.0 and squeezed["overstretched_share"] == 0.0
+    assert stretched["overstretched_share"] == 1.0 and stretched["compressed_share"] == 0.0
+    assert squeezed["membrane_j"] == pytest.approx(FABRICS["knit"].stretch_stiffness_n_per_m * 0.04 / 2 * 0.1 ** 2)
+    row = _physics_row({"ours": [stretched, squeezed, stretched], "newton": [squeezed, squeezed, stretched],
+                        "newton_full_contact": [{"person": 1, **squeezed}]})
+    assert row["bodies_ratio"] == [9.0, 1.0, 1.0] and row["value"] == 1.0  # (0.3 / 0.1)^2 = 9
+    assert row["full_contact_ratio"] == [1.0]
+    assert row["newton_compressed_share_median"] == 1.0 and row["ours_overstretched_share_median"] == 1.0
+
+
 def test_fabric_presets_differ_as_expected():
     assert set(FABRICS) >= {"woven", "knit", "stretch"}
     w, k, s = FABRICS["woven"], FABRICS["knit"], FABRICS["stretch"]
