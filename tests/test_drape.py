@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from service.model.geometry import mesh as geometry
 from service.model.drape import FABRICS, Config, DrapeError, DrapeResult, Fabric, edge_strain, precompute
@@ -514,6 +515,68 @@ def test_compiled_trust_region_and_move_match_numpy():
     y = V + 0.01 * rng.standard_normal(V.shape)
     (r1, e1), (r2, e2) = d._local(y, 0.3, energy=False), d._local(y, 0.3)
     assert np.array_equal(r1, r2) and np.isnan(e1) and np.isfinite(e2)
+
+
+def test_compiled_close_pairs_equal_the_kd_trees_without_the_excluded(monkeypatch):
+    """``kernels.close_pairs`` (a hashed grid) gives cKDTree.query_pairs' pairs, less those of
+    the exclusion pattern, sorted: on clustered random points (many in one cell, empty cells,
+    pairs exactly at the radius) with every other neighbour excluded; on no points and on one;
+    and the self-contact finds the same pairs through either path on a tube folded onto itself."""
+    from scipy.spatial import cKDTree
+
+    from service.model.drape import solver
+    from service.model.geometry import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("the compiled kernels are off (numba missing, or TRYON_NO_KERNELS)")
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.normal(0, 0.02, (400, 3)), rng.uniform(-0.2, 0.2, (300, 3)),
+                        np.array([[0.25, 0.25, 0.25], [0.25, 0.25, 0.25 + 2 ** -7], [0.25, 0.25 + 2 ** -7, 0.25]])])
+    radius = 2 ** -7  # (the last three points' distances exactly)
+    ref = cKDTree(x).query_pairs(radius, output_type="ndarray")
+    ref = np.sort(ref, axis=1)
+    ex = ref[::2]  # every other close pair excluded (both ways, as a symmetric pattern)
+    E = sp.csr_matrix((np.ones(2 * len(ex)), (np.r_[ex[:, 0], ex[:, 1]], np.r_[ex[:, 1], ex[:, 0]])),
+                      shape=(len(x), len(x)))
+    E.sort_indices()
+    want = ref[1::2]
+    want = want[np.lexsort((want[:, 1], want[:, 0]))]
+    got = kernels.close_pairs(x, radius, E.indptr, E.indices)
+    assert len(ref) > 300 and np.array_equal(got, want)
+    assert {(700, 701), (700, 702)} <= set(map(tuple, ref))  # pairs at the radius itself are in
+    none = sp.csr_matrix((len(x), len(x)))
+    assert np.array_equal(kernels.close_pairs(x, radius, none.indptr, none.indices),
+                          ref[np.lexsort((ref[:, 1], ref[:, 0]))])
+    assert kernels.close_pairs(np.zeros((0, 3)), radius, np.zeros(1, np.int64), np.zeros(0, np.int64)).shape == (0, 2)
+    assert kernels.close_pairs(x[:1], radius, np.zeros(2, np.int64), np.zeros(0, np.int64)).shape == (0, 2)
+    V, F = tube(0.15, 0.3, 24, 8, y0=0.1)
+    d = precompute(V, F, "knit")
+    y = V.copy()
+    y[:, 2] *= 0.01  # the tube pressed flat: its front and back within the self-contact's reach
+    pushed = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(solver, "COMPILED", compiled)
+        z = y.copy()
+        pushed[compiled] = d._self_contact(z, refresh=True), np.sort(d._pairs, axis=1), z
+    (n1, p1, z1), (n2, p2, z2) = pushed[True], pushed[False]
+    assert n1 == n2 > 0 and np.array_equal(p1, p2[np.lexsort((p2[:, 1], p2[:, 0]))])
+    assert np.allclose(z1, z2, rtol=0, atol=1e-15)
+
+
+def test_edge_counts_equal_numpys_unique_rows():
+    """``geometry.edge_counts`` (1-D keys) gives ``np.unique(..., axis=0)``'s edges and counts;
+    ``boundary_vertices`` the vertices of the edges used once."""
+    rng = np.random.default_rng(0)
+    F = rng.integers(0, 300, (800, 3))
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    u, c = np.unique(e, axis=0, return_counts=True)
+    got_u, got_c = geometry.edge_counts(F)
+    assert np.array_equal(got_u, u) and np.array_equal(got_c, c) and (c > 1).any()
+    assert np.array_equal(geometry.mesh_edges(F), u)
+    b = np.zeros(300, bool)
+    b[u[c == 1].ravel()] = True
+    assert np.array_equal(geometry.boundary_vertices(F, 300), b)
+    assert geometry.edge_counts(np.zeros((0, 3), np.int64))[0].shape == (0, 2)
 
 
 def test_compiled_body_contact_matches_numpy(monkeypatch):

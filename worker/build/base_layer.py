@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from service.model.body.model import BONES
-from service.model.geometry.mesh import closest_points_on_mesh, mesh_edges, vertex_faces, vertex_normals
+from service.model.geometry.mesh import closest_points_on_mesh, edge_counts, mesh_edges, vertex_faces, vertex_normals
 from service.model.formats.mhclo import DM, Binding
 
 B = {b: i for i, b in enumerate(BONES)}
@@ -240,8 +240,7 @@ def component_at(V: np.ndarray, F: np.ndarray, anchor: np.ndarray) -> np.ndarray
 
 def boundary_edges(F: np.ndarray) -> np.ndarray:
     """Edges (B, 2) used by exactly one face."""
-    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    u, c = np.unique(e, axis=0, return_counts=True)
+    u, c = edge_counts(F)
     return u[c == 1]
 
 

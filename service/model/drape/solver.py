@@ -176,8 +176,7 @@ def _check_rest(rest: np.ndarray, faces: np.ndarray, cfg: Config) -> None:
     if len(bad):
         raise DrapeError(f"the garment has {len(bad)} zero-area faces (e.g. face {int(bad[0])}: area "
                          f"{area[bad[0]]:.2e} m2); remove or repair them before uploading")
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
+    _, counts = geometry.edge_counts(faces)
     if (counts > 2).any():
         raise DrapeError(f"the garment has {int((counts > 2).sum())} non-manifold edges (shared by more than two "
                          "faces); cloth needs each edge on at most two faces")
@@ -223,15 +222,6 @@ def _cotangent_laplacian(rest: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
         W += [0.5 * cot, 0.5 * cot]
     Wm = sp.csr_matrix((np.concatenate(W), (np.concatenate(I), np.concatenate(J))), shape=(N, N))
     return (sp.diags(np.asarray(Wm.sum(axis=1)).ravel()) - Wm).tocsr()
-
-
-def _boundary(faces: np.ndarray, n: int) -> np.ndarray:
-    """(n,) bool: vertices on an edge used by one face."""
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    uniq, counts = np.unique(e, axis=0, return_counts=True)
-    out = np.zeros(n, bool)
-    out[uniq[counts == 1].reshape(-1)] = True
-    return out
 
 
 def _normals(x: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix) -> np.ndarray:
@@ -288,7 +278,7 @@ class Draper:
         L = _cotangent_laplacian(rest, faces)
         self.incidence = sp.csr_matrix((np.ones(faces.size), (faces.reshape(-1), np.repeat(np.arange(len(faces)), 3))),
                                        shape=(N, len(faces)))
-        interior = ~_boundary(faces, N)
+        interior = ~geometry.boundary_vertices(faces, N)
         nrest = _normals(rest, faces, self.incidence)
         self.h0 = np.where(interior, ((L @ rest) * nrest).sum(1), 0.0)  # signed rest curvature, 2 A_i H_i
         self.w_bend = np.where(interior, fab.bending_stiffness_nm / self.vertex_area, 0.0)
@@ -349,6 +339,8 @@ class Draper:
         for _ in range(cfg.self_rings - 1):
             near = (near @ A).astype(bool).astype(np.int32)
         self.near = near.tocsr()
+        self.near.sort_indices()
+        self._near_rows = (self.near.indptr.astype(np.int64), self.near.indices.astype(np.int64))  # close_pairs
         self.precompute_s = time.perf_counter() - t0
 
     # energy and gradient (for references and diagnostics) ------------------------------------
@@ -836,10 +828,13 @@ class Draper:
         if r <= 0:
             return 0
         if refresh or not hasattr(self, "_pairs"):
-            pairs = cKDTree(x).query_pairs(1.5 * r, output_type="ndarray")
-            if len(pairs):
-                keep = np.asarray(self.near[pairs[:, 0], pairs[:, 1]]).ravel() == 0
-                pairs = pairs[keep]
+            if COMPILED and kernels.AVAILABLE:
+                pairs = kernels.close_pairs(x, 1.5 * r, *self._near_rows)
+            else:
+                pairs = cKDTree(x).query_pairs(1.5 * r, output_type="ndarray")
+                if len(pairs):
+                    keep = np.asarray(self.near[pairs[:, 0], pairs[:, 1]]).ravel() == 0
+                    pairs = pairs[keep]
             if len(pairs):
                 rest_d = np.linalg.norm(self.rest[pairs[:, 0]] - self.rest[pairs[:, 1]], axis=1)
                 self._pair_gap = np.minimum(r, 0.9 * rest_d)

@@ -24,7 +24,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from service.model.geometry.mesh import closest_points_on_mesh, face_bounds, vertex_faces, vertex_normals
+from service.model.geometry.mesh import (boundary_vertices, closest_points_on_mesh, face_bounds, vertex_faces,
+                                         vertex_normals)
 from service.model.geometry.solvers import factor_spd
 from service.model.garments.skin_weights import dense_weights, top_k, uniform_laplacian
 
@@ -40,16 +41,6 @@ RECHECK_MOVE = 1e-6  # metres: a vertex moved less than this by a pass is not ch
 RIM_SAMPLES = True  # also check the inner garment from the body vertices along the outer garment's rims
 RIM_CONE = np.pi / 4  # a rim covers the body vertices it is over within this angle of their normal
 RIM_NEAR_ONLY = True  # rim_violations: closest points only for band vertices near the inner garment (same results)
-
-
-def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
-    """(n,) bool: vertices on an edge used by exactly one face."""
-    f = np.asarray(faces, np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    u, c = np.unique(e, axis=0, return_counts=True)
-    out = np.zeros(n, bool)
-    out[u[c == 1].ravel()] = True
-    return out
 
 
 TOPOLOGY_CACHE_SIZE = 64  # garment and base-layer topologies kept per process (Laplacian, rims, vertex faces)

@@ -61,7 +61,8 @@ def _compiled() -> SimpleNamespace:
                                                     contact_project=jit(_contact_project),
                                                     columns_product=jit(_columns_product),
                                                     push_vertices=jit(_push_vertices),
-                                                    clamp_steps=jit(_clamp_steps), max_move=jit(_max_move))
+                                                    clamp_steps=jit(_clamp_steps), max_move=jit(_max_move),
+                                                    close_pairs=jit(_close_pairs))
     return _compiled_kernels
 
 
@@ -113,6 +114,31 @@ def faces_cross(V, F, pairs, c, r, hit):
 def contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact):
     """Compiled :func:`_contact_project`."""
     return _compiled().contact_project(x, q, n, clearance, x_prev, slide, friction, out, contact)
+
+
+def close_pairs(x, radius, exclude_indptr, exclude_indices):
+    """The pairs (P, 2) int64 (i < j, sorted) of rows of x (N, 3) float64 at most ``radius``
+    apart, as ``scipy.spatial.cKDTree(x).query_pairs(radius)``, without those that the sparsity
+    pattern (``exclude_indptr`` (N + 1,), ``exclude_indices``: a CSR matrix's, each row's
+    indices sorted) holds: a uniform grid of cells ``radius`` wide, its cells' keys sorted, each
+    vertex's 27 neighbouring cells found by binary search (:func:`_close_pairs`, compiled)."""
+    x = np.ascontiguousarray(x, np.float64)
+    if not len(x):
+        return np.zeros((0, 2), np.int64)
+    cell = np.floor((x - x.min(axis=0)) / radius).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    fn = _compiled().close_pairs
+    args = (x, cell, dims, key[order], order, float(radius), np.asarray(exclude_indptr, np.int64),
+            np.asarray(exclude_indices, np.int64))
+    out = np.empty((len(x), 2), np.int64)
+    count = fn(*args, out)
+    if count > len(out):
+        out = np.empty((count, 2), np.int64)
+        fn(*args, out)
+    out = out[:count]
+    return out[np.argsort(out[:, 0] * len(x) + out[:, 1], kind="stable")]
 
 
 def columns_product(indptr, indices, data, cols, X, out):
@@ -538,6 +564,7 @@ def warm() -> None:
     columns_product(*S, np.zeros(1, np.int64), np.zeros((1, 3), np.float32), np.zeros((3, 3), np.float32))
     clamp_steps(V.copy(), V, 0.01)
     max_move(V, V)
+    close_pairs(V, 1.0, np.zeros(4, np.int64), np.zeros(0, np.int64))
     push_vertices(V32, V32, V32, np.zeros(3, np.int32), np.float32(0.0), np.zeros(1, np.int64), V32[:1], V32[:1], z1,
                   *S, np.zeros((3, 3), np.float32))
 
@@ -601,6 +628,89 @@ def _push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indi
                 disp[j, 1] += short * N[j, 1]
                 disp[j, 2] += short * N[j, 2]
     return nbad
+
+
+def _close_pairs(x, cell, dims, skeys, order, radius, ex_ptr, ex_idx, out):
+    """:func:`close_pairs`' loop: writes the pairs into ``out`` (P_max, 2) and returns their
+    number P (more than P_max: ``out`` was too small, call again with P rows). cell (N, 3) int64
+    grid cells, dims (3,), skeys (N,) the cells' keys sorted, order (N,) the vertices in that
+    order. Cell by cell (each a run of ``skeys``): its vertices against each other and against
+    its 13 neighbours of larger key, whose runs an open-addressing hash table (linear probing,
+    at least twice as many slots as vertices) finds."""
+    n = x.shape[0]
+    size = 1
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, np.int64)  # slot -> the first index of its cell's run in skeys
+    for s in range(n):
+        if s > 0 and skeys[s] == skeys[s - 1]:
+            continue
+        h = (skeys[s] * 2654435761) & mask
+        while table[h] >= 0:
+            h = (h + 1) & mask
+        table[h] = s
+    r2 = radius * radius
+    count = 0
+    runs = np.empty((14, 2), np.int64)  # the runs (start, end) of the cell itself and its 13 neighbours
+    s0 = 0
+    while s0 < n:
+        k0 = skeys[s0]
+        s1 = s0 + 1
+        while s1 < n and skeys[s1] == k0:
+            s1 += 1
+        cz0 = k0 % dims[2]
+        cy0 = (k0 // dims[2]) % dims[1]
+        cx0 = k0 // (dims[2] * dims[1])
+        nr = 0
+        for a in range(0, 2):
+            cx = cx0 + a
+            if cx >= dims[0]:
+                continue
+            for b in range(-1, 2):
+                cy = cy0 + b
+                if cy < 0 or cy >= dims[1] or (a == 0 and b < 0):
+                    continue
+                for c in range(-1, 2):
+                    cz = cz0 + c
+                    if cz < 0 or cz >= dims[2] or (a == 0 and b == 0 and c <= 0):
+                        continue
+                    k = (cx * dims[1] + cy) * dims[2] + cz
+                    h = (k * 2654435761) & mask
+                    while table[h] >= 0:
+                        lo = table[h]
+                        if skeys[lo] == k:
+                            hi = lo + 1
+                            while hi < n and skeys[hi] == k:
+                                hi += 1
+                            runs[nr, 0], runs[nr, 1] = lo, hi
+                            nr += 1
+                            break
+                        h = (h + 1) & mask
+        for si in range(s0, s1):
+            i0 = order[si]
+            for r in range(nr + 1):
+                lo, hi = (si + 1, s1) if r == nr else (runs[r, 0], runs[r, 1])
+                for sj in range(lo, hi):
+                    j0 = order[sj]
+                    d0, d1, d2 = x[j0, 0] - x[i0, 0], x[j0, 1] - x[i0, 1], x[j0, 2] - x[i0, 2]
+                    if d0 * d0 + d1 * d1 + d2 * d2 > r2:
+                        continue
+                    i, j = (i0, j0) if i0 < j0 else (j0, i0)
+                    p, e = ex_ptr[i], ex_ptr[i + 1]  # j among row i's sorted excluded indices
+                    while p < e:
+                        mid = (p + e) >> 1
+                        if ex_idx[mid] < j:
+                            p = mid + 1
+                        else:
+                            e = mid
+                    if p < ex_ptr[i + 1] and ex_idx[p] == j:
+                        continue
+                    if count < out.shape[0]:
+                        out[count, 0], out[count, 1] = i, j
+                    count += 1
+        s0 = s1
+    return count
 
 
 def _clamp_steps(g, x, max_step):

@@ -15,11 +15,30 @@ from scipy.spatial import cKDTree
 from service.model.geometry import kernels
 
 
-def mesh_edges(faces: np.ndarray) -> np.ndarray:
-    """Unique undirected edges (E, 2), each as (low, high)."""
+def edge_counts(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges (E, 2) int64, each as (low, high), in lexicographic order, and the
+    number of faces (F, 3) using each (E,). Edges are keyed low * n + high (n: one more than the
+    largest index), a 1-D sort: ~10x faster than ``np.unique(..., axis=0)``'s structured rows."""
     f = np.asarray(faces, np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    if not len(e):
+        return e.reshape(0, 2), np.zeros(0, np.int64)
+    n = int(e.max()) + 1
+    keys, counts = np.unique(e[:, 0] * n + e[:, 1], return_counts=True)
+    return np.stack([keys // n, keys % n], axis=1), counts
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges (E, 2), each as (low, high), in lexicographic order."""
+    return edge_counts(faces)[0]
+
+
+def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool: vertices on an edge used by exactly one face."""
+    edges, counts = edge_counts(faces)
+    out = np.zeros(n, bool)
+    out[edges[counts == 1].ravel()] = True
+    return out
 
 
 def edge_length_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
