@@ -13,12 +13,13 @@ from service.model.drape import FABRICS, Config, DrapeError, DrapeResult, Fabric
 from tests.drape_cases import cylinder, revolved_body, ring_girth, square, square_sag, tube
 
 
-def _tube_on_cylinder(fabric: str | Fabric, Rg: float, Rb: float, na: int = 64, nh: int = 12):
+def _tube_on_cylinder(fabric: str | Fabric, Rg: float, Rb: float, na: int = 64, nh: int = 12,
+                      config: Config | None = None):
     V, F = tube(Rg, 0.3, na, nh)
     BV, BF = cylinder(Rb, -0.3, 0.6)
     init = V.copy()
     init[:, [0, 2]] *= (Rb + 0.002) / Rg  # the warp's guess: around the body
-    r = precompute(V, F, fabric).solve(BV, BF, init)
+    r = precompute(V, F, fabric, config).solve(BV, BF, init)
     return V, F, BV, BF, r
 
 
@@ -41,9 +42,11 @@ def test_tube_on_wider_cylinder_takes_the_hoop_strain():
     assert (w < 0.5).all()
     assert r.stats["max_penetration_mm"] <= 1.0
     # friction holds the tight tube where it was put, up to what it slides in the frictionless
-    # softest stiffness level (`Config.frictionless_levels`); without friction it slides off
+    # softest stiffness level (`Config.frictionless_levels`); without friction it slides off (given
+    # the iterations: at the fabric's stiffness a step moves free cloth by g h^2, 0.04 mm)
     slid = abs(x[:, 1].min() - V[:, 1].min())
-    free = _tube_on_cylinder(dataclasses.replace(FABRICS["knit"], friction=0.0), Rg, Rb, na, nh)[-1]
+    free = _tube_on_cylinder(dataclasses.replace(FABRICS["knit"], friction=0.0), Rg, Rb, na, nh,
+                             Config(max_iterations=2000))[-1]
     slid_free = abs(free.vertices[:, 1].astype(np.float64).min() - V[:, 1].min())
     assert slid < 0.02 and slid < 0.2 * slid_free, (slid, slid_free)
 
@@ -198,9 +201,11 @@ def test_a_solve_that_cannot_settle_fails_readably():
         d.solve(None, None, V[:-1])
 
 
-# a held-out ANSUR II woman (bench sizes' 36th) larger than EN 13402-3's XS in every girth
-XS_TOO_SMALL_FOR = {"gender": "female", "height_cm": 159.7, "weight_kg": 70.8, "chest_cm": 111.8, "waist_cm": 96.8,
-                    "hip_cm": 99.2, "thigh_cm": 59.7, "calf_cm": 37.1, "waist_height_cm": 96.3,
+# a held-out ANSUR II woman (bench sizes' 36th) larger than EN 13402-3's XS in every girth, her chest made 8 %, waist
+# 5 % larger and hip 3 % smaller (weight with their mean): the XS solved with the soft levels ends inside her body,
+# solved again with friction at every level it does not (the woman as measured now takes the XS at the first try)
+XS_TOO_SMALL_FOR = {"gender": "female", "height_cm": 159.7, "weight_kg": 73.16, "chest_cm": 120.744, "waist_cm": 101.64,
+                    "hip_cm": 96.224, "thigh_cm": 59.7, "calf_cm": 37.1, "waist_height_cm": 96.3,
                     "shoulder_width_cm": 37.4, "inseam_cm": 77.1, "arm_length_cm": 50.9}
 
 
@@ -311,7 +316,8 @@ def test_small_parts_ride_on_the_cloth_or_stay_instead_of_falling():
     assert np.array_equal(x[len(V) + 8:], far.astype(np.float32))  # the far one: where it started
     # draped as cloth (no small parts), the button falls off
     try:
-        loose = precompute(rest, faces, "knit", Config(part_max_extent_m=0.0)).solve(BV, BF, init).vertices
+        loose = precompute(rest, faces, "knit", Config(part_max_extent_m=0.0, max_iterations=2000)).solve(
+            BV, BF, init).vertices
         assert loose[len(V):len(V) + 8, 1].mean() < 0.1 - 0.05
     except DrapeError as exc:
         assert "diverged" in str(exc)
@@ -353,7 +359,7 @@ def test_layers_lying_on_each_other_are_tied_instead_of_sliding_apart():
     r_band = np.linalg.norm(x[band][:, [0, 2]], axis=1).mean()
     r_tube = np.linalg.norm(x[: len(V)][:, [0, 2]], axis=1).max()
     assert r_band - r_tube > 0.002, (r_band, r_tube)  # the band rests over the tube, not pressed into it
-    loose = precompute(rest, faces, "knit", Config(tie_m=0.0)).solve(BV, BF, init)
+    loose = precompute(rest, faces, "knit", Config(tie_m=0.0, max_iterations=2000)).solve(BV, BF, init)
     assert loose.stats["layer_ties"] == 0
     xl = loose.vertices.astype(np.float64)
     assert (xl[band, 1] - init[band, 1]).mean() - (xl[: len(V), 1] - init[: len(V), 1]).mean() < -0.1  # fell off

@@ -23,7 +23,8 @@ the bending's).
 
 Static equilibrium is reached by proximal local/global iterations: each iteration adds
 w_i / 2 ||x_i - x_i^k||^2 with w_i = m_i / h^2 (an implicit Euler step with all velocity damped,
-PD Eq. 8-9 without momentum), so the global matrix
+PD Eq. 8-9 without momentum; h smaller at the fabric's stiffness than in the soft levels:
+``Config.final_step_s``), so the global matrix
 
     K = sum_t k_s A_t G_t^T G_t + L^T diag(B / A_i) L + diag(m_i / h^2)          (PD Eq. 10)
 
@@ -93,6 +94,12 @@ class Config:
     clearance_m: float = 0.0005  # cloth rests this far outside the body surface (the hoop figure allows ~c / R)
     max_inside_m: float = 0.001  # a result with any vertex deeper than this inside the body fails
     step_s: float = 0.01  # proximal step h: the weight m / h^2 that ties an iteration to the last
+    final_step_s: float | None = 0.002  # ... at the fabric's stiffness (None: step_s). The position projections after
+    # each step (body contact above all) bring back what the step did not respect: at 10 ms a global step took a
+    # resting T-shirt ~8 mm into the body (its membrane energy minimised without the body) and the projection
+    # back along the body's normals stopped at states of several times the reference's membrane energy (the loose
+    # waist compressed into the hollow of the back). At 2 ms a step moves free cloth g h^2 = 0.04 mm: the soft
+    # levels (10 ms) do the hanging and sliding. Chosen by measurement against Newton (docs/drape.md)
     anderson: int = 5  # Anderson acceleration history (0: plain PD iterations)
     anderson_energy_slack_j: float = 1e-9  # an accelerated point raising the energy more than this is refused
     stiffness_levels: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0)  # membrane stiffness continuation (last: the fabric)
@@ -283,7 +290,6 @@ class Draper:
         self.h0 = np.where(interior, ((L @ rest) * nrest).sum(1), 0.0)  # signed rest curvature, 2 A_i H_i
         self.w_bend = np.where(interior, fab.bending_stiffness_nm / self.vertex_area, 0.0)
         self.L = L
-        self.w_prox = self.mass / cfg.step_s ** 2
         self.pinned = pinned
         free = np.ones(N, bool)
         free[pinned] = False
@@ -309,7 +315,7 @@ class Draper:
         self.tie_gap = np.where(h0 >= 0, 1.0, -1.0) * np.minimum(np.abs(h0), cfg.self_contact_m)  # (K,) m
         self.w_tie = cfg.tie_stiffness * ks * self.vertex_area[iv] / np.maximum(mean_edge[iv], 1e-6) ** 2  # (K,) N/m
         Ks = (G.T @ sp.diags(self.w_stretch) @ G).tocsr()
-        Kr = (L.T @ sp.diags(self.w_bend) @ L + sp.diags(self.w_prox) + self.T.T @ sp.diags(self.w_tie) @ self.T).tocsr()
+        Kr = (L.T @ sp.diags(self.w_bend) @ L + self.T.T @ sp.diags(self.w_tie) @ self.T).tocsr()
         # stiffness continuation: one factor per level (the membrane scaled by `level`, PD's
         # matrix with the same bending and proximal terms); the soft levels let the cloth turn
         # and hang (PD's fixed matrix is as stiff against rotations as against stretch), the last
@@ -319,8 +325,11 @@ class Draper:
             fab.stretch_stiffness_n_per_m * fab.stretch_limit_pct / 100.0)
         levels = sorted({min(max(lv, floor), 1.0) for lv in cfg.stiffness_levels} | {1.0})
         self.levels = []
+        self.level_prox = []  # (N,) each level's proximal weight m / h^2 (its step h: `final_step_s` at the fabric's)
         for level in levels:
-            K = (level * Ks + Kr).tocsr()
+            h = cfg.final_step_s if (level == 1.0 and cfg.final_step_s) else cfg.step_s
+            self.level_prox.append(self.mass / h ** 2)
+            K = (level * Ks + Kr + sp.diags(self.level_prox[-1])).tocsr()
             K_fp = K[self.free][:, pinned] if len(pinned) else None
             # friction: Coulomb's |f_t| <= mu |f_n| with both forces read from the correction
             # (Macklin et al. 2014 Sec. 6.1): a slide up to mu times the penetration is cancelled.
@@ -573,7 +582,7 @@ class Draper:
                     it += 1
                     # one fixed-point map g = G(x): local/global step, then the position projections
                     tb = time.perf_counter()
-                    g = self._global(rhs + self.w_prox[:, None] * x, x_pinned, k)
+                    g = self._global(rhs + self.level_prox[k][:, None] * x, x_pinned, k)
                     tc = time.perf_counter()
                     # a trust region: no vertex jumps across a limb in one step
                     if COMPILED and kernels.AVAILABLE:
