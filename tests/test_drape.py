@@ -203,7 +203,7 @@ def test_a_solve_that_cannot_settle_fails_readably():
 
 # a held-out ANSUR II woman (bench sizes' 36th) larger than EN 13402-3's XS in every girth, her chest made 8 %, waist
 # 5 % larger and hip 3 % smaller (weight with their mean): the XS solved with the soft levels ends inside her body,
-# solved again with friction at every level it does not (the woman as measured now takes the XS at the first try)
+# solved again with friction at every level it does not (the woman as measured takes the XS at the first try)
 XS_TOO_SMALL_FOR = {"gender": "female", "height_cm": 159.7, "weight_kg": 73.16, "chest_cm": 120.744, "waist_cm": 101.64,
                     "hip_cm": 96.224, "thigh_cm": 59.7, "calf_cm": 37.1, "waist_height_cm": 96.3,
                     "shoulder_width_cm": 37.4, "inseam_cm": 77.1, "arm_length_cm": 50.9}

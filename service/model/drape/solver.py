@@ -94,12 +94,11 @@ class Config:
     clearance_m: float = 0.0005  # cloth rests this far outside the body surface (the hoop figure allows ~c / R)
     max_inside_m: float = 0.001  # a result with any vertex deeper than this inside the body fails
     step_s: float = 0.01  # proximal step h: the weight m / h^2 that ties an iteration to the last
-    final_step_s: float | None = 0.002  # ... at the fabric's stiffness (None: step_s). The position projections after
-    # each step (body contact above all) bring back what the step did not respect: at 10 ms a global step took a
-    # resting T-shirt ~8 mm into the body (its membrane energy minimised without the body) and the projection
-    # back along the body's normals stopped at states of several times the reference's membrane energy (the loose
-    # waist compressed into the hollow of the back). At 2 ms a step moves free cloth g h^2 = 0.04 mm: the soft
-    # levels (10 ms) do the hanging and sliding. Chosen by measurement against Newton (docs/drape.md)
+    final_step_s: float | None = 0.002  # ... at the fabric's stiffness (None: step_s). The contact projection after each
+    # step moves the cloth back along the body's normals, not to the constrained minimum: a small step keeps the
+    # global step near the body, so the projection corrects little and the fixed points are nearer the energy's
+    # resting states. A step moves free cloth g h^2 (0.04 mm at 2 ms): the soft levels hang and slide it. Chosen
+    # by measurement against Newton (docs/drape.md, "Where the two drapes differ")
     anderson: int = 5  # Anderson acceleration history (0: plain PD iterations)
     anderson_energy_slack_j: float = 1e-9  # an accelerated point raising the energy more than this is refused
     stiffness_levels: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0)  # membrane stiffness continuation (last: the fabric)

@@ -120,8 +120,8 @@ def close_pairs(x, radius, exclude_indptr, exclude_indices):
     """The pairs (P, 2) int64 (i < j, sorted) of rows of x (N, 3) float64 at most ``radius``
     apart, as ``scipy.spatial.cKDTree(x).query_pairs(radius)``, without those that the sparsity
     pattern (``exclude_indptr`` (N + 1,), ``exclude_indices``: a CSR matrix's, each row's
-    indices sorted) holds: a uniform grid of cells ``radius`` wide, its cells' keys sorted, each
-    vertex's 27 neighbouring cells found by binary search (:func:`_close_pairs`, compiled)."""
+    indices sorted) holds: a uniform grid of cells ``radius`` wide, each occupied cell's vertices
+    against its own and its 13 neighbours of larger key (:func:`_close_pairs`, compiled)."""
     x = np.ascontiguousarray(x, np.float64)
     if not len(x):
         return np.zeros((0, 2), np.int64)
@@ -130,7 +130,7 @@ def close_pairs(x, radius, exclude_indptr, exclude_indices):
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     order = np.argsort(key, kind="stable")
     fn = _compiled().close_pairs
-    args = (x, cell, dims, key[order], order, float(radius), np.asarray(exclude_indptr, np.int64),
+    args = (x, dims, key[order], order, float(radius), np.asarray(exclude_indptr, np.int64),
             np.asarray(exclude_indices, np.int64))
     out = np.empty((len(x), 2), np.int64)
     count = fn(*args, out)
@@ -630,11 +630,11 @@ def _push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indi
     return nbad
 
 
-def _close_pairs(x, cell, dims, skeys, order, radius, ex_ptr, ex_idx, out):
+def _close_pairs(x, dims, skeys, order, radius, ex_ptr, ex_idx, out):
     """:func:`close_pairs`' loop: writes the pairs into ``out`` (P_max, 2) and returns their
-    number P (more than P_max: ``out`` was too small, call again with P rows). cell (N, 3) int64
-    grid cells, dims (3,), skeys (N,) the cells' keys sorted, order (N,) the vertices in that
-    order. Cell by cell (each a run of ``skeys``): its vertices against each other and against
+    number P (more than P_max: ``out`` was too small, call again with P rows). dims (3,) the
+    grid's cells per axis, skeys (N,) the vertices' cell keys sorted, order (N,) the vertices in
+    that order. Cell by cell (each a run of ``skeys``): its vertices against each other and against
     its 13 neighbours of larger key, whose runs an open-addressing hash table (linear probing,
     at least twice as many slots as vertices) finds."""
     n = x.shape[0]
