@@ -91,7 +91,11 @@ class _InsideError(DrapeError):
 @dataclass(frozen=True)
 class Config:
     """Solver settings (SI units)."""
-    clearance_m: float = 0.0005  # cloth rests this far outside the body surface (the hoop figure allows ~c / R)
+    clearance_m: float = 0.0005  # cloth rests this far outside the body surface (the hoop figure allows ~c / R) ...
+    narrow_min_clearance_m: float | None = 0.002  # ... or less where the body faces itself across a gap narrower than
+    # two clearances and the self-contact's (an armpit, between heavy thighs): there half of what the self-contact leaves
+    # of the gap, at least this (`body_room`); at full clearance the layers on either side (a sleeve on the arm, the side
+    # panel on the torso) are pushed into each other and cross. None: the clearance everywhere
     max_inside_m: float = 0.001  # a result with any vertex deeper than this inside the body fails
     step_s: float = 0.01  # proximal step h: the weight m / h^2 that ties an iteration to the last
     final_step_s: float | None = 0.002  # ... at the fabric's stiffness (None: step_s). The contact projection after each
@@ -1039,7 +1043,15 @@ class _Body:
         inc = sp.csr_matrix((np.ones(F.size), (F.reshape(-1), np.repeat(np.arange(len(F)), 3))), shape=(len(V), len(F)))
         self.normals = _normals(V, F, inc)
         self.q = self.n = self.face = None
-        self.clearance: np.ndarray | None = None  # (N,) m per garment vertex (None: cfg.clearance_m for every one)
+        self.clearance: np.ndarray | None = None  # (N,) m per garment vertex (None: cfg.clearance_m for every one) ...
+        # ... at most the body's narrow-gap cap where the vertex's closest point is (`Config.narrow_min_clearance_m`):
+        # per body vertex (B,) and per body face (G,) (the least of its vertices'), and per garment vertex (N,)
+        self.vertex_cap = np.full(len(V), np.inf)
+        if cfg.narrow_min_clearance_m is not None:
+            room = body_room(V, self.normals, 2 * cfg.clearance_m + cfg.self_contact_m)
+            self.vertex_cap = np.maximum(0.5 * (room - cfg.self_contact_m), cfg.narrow_min_clearance_m)
+        self.face_cap = self.vertex_cap[F].min(axis=1)
+        self.cap: np.ndarray | None = None
         self.face_pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # refresh_faces
 
     def refresh_faces(self, x: np.ndarray, faces: np.ndarray, near_m: float) -> None:
@@ -1070,7 +1082,7 @@ class _Body:
         p, n = self.V[b], self.normals[b]
         tri = faces[f]
         q = (x[tri] * w[:, :, None]).sum(1)
-        depth = self.cfg.clearance_m - ((q - p) * n).sum(1)
+        depth = np.minimum(self.cfg.clearance_m, self.vertex_cap[b]) - ((q - p) * n).sum(1)
         # only cloth lying on the same skin: the face's vertices rest on body points facing the
         # same way (not an arm pressed against the side panel of a shirt, which would push the
         # panel into the torso and the torso push it back)
@@ -1097,6 +1109,7 @@ class _Body:
         self.q, self.n, self.face = self._query(x)
         self.reach = np.abs(((x - self.q) * self.n).sum(1))  # how far each may move before its plane is stale
         self.x_at = x.copy()
+        self.cap = self.face_cap[self.face]
 
     def refresh_near(self, x: np.ndarray, near_m: float, moved_m: float, walk_m: float) -> None:
         """Refresh only the vertices that may be within ``near_m`` of the body (their distance
@@ -1114,6 +1127,7 @@ class _Body:
             if len(sel):
                 q, n, face = self._query(x[sel], near=self.F[self.face[sel]] if near else None)
                 self.q[sel], self.n[sel], self.face[sel] = q, n, face
+                self.cap[sel] = self.face_cap[face]
                 self.reach[sel] = np.abs(((x[sel] - q) * n).sum(1))
                 self.x_at[sel] = x[sel]
 
@@ -1141,7 +1155,7 @@ class _Body:
         body (or inside) moved out along the surface normal; with ``x_prev``, their tangential
         move since then cancelled up to ``slide`` (N,) times the correction (Coulomb friction as in Macklin et al. 2014 Eq. 24-25, the ratio
         from the forces: :attr:`Draper.slide_per_depth`). Returns (x, contact mask)."""
-        clearance = self.clearance if self.clearance is not None else np.full(len(x), self.cfg.clearance_m)
+        clearance = np.minimum(self.clearance if self.clearance is not None else self.cfg.clearance_m, self.cap)
         if COMPILED and kernels.AVAILABLE:
             out, c = np.empty((len(x), 3)), np.empty(len(x), np.bool_)
             friction = x_prev is not None and slide is not None
@@ -1166,6 +1180,28 @@ class _Body:
             scale = np.where(lt <= hold, 1.0, hold / np.maximum(lt, 1e-30))
             x[c] -= scale[:, None] * dt
         return x, c
+
+
+def body_room(vertices: np.ndarray, normals: np.ndarray, reach_m: float) -> np.ndarray:
+    """(B,) m: for each body vertex (vertices (B, 3), unit normals (B, 3)), the room in front of
+    it: the distance along its normal to the nearest other vertex of the body within a 45-degree
+    cone about that normal whose normal faces back (dot < 0): the arm across an armpit from the
+    torso, the other thigh. inf where there is none within ``reach_m``."""
+    V = np.asarray(vertices, np.float64)
+    n = np.asarray(normals, np.float64)
+    room = np.full(len(V), np.inf)
+    pairs = cKDTree(V).query_pairs(reach_m, output_type="ndarray")
+    if len(pairs):  # facing pairs first (most neighbours lie on the same sheet, facing alike)
+        pairs = pairs[np.einsum("ij,ij->i", n[pairs[:, 0]], n[pairs[:, 1]]) < 0]
+    if not len(pairs):
+        return room
+    i = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    j = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    d = V[j] - V[i]
+    t = np.einsum("ij,ij->i", d, n[i])
+    ok = (t > 0) & (np.einsum("ij,ij->i", d, d) <= 2 * t * t)  # within 45 degrees of the normal
+    np.minimum.at(room, i[ok], t[ok])
+    return room
 
 
 def start_outside(init_vertices: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,

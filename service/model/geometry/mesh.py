@@ -256,6 +256,8 @@ def intersecting_face_pairs(vertices: np.ndarray, faces: np.ndarray, among: np.n
 
 
 UNTANGLE_STILL_M = 1e-7  # untangle: a vertex moved less than this (m) in a round keeps its face pairs' test
+UNTANGLE_STALL_ROUNDS = 3  # untangle: after this many rounds without fewer crossings than its best so far ...
+UNTANGLE_MAX_RINGS = 6  # ... the smoothed region grows by a ring of neighbours, up to this many rings
 
 
 def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np.ndarray | None = None,
@@ -264,11 +266,15 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np
     """A mesh's self-intersections (:func:`intersecting_face_pairs`) smoothed out: each round,
     the vertices of the intersecting faces and their neighbours move halfway to the mean of
     their neighbours (uniform Laplacian smoothing, local to the tangle; a crumple, as a
-    garment's armpit bound to a body, flattens in one or two rounds). ``keep`` (V,) bool:
-    vertices that do not move; ``after``: applied to the vertices after each round (e.g. a
-    body's contact, which may push the smoothed layers into each other again: the next round
-    sees that); ``pairs``: the mesh's intersecting face pairs (K, 2) if already found. Returns
-    the vertices (V, 3) float64 and the face pairs still intersecting after ``rounds``."""
+    garment's armpit bound to a body, flattens in one or two rounds). Where ``after`` pushes the
+    smoothed vertices back as far as they moved (two layers squeezed between an arm and the
+    torso) the crossings stall: after ``UNTANGLE_STALL_ROUNDS`` rounds without fewer of them the
+    smoothed region grows by a ring of neighbours (up to ``UNTANGLE_MAX_RINGS``), so that the
+    layers straighten over a wider patch. ``keep`` (V,) bool: vertices that do not move;
+    ``after``: applied to the vertices after each round (e.g. a body's contact, which may push
+    the smoothed layers into each other again: the next round sees that); ``pairs``: the mesh's
+    intersecting face pairs (K, 2) if already found. Returns the vertices (V, 3) float64 of the
+    round with the fewest face pairs still intersecting (the first such), and that number."""
     V = np.array(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     P = intersecting_face_pairs(V, F) if pairs is None else np.asarray(pairs, np.int64).reshape(-1, 2)
@@ -276,10 +282,14 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np
         return V, 0
     M = neighbour_mean(F, len(V))
     A = face_incidence(F, len(V))
+    best_V, best_n = V.copy(), len(P)
+    rings, stall = 1, 0
     for _ in range(rounds):
         sel = np.zeros(len(F))
         sel[P.ravel()] = 1.0
-        move = (A @ (A.T @ (A @ sel))) > 0  # the faces' vertices and their neighbours
+        move = (A @ sel) > 0  # the faces' vertices ...
+        for _ in range(rings):  # ... and their neighbours, `rings` deep
+            move = (A @ (A.T @ move.astype(np.float64))) > 0
         if keep is not None:
             move &= ~keep
         if not move.any():
@@ -297,7 +307,13 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np
         P = np.concatenate([P[still], intersecting_face_pairs(V, F, among=moved)])
         if not len(P):
             return V, 0
-    return V, len(P)
+        if len(P) < best_n:
+            best_V, best_n, stall = V.copy(), len(P), 0
+        else:
+            stall += 1
+            if stall >= UNTANGLE_STALL_ROUNDS and rings < UNTANGLE_MAX_RINGS:
+                rings, stall = rings + 1, 0
+    return best_V, best_n
 
 
 def barycentric(p, a, b, c):
