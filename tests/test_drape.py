@@ -700,6 +700,27 @@ def test_untangle_smooths_out_a_crumple_locally():
     assert np.array_equal(U[far], V[far])
 
 
+def test_untangle_returns_its_best_round():
+    """Where ``after`` undoes the smoothing and shakes the sheet more each round (new crossings),
+    ``geometry.untangle`` returns the round with the fewest crossings (or its input), and says
+    how many are left there."""
+    V, F, mid = _crumpled_square()
+    rng = np.random.default_rng(5)
+    counts = [len(geometry.intersecting_face_pairs(V, F))]
+    shake = [0.0]
+
+    def after(v):
+        shake[0] += 0.004
+        out = v.copy()
+        out[mid] = V[mid] + rng.normal(0, shake[0], (len(mid), 3))
+        counts.append(len(geometry.intersecting_face_pairs(out, F)))
+        return out
+
+    U, left = geometry.untangle(V, F, rounds=8, after=after)
+    assert max(counts) > min(counts)  # the rounds differ
+    assert left == min(counts) and len(geometry.intersecting_face_pairs(U, F)) == left
+
+
 def test_a_drape_ends_with_no_self_intersections():
     """The catalogue men's T-shirt (its size as bound to the mean avatar) draped on an example
     avatar: its armpits crumple where sleeve and side panel are pressed together (the settled
