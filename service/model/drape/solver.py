@@ -146,6 +146,8 @@ class Config:
     # to where they were, and their neighbours too, over up to this many widening rounds (0: no guard)
     final_limit_rounds: int = 20  # the strain limit and the body contact in turn up to this many times before the
     # untangling (and once in each of its rounds): the contact passes after the iterations pull edges long in creases
+    outside_passes: int = 4  # before the untangling, the closest points of every vertex found afresh and those inside
+    # moved out, up to this many times (0: off)
     untangle_rounds: int = 40  # the settled cloth's self-intersections smoothed out in up to this many rounds (0: off)
     gravity: tuple[float, float, float] = (0.0, -GRAVITY_M_S2, 0.0)
     diverge_m: float = 1.0  # a vertex moving farther than this from its start: the solve diverged
@@ -692,6 +694,14 @@ class Draper:
                 if not self._strain_limit(x):
                     break
                 body.refresh_near(x, cfg.contact_near_m, 0.0, cfg.contact_walk_m)
+                x, _ = body.project(x, None, None)
+        if body is not None:
+            # in a crease (the crotch, an armpit) a vertex moved out of one surface along the normal of
+            # a closest point found a while ago can end inside the other: closest points afresh for
+            # every vertex and the vertices inside moved out, until none is
+            for _ in range(cfg.outside_passes):
+                if body.signed_distance(x, exact=True).min() >= 0:
+                    break
                 x, _ = body.project(x, None, None)
         tangled = self._untangle(x, body)
         part_crossings = 0
