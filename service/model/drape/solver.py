@@ -48,7 +48,11 @@ holds the cloth where it lies (a vertex whose move there would make its face cro
 of the cloth goes back where it was). Where the settled cloth still crosses itself (two layers pressed together
 between an arm and the torso), the crossing is smoothed out locally (``geometry.untangle``) and
 the body contact applied again; before that, the strain limit and the body contact in turn for a
-few rounds (the contact passes pull edges long in the crease between arm and torso). A solve that
+few rounds (the contact passes pull edges long in the crease between arm and torso), then the
+vertices left inside a crease moved out against closest points found afresh
+(``Config.outside_passes``). Where the body faces itself across a narrow gap (an armpit) the
+clearance shrinks to what leaves room for a layer on each side (:func:`body_room`,
+``Config.narrow_min_clearance_m``). A solve that
 still ends inside the body (a size too small for the body, pulled into the armpits once the soft
 levels let go of its start) runs again with friction and the full weight at every level
 (``Config.fallbacks``).
