@@ -136,6 +136,29 @@ def test_girths_of_a_garment_that_has_no_region(model) -> None:
     assert "hip" in got and not got & {"chest", "upper_arm", "thigh", "shoulders"}
 
 
+def test_a_tape_reads_a_wrinkled_loop_by_its_hull() -> None:
+    """A tube whose wall is wrinkled (the radius 15 cm +- 1 cm, 16 waves around): the cloth's
+    length along the section counts every wrinkle (~28 % more than the smooth tube), a tape laid
+    around it reads the hull: the polygon through the crests, within 1 % of a circle of 16 cm."""
+    from tests.drape_cases import tube
+
+    V, F = tube(0.15, 0.2, n_around=64, n_height=4)
+    angle = np.arctan2(V[:, 2], V[:, 0])
+    r = 0.15 + 0.01 * np.cos(16 * angle)
+    V = np.column_stack([r * np.cos(angle), V[:, 1], r * np.sin(angle)])
+    region = S.Region(np.array([0.0, 1.0, 0.0]), 0.125, np.array([0.0, 0.125, 0.0]))
+    sections = S.GarmentSections(F, len(V))
+    cloth, tape = sections.girth(V, region), sections.girth(V, region, tape=True)
+    assert cloth > 1.2 * 2 * np.pi * 0.15
+    assert tape == pytest.approx(2 * np.pi * 0.16, rel=0.01)
+    assert tape < cloth
+    # a smooth tube reads the same either way, up to the polygon's corners
+    V0, _ = tube(0.15, 0.2, n_around=64, n_height=4)
+    assert sections.girth(V0, region, tape=True) == pytest.approx(sections.girth(V0, region), rel=1e-9)
+    G = S.garment_girths(sections, V, {n: region for n in S.GIRTH_REGIONS}, tape=True)
+    assert np.allclose(G, 100 * tape)
+
+
 def test_a_closed_girth_is_a_loop_not_a_chain_leaving_the_cloth() -> None:
     """A tube's section is its girth either way. Slit open (a C, 2 cm apart: a chain that leaves
     the cloth, as a section through an armpit running into a sleeve's cuff) it still counts by

@@ -413,12 +413,15 @@ class GarmentSections:
         fkey = fe[..., 0] * n_vertices + fe[..., 1]
         self.face_edges = order[np.searchsorted(key, fkey, sorter=order)]  # (F, 3) edge ids
 
-    def girth(self, V: np.ndarray, region: Region, closed: bool = False) -> float | None:
+    def girth(self, V: np.ndarray, region: Region, closed: bool = False, tape: bool = False) -> float | None:
         """The cloth's length (metres) along the plane section of the garment V (M, 3) that
         encloses the region's centre (the innermost such loop), or None when no section of
         the garment goes all around it there (or one also encloses ``region.exclude``).
         An open chain counts (the two fronts of a buttoned shirt or an open jacket overlap
-        without meeting) unless ``closed`` (a garment closed all around: see :func:`_closed`)."""
+        without meeting) unless ``closed`` (a garment closed all around: see :func:`_closed`).
+        ``tape``: instead of the cloth's length along that loop, the perimeter of its convex
+        hull, as a tape laid around the garment on a body reads it (a draped garment's folds
+        and wrinkles add cloth length along the section, not girth)."""
         V = np.asarray(V, np.float64)
         e = self.edges
         s = V @ region.normal - region.offset
@@ -458,9 +461,11 @@ class GarmentSections:
             if x2 is not None and _encloses(a, b, x2):
                 continue
             length = float(seglen[m].sum())
-            if best is None or length < best:
-                best = length
-        return best
+            if best is None or length < best[0]:
+                best = (length, c)
+        if best is None:
+            return None
+        return M.hull_perimeter(p2[lab == best[1]], grad=False)[0] if tape else best[0]
 
 
 def _closed(ends: np.ndarray) -> bool:
@@ -496,13 +501,13 @@ def _covers(points: np.ndarray, p: np.ndarray) -> bool:
 
 
 def garment_girths(sections: GarmentSections, rest: np.ndarray, regions: dict[str, Region],
-                   closed: bool = False) -> np.ndarray:
+                   closed: bool = False, tape: bool = False) -> np.ndarray:
     """(R,) the garment's girths (cm) at ``GIRTH_REGIONS`` on the body it sits on (its rest
-    shape (M, 3) and that body's ``regions``); NaN where it has no such region (``closed``:
-    :meth:`GarmentSections.girth`)."""
+    shape (M, 3) and that body's ``regions``); NaN where it has no such region (``closed``,
+    ``tape``: :meth:`GarmentSections.girth`)."""
     out = np.full(len(GIRTH_REGIONS), np.nan)
     for i, r in enumerate(GIRTH_REGIONS):
-        g = sections.girth(rest, regions[r], closed)
+        g = sections.girth(rest, regions[r], closed, tape)
         if g is not None:
             out[i] = 100.0 * g
     return out
