@@ -82,8 +82,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
     ap.add_argument("--no-newton", action="store_true", help="drape: skip the Newton VBD reference row")
     ap.add_argument("--newton-full-contact", type=int, default=0, metavar="N",
-                    help="drape: also settle the T-shirt on the N of its 5 reference people with the largest chests "
-                         "with Newton's self-contact and the body's faces in its contact (4-7 minutes a person on CPU)")
+                    help="drape: also settle the T-shirt on the N of its 5 reference people with the largest chests, "
+                         "and the compared bottoms on the N of theirs with the largest hips, with Newton's "
+                         "self-contact and the body's faces in its contact (3-7 minutes a person on CPU)")
     ap.add_argument("--no-person-check", action="store_true", help="fitting: skip the person-check part (1b)")
     from tests.bench.fitting import before_kinds
 

@@ -54,7 +54,10 @@ Rows (goals from issue 43):
   self-contact on and the body's faces near the shirt a fixed cloth in it, so that body vertices
   stay out of the cloth's faces and the cloth out of itself; the largest ease difference, each
   person's, the girths ours has that the reference's section cannot measure (``unmeasured``) and
-  the hem height difference (``hem_cm``);
+  the hem height difference (``hem_cm``); the same for ``NEWTON_BOTTOMS`` on the N of their 5
+  people with the largest hips (``<garment>_*`` keys; the row's value is the largest over the
+  garments): without self-contact Newton's loose cloth passes through itself, so its plain
+  drape's hips read smaller;
 - ``membrane_energy_vs_newton``: those drapes under our energy (``Draper.energy_terms``): the
   median over the 5 people of our drape's membrane energy (in-plane stretch and shear against the
   rest shape) over Newton's, each person's ratio (and against the full-contact reference where it
@@ -413,13 +416,13 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
             physics["newton_full_contact"].append({"person": person, **_cloth_state(shirt_draper, full["vertices"])})
         per, per_vertex, per_cloth = _per_region(ease_diff), _per_region(ease_diff_vertex), _per_region(ease_diff_cloth)
         # the catalogue's bottoms: hip and thigh (the T-shirt has neither), on people of their gender
-        bottoms = {gid: _bottom_vs_newton(m, gid) for gid in NEWTON_BOTTOMS}
+        bottoms = {gid: _bottom_vs_newton(m, gid, newton_full) for gid in NEWTON_BOTTOMS}
         rows["ease_vs_newton_mm"] = {"value": max([*per.values(), *(b["max_mm"] for b in bottoms.values())]),
                                      "goal": 5.0, "bodies": len(ease_diff),
                                      "garment": "mens-tshirt",
                                      **{f"{r}_max_mm": v for r, v in per.items()},
                                      **{f"{gid}_{k}": v for gid, b in bottoms.items() for k, v in b.items()
-                                        if k != "hem_cm"},
+                                        if k not in ("hem_cm", "full")},
                                      "cloth_length_max_mm": max(per_cloth.values()),
                                      "vertex_contact_max_mm": max(per_vertex.values()),
                                      **{f"vertex_contact_{r}_max_mm": v for r, v in per_vertex.items()},
@@ -435,9 +438,12 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
             rows["ease_vs_newton_full_contact_mm"] = {"value": None, "skipped": "off (--newton-full-contact N)"}
         else:
             per_full = _per_region(ease_diff_full)
+            full_bottoms = {gid: b["full"] for gid, b in bottoms.items() if b["full"]}
             rows["ease_vs_newton_full_contact_mm"] = {
-                "value": max(per_full.values()), "bodies": len(ease_diff_full), "garment": "mens-tshirt",
+                "value": max([*per_full.values(), *(b["max_mm"] for b in full_bottoms.values())]),
+                "bodies": len(ease_diff_full), "garment": "mens-tshirt",
                 **{f"{r}_max_mm": v for r, v in per_full.items()},
+                **{f"{gid}_{k}": v for gid, b in full_bottoms.items() for k, v in b.items()},
                 "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d]
                               for d in ease_diff_full],
                 # girths ours has where the reference's section at that height does not go around the body
@@ -476,14 +482,16 @@ def _per_region(diffs: list[np.ndarray]) -> dict[str, float]:
     return {r: float(10 * np.nanmax(D[:, i])) for i, r in enumerate(SZ.GIRTH_REGIONS) if np.isfinite(D[:, i]).any()}
 
 
-def _bottom_vs_newton(m, gid: str) -> dict:
+def _bottom_vs_newton(m, gid: str, full: int = 0) -> dict:
     """A catalogue bottom (``gid``, in its demo fabric) draped from its warp fit on the first
     ``NEWTON_BODIES`` held-out people of its gender here and by Newton VBD (plain contact, as the
     T-shirt's row): the largest ease difference at each girth region it has (mm, ours minus
     Newton's: ``{region}_max_mm``, ``max_mm`` over them), each person's (``bodies_mm``, NaN as
     None where a section does not go around the region: a low waistband, a crotch seam below the
     thigh's plane), the largest hem height difference (``hem_cm``), Newton's seconds (median) and
-    its vertices > 1 mm inside the body."""
+    its vertices > 1 mm inside the body. On the ``full`` of those people with the largest hips,
+    the same against Newton VBD with the contacts ours has (``garment_on_body(full_contact=True)``,
+    as the T-shirt's full-contact row): the ``full`` entry, {} when ``full`` is 0."""
     from service.application.demo import DEMO_FABRICS
     from service.model.drape import FABRICS, Config, precompute, start_outside
     from service.model.garments import sizing as SZ
@@ -500,26 +508,49 @@ def _bottom_vs_newton(m, gid: str) -> dict:
     sec, spec = SZ.GarmentSections(F, len(rest)), SZ.region_spec(m)
     H, genders = heldout_avatars(m), heldout_genders()
     people = [X for X, g in zip(H, genders) if g == item.gender or item.gender == "unisex"][:NEWTON_BODIES]
+    regs_of = [spec.regions(X) for X in people]
+    hip = [r["hip"].body_girth if "hip" in r else 0.0 for r in regs_of]
+    full_people = {int(i) for i in np.argsort(hip)[::-1][:full]}
     diffs, cloth, hems, seconds, inside = [], [], [], [], 0
-    for X in people:
+    f_diffs, f_hems, f_seconds, f_inside = [], [], [], 0
+    for person, (X, regs) in enumerate(zip(people, regs_of)):
         BV = m.body_vertices(X).astype(np.float64)
         init = item.binding.fit(X).astype(np.float64)
         ours = draper.solve(BV, m.body_faces, init).vertices.astype(np.float64)
-        ref = garment_on_body(rest, F, start_outside(init, BV, m.body_faces, draper.config), BV, m.body_faces,
-                              fab.density_kg_per_m2, fab.stretch_stiffness_n_per_m, fab.bending_stiffness_nm,
-                              fab.friction, seconds=NEWTON_SECONDS, radius_m=NEWTON_RADIUS_M)
-        regs = spec.regions(X)
-        diffs.append(SZ.garment_girths(sec, ours, regs, tape=True) - SZ.garment_girths(sec, ref["vertices"], regs, tape=True))
+        start = start_outside(init, BV, m.body_faces, draper.config)
+        ref = garment_on_body(rest, F, start, BV, m.body_faces, fab.density_kg_per_m2, fab.stretch_stiffness_n_per_m,
+                              fab.bending_stiffness_nm, fab.friction, seconds=NEWTON_SECONDS, radius_m=NEWTON_RADIUS_M)
+        ours_g = SZ.garment_girths(sec, ours, regs, tape=True)
+        diffs.append(ours_g - SZ.garment_girths(sec, ref["vertices"], regs, tape=True))
         cloth.append(SZ.garment_girths(sec, ours, regs) - SZ.garment_girths(sec, ref["vertices"], regs))
         hems.append(100 * abs(ours[:, 1].min() - ref["vertices"][:, 1].min()))
         seconds.append(ref["seconds"])
         inside += _inside(ref["vertices"], BV, m.body_faces)
+        if person not in full_people:
+            continue
+        ref = garment_on_body(rest, F, start, BV, m.body_faces, fab.density_kg_per_m2, fab.stretch_stiffness_n_per_m,
+                              fab.bending_stiffness_nm, fab.friction, seconds=NEWTON_SECONDS, radius_m=NEWTON_RADIUS_M,
+                              full_contact=True)
+        f_diffs.append(ours_g - SZ.garment_girths(sec, ref["vertices"], regs, tape=True))
+        f_hems.append(100 * abs(ours[:, 1].min() - ref["vertices"][:, 1].min()))
+        f_seconds.append(ref["seconds"])
+        f_inside += _inside(ref["vertices"], BV, m.body_faces)
     per, per_cloth = _per_region(diffs), _per_region(cloth)
-    return {"max_mm": max(per.values(), default=float("nan")), **{f"{r}_max_mm": v for r, v in per.items()},
-            "cloth_length_max_mm": max(per_cloth.values(), default=float("nan")),
-            "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d] for d in diffs],
-            "hem_cm": float(max(hems)), "fabric": fabric, "bodies": len(people),
-            "newton_s_median": float(np.median(seconds)), "newton_inside_vertices": inside}
+    out = {"max_mm": max(per.values(), default=float("nan")), **{f"{r}_max_mm": v for r, v in per.items()},
+           "cloth_length_max_mm": max(per_cloth.values(), default=float("nan")),
+           "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d] for d in diffs],
+           "hem_cm": float(max(hems)), "fabric": fabric, "bodies": len(people),
+           "newton_s_median": float(np.median(seconds)), "newton_inside_vertices": inside, "full": {}}
+    if f_diffs:
+        per_full = _per_region(f_diffs)
+        out["full"] = {"max_mm": max(per_full.values(), default=float("nan")),
+                       **{f"{r}_max_mm": v for r, v in per_full.items()},
+                       "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d]
+                                     for d in f_diffs],
+                       "hem_cm": float(max(f_hems)), "hem_bodies_cm": [round(float(h), 2) for h in f_hems],
+                       "bodies": len(f_diffs), "newton_s_median": float(np.median(f_seconds)),
+                       "newton_inside_vertices": f_inside}
+    return out
 
 
 def _cloth_state(draper, x: np.ndarray) -> dict:
