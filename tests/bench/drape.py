@@ -426,8 +426,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
                                      "cloth_length_max_mm": max(per_cloth.values()),
                                      "vertex_contact_max_mm": max(per_vertex.values()),
                                      **{f"vertex_contact_{r}_max_mm": v for r, v in per_vertex.items()},
-                                     "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d]
-                                                   for d in ease_diff],
+                                     "bodies_mm": _bodies_mm(ease_diff),
                                      "newton_s_median": float(np.median(newton_s)),
                                      "newton_max_speed_m_s": float(max(speeds)), "newton_seconds_simulated": NEWTON_SECONDS,
                                      "newton_inside_vertices": ref_inside}
@@ -444,8 +443,7 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
                 "bodies": len(ease_diff_full), "garment": "mens-tshirt",
                 **{f"{r}_max_mm": v for r, v in per_full.items()},
                 **{f"{gid}_{k}": v for gid, b in full_bottoms.items() for k, v in b.items()},
-                "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d]
-                              for d in ease_diff_full],
+                "bodies_mm": _bodies_mm(ease_diff_full),
                 # girths ours has where the reference's section at that height does not go around the body
                 # alone (its armpits lower: the section runs into a sleeve)
                 "unmeasured": int((np.isfinite(np.array(full_ours)) & ~np.isfinite(np.array(ease_diff_full))).sum()),
@@ -480,6 +478,11 @@ def _per_region(diffs: list[np.ndarray]) -> dict[str, float]:
 
     D = np.abs(np.array(diffs))
     return {r: float(10 * np.nanmax(D[:, i])) for i, r in enumerate(SZ.GIRTH_REGIONS) if np.isfinite(D[:, i]).any()}
+
+
+def _bodies_mm(diffs: list[np.ndarray]) -> list[list[float | None]]:
+    """Each body's signed differences (diffs: per body (R,) cm) in mm to 0.1, None where NaN."""
+    return [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d] for d in diffs]
 
 
 def _bottom_vs_newton(m, gid: str, full: int = 0) -> dict:
@@ -538,15 +541,14 @@ def _bottom_vs_newton(m, gid: str, full: int = 0) -> dict:
     per, per_cloth = _per_region(diffs), _per_region(cloth)
     out = {"max_mm": max(per.values(), default=float("nan")), **{f"{r}_max_mm": v for r, v in per.items()},
            "cloth_length_max_mm": max(per_cloth.values(), default=float("nan")),
-           "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d] for d in diffs],
+           "bodies_mm": _bodies_mm(diffs),
            "hem_cm": float(max(hems)), "fabric": fabric, "bodies": len(people),
            "newton_s_median": float(np.median(seconds)), "newton_inside_vertices": inside, "full": {}}
     if f_diffs:
         per_full = _per_region(f_diffs)
         out["full"] = {"max_mm": max(per_full.values(), default=float("nan")),
                        **{f"{r}_max_mm": v for r, v in per_full.items()},
-                       "bodies_mm": [[None if not np.isfinite(v) else round(10 * float(v), 1) for v in d]
-                                     for d in f_diffs],
+                       "bodies_mm": _bodies_mm(f_diffs),
                        "hem_cm": float(max(f_hems)), "hem_bodies_cm": [round(float(h), 2) for h in f_hems],
                        "bodies": len(f_diffs), "newton_s_median": float(np.median(f_seconds)),
                        "newton_inside_vertices": f_inside}
