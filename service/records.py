@@ -104,10 +104,12 @@ class Customer(Record):
 
 class GarmentSize(BaseModel):
     """One size of a garment's size chart: its label and the body measurements it is made for
-    (API attribute names and units; empty for a garment without a chart)."""
+    (API attribute names and units; empty for a garment without a chart; the middle of an
+    interval the chart gave), and those intervals ``[low, high]`` as given."""
 
     label: str
     measurements: dict[str, float] = Field(default_factory=dict)
+    intervals: dict[str, list[float]] | None = None
 
 
 class Garment(Record):

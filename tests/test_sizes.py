@@ -36,6 +36,20 @@ def test_validate_chart() -> None:
             S.validate_chart(chart, None)
     with pytest.raises(S.ChartError, match="not a size"):
         S.validate_chart(CHART, "XL")
+    # intervals, as retailers' charts print them: made for the middle, the interval kept
+    sizes, _ = S.validate_chart({"S": {"chest_cm": [86, 90], "hip_cm": 94}, "M": {"chest_cm": [90, 98], "hip_cm": 102}},
+                                None)
+    assert sizes[0] == {"label": "S", "measurements": {"chest_cm": 88.0, "hip_cm": 94.0},
+                        "intervals": {"chest_cm": [86.0, 90.0]}}
+    assert sizes[1]["measurements"]["chest_cm"] == 94.0
+    for value, text in (([90, 86], "low must not be above"), ([90], "interval"), ([86, 90, 94], "interval"),
+                        ([86, "90"], "number"), ([86, float("inf")], "finite")):
+        with pytest.raises(S.ChartError, match=text):
+            S.validate_chart({"S": {"chest_cm": value}}, None)
+    with pytest.raises(S.ChartError, match="range"):
+        S.validate_chart({"S": {"chest_cm": [58, 62]}}, None, {"chest_cm": (60.0, 160.0)})
+    with pytest.raises(S.ChartError, match="increase"):  # the middles must increase
+        S.validate_chart({"S": {"chest_cm": [84, 96]}, "M": {"chest_cm": [88, 92]}}, None)
     with pytest.raises(S.ChartError, match="range"):
         S.validate_chart({"S": {"chest_cm": 20}}, None, {"chest_cm": (60.0, 160.0)})
     with pytest.raises(S.ChartError, match="woven, knit, stretch"):

@@ -68,6 +68,24 @@ def test_record_shows_the_chart(client: TestClient, sized: dict) -> None:
     assert again["sizes"] == sized["sizes"]
 
 
+def test_chart_of_intervals(client: TestClient) -> None:
+    """A chart as retailers print it, each measurement an interval: the sizes are made for the
+    middles, the record keeps the intervals, and a customer in the middle of the largest size's
+    intervals gets that size."""
+    chart = {label: {k: [v - 2.0, v + 2.0] for k, v in ms.items()} for label, ms in CHART.items()}
+    r = client.post("/v1/garments", data={"name": "Suit, chart of intervals", "size_chart": json.dumps(chart),
+                                          "base_size": "50", "fabric": "knit", "gender": "male"},
+                    files=_suit_files(), headers=KEY)
+    assert r.status_code == 201, r.text
+    rec = r.json()
+    assert [s["measurements"] for s in rec["sizes"]] == list(CHART.values())
+    assert [s["intervals"] for s in rec["sizes"]] == list(chart.values())
+    assert client.get(f"/v1/garments/{rec['id']}").json()["sizes"] == rec["sizes"]
+    cid, auth = _customer(client, CHART["52"])
+    fit = client.get(f"/v1/customers/{cid}/garments/{rec['id']}/fit", headers=auth)
+    assert fit.status_code == 200 and fit.json()["recommended"] == "52", fit.text
+
+
 def test_chart_made_customers_get_their_size(client: TestClient, sized: dict) -> None:
     """A customer made from size X's chart measurements: X recommended, its ease at chest,
     waist and hip within 1 cm of the design ease... of the base size on its own body, ease
@@ -124,6 +142,9 @@ def test_try_on_per_size(client: TestClient, sized: dict) -> None:
     ({"size_chart": json.dumps({"S": {"chest_cm": 90}, "M": {"chest_cm": 94, "hip_cm": 99}})},
      ["body", "size_chart"], "same measurements"),
     ({"size_chart": json.dumps({"S": {"chest_cm": 9}})}, ["body", "size_chart"], "range"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": [94, 90]}})}, ["body", "size_chart"], "low must not be above"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": [90]}})}, ["body", "size_chart"], "interval"),
+    ({"size_chart": json.dumps({"S": {"chest_cm": [88, 300]}})}, ["body", "size_chart"], "range"),
     ({"size_chart": json.dumps({"S": {"chest_cm": 90}}), "base_size": "M"}, ["body", "base_size"], "not a size"),
     ({"base_size": "M"}, ["body", "base_size"], "size_chart"),
     ({"fabric": "silk"}, ["body", "fabric"], "woven, knit, stretch"),
@@ -155,7 +176,7 @@ def test_one_size_garment_has_a_fit(client: TestClient) -> None:
     r = client.post("/v1/garments", data={"name": "One size", "fabric": "stretch"}, files=_suit_files(), headers=KEY)
     assert r.status_code == 201, r.text
     g = r.json()
-    assert g["sizes"] == [{"label": "one size", "measurements": {}}] and g["fabric"] == "stretch"
+    assert g["sizes"] == [{"label": "one size", "measurements": {}, "intervals": None}] and g["fabric"] == "stretch"
     cid, auth = _customer(client, {"height_cm": 180})
     rep = client.get(f"/v1/customers/{cid}/garments/{g['id']}/fit", headers=auth).json()
     assert rep["recommended"] == "one size" and len(rep["sizes"]) == 1

@@ -49,7 +49,8 @@ async def create_garment(
         description='The size chart: a JSON object size label -> body measurements that size is made for, in '
                     'chart order, e.g. {"S": {"chest_cm": 88, "waist_cm": 76, "hip_cm": 94}, "M": {...}} (names '
                     'as in /v1/customers: chest_cm, waist_cm, hip_cm, height_cm, inseam_cm, ...; every size the '
-                    'same names, increasing in each). Without it the garment is one size')] = None,
+                    'same names, increasing in each). A value may be an interval [low, high] as printed charts '
+                    'give it: the size is made for its middle. Without it the garment is one size')] = None,
     base_size: Annotated[str | None, Form(
         description="With `size_chart`: the size of the uploaded mesh (default: the middle size)")] = None,
     fabric: Annotated[str | None, Form(description=(

@@ -237,7 +237,10 @@ class ExampleAvatarOut(BaseModel):
 
 class GarmentSizeResponse(BaseModel):
     label: str
-    measurements: dict[str, float] = Field(description="Body measurements the size is made for (API names, cm)")
+    measurements: dict[str, float] = Field(description="Body measurements the size is made for (API names, cm; "
+                                                       "the middle of an interval the chart gave)")
+    intervals: dict[str, list[float]] | None = Field(
+        default=None, description="The measurements the chart gave as intervals [low, high] (null: none)")
 
 
 class GarmentResponse(BaseModel):

@@ -166,7 +166,9 @@ def validate_chart(chart, base_size: str | None, ranges: dict[str, tuple[float, 
     labels non-empty and unique, measurements known numeric attributes (``ranges``: name ->
     (min, max) accepted, API units), every size giving the same measurements, sizes strictly
     increasing in every one of them, ``base_size`` one of the labels (default: the middle
-    size). Returns ([{label, measurements}] in chart order, base label) or raises
+    size). A value is a number or, as retailers' charts print them, an interval ``[low, high]``
+    (low <= high): the size is made for its middle, and the interval is kept beside it.
+    Returns ([{label, measurements[, intervals]}] in chart order, base label) or raises
     :class:`ChartError`."""
     if not isinstance(chart, dict) or not chart:
         raise ChartError("size_chart", "must be a JSON object of size label -> {measurement: value}, "
@@ -182,23 +184,29 @@ def validate_chart(chart, base_size: str | None, ranges: dict[str, tuple[float, 
         if not isinstance(ms, dict) or not ms:
             raise ChartError(f"size_chart.{label}", "must be an object of measurement name -> value (cm)")
         out: dict[str, float] = {}
+        intervals: dict[str, list[float]] = {}
         for name, value in ms.items():
+            field = f"size_chart.{label}.{name}"
             if name not in CHART_MEASUREMENTS:
-                raise ChartError(f"size_chart.{label}.{name}", "unknown measurement; known: "
-                                 + ", ".join(CHART_MEASUREMENTS))
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ChartError(f"size_chart.{label}.{name}", "must be a finite number")
+                raise ChartError(field, "unknown measurement; known: " + ", ".join(CHART_MEASUREMENTS))
+            ends = value if isinstance(value, list) else [value]
+            if len(ends) != (2 if isinstance(value, list) else 1) or not all(_finite_number(v) for v in ends):
+                raise ChartError(field, "must be a finite number or an interval [low, high] of two")
+            if ends[0] > ends[-1]:
+                raise ChartError(field, f"interval [{ends[0]:g}, {ends[-1]:g}]: low must not be above high")
             lo, hi = (ranges or {}).get(name, (-math.inf, math.inf))
-            if not lo <= value <= hi:
-                raise ChartError(f"size_chart.{label}.{name}", f"{value:g} is outside the accepted range "
-                                                               f"{lo:g}-{hi:g}")
-            out[name] = float(value)
+            for v in ends:
+                if not lo <= v <= hi:
+                    raise ChartError(field, f"{v:g} is outside the accepted range {lo:g}-{hi:g}")
+            out[name] = 0.5 * (float(ends[0]) + float(ends[-1]))
+            if isinstance(value, list):
+                intervals[name] = [float(ends[0]), float(ends[-1])]
         if names is None:
             names = tuple(sorted(out))
         elif tuple(sorted(out)) != names:
             raise ChartError(f"size_chart.{label}", f"gives {sorted(out)}, but the first size gives {list(names)}: "
                                                     "every size must give the same measurements")
-        sizes.append({"label": label, "measurements": out})
+        sizes.append({"label": label, "measurements": out, **({"intervals": intervals} if intervals else {})})
     labels = [s["label"] for s in sizes]
     folded = [lb.strip().casefold() for lb in labels]
     if len(set(folded)) != len(folded):
@@ -214,6 +222,10 @@ def validate_chart(chart, base_size: str | None, ranges: dict[str, tuple[float, 
     if base_size not in labels:
         raise ChartError("base_size", f"'{base_size}' is not a size of the chart ({', '.join(labels)})")
     return sizes, base_size
+
+
+def _finite_number(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def check_fabric(fabric: str | None) -> str:
