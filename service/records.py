@@ -111,6 +111,10 @@ class GarmentSize(BaseModel):
     measurements: dict[str, float] = Field(default_factory=dict)
     intervals: dict[str, list[float]] | None = None
 
+    def chart_entry(self) -> dict:
+        """This size as ``sizing.validate_chart`` gives it: {label, measurements[, intervals]}."""
+        return self.model_dump(exclude_none=True)
+
 
 class Garment(Record):
     """A garment of the catalogue; its clothing basis is stored beside it (basis files)."""

@@ -87,7 +87,7 @@ class DemoCatalogue:
         sized = bool(old.sizes) and len(old.sizes) > 1
         if chart is None:
             return None if sized else self.bases.load(old.id, old.etag)
-        have = [s.model_dump() for s in old.sizes or []]
+        have = [s.chart_entry() for s in old.sizes or []]
         if not sized or have != chart.sizes or old.base_size != chart.base_size or old.fabric != chart.fabric:
             return None
         return self.bases.load(old.id, old.etag, old.base_index())

@@ -236,7 +236,7 @@ class GarmentService(DemoCatalogue):
         bodies) or ``DrapeError``."""
         mean = self.examples.index("mean") or 0
         if record.sizes and len(record.sizes) > 1:
-            chart = Chart([sz.model_dump() for sz in record.sizes], record.base_size or "", record.fabric)
+            chart = Chart([sz.chart_entry() for sz in record.sizes], record.base_size or "", record.fabric)
             source = np.asarray(self.examples.vertices[mean], np.float64)
             g0 = np.asarray(binding.fit(source), np.float64)
             if not np.all(np.isfinite(g0)):
@@ -644,7 +644,7 @@ class GarmentService(DemoCatalogue):
         """The build of a garment in sizes: graded by the service (one mesh) or by the retailer
         (``upload.graded``, all on the same body), each size fitted to every example avatar,
         the bases stored, the garment marked ready (as :meth:`run_build`)."""
-        chart = Chart([s.model_dump() for s in record.sizes or []], record.base_size or "", record.fabric)
+        chart = Chart([s.chart_entry() for s in record.sizes or []], record.base_size or "", record.fabric)
         progress(start, f"grading {len(chart.sizes)} sizes")
         try:
             bodies = sizing.chart_bodies(self.model, chart, record.gender)
