@@ -201,6 +201,29 @@ def test_a_closed_girth_is_a_loop_not_a_chain_leaving_the_cloth() -> None:
     assert S.GarmentSections(Fc, len(V)).girth(V, region, closed=True) is None
 
 
+def test_a_girth_must_not_enclose_an_excluded_point(model) -> None:
+    """A section around the region's centre that also goes around an excluded point is no
+    girth: a tube of 15 cm radius reads its girth with a point outside it excluded, none with
+    one of two points inside it. On a body the chest excludes both upper arms where their axes
+    cross its plane, left and right of the chest's centre (a long sleeve cut where it meets the
+    body, the tape around the arms, is not a chest girth)."""
+    from tests.drape_cases import tube
+
+    V, F = tube(0.15, 0.2, n_around=64, n_height=4)
+    sections = S.GarmentSections(F, len(V))
+    plane = (np.array([0.0, 1.0, 0.0]), 0.125, np.array([0.0, 0.125, 0.0]))
+    outside, inside = np.array([0.3, 0.125, 0.0]), np.array([0.1, 0.125, 0.0])
+    full = sections.girth(V, S.Region(*plane))
+    assert full == pytest.approx(2 * np.pi * 0.15, rel=0.01)
+    assert sections.girth(V, S.Region(*plane, exclude=outside)) == full
+    assert sections.girth(V, S.Region(*plane, exclude=np.stack([outside, inside]))) is None
+    chest = S.region_spec(model).regions(model.mean)["chest"]
+    assert chest.exclude.shape == (2, 3)
+    assert np.allclose(chest.exclude @ chest.normal, chest.offset)
+    side = (chest.exclude - chest.centre)[:, 0]
+    assert side[0] * side[1] < 0 and (np.abs(side) > 0.12).all()
+
+
 def test_fit_map_colour_scales() -> None:
     """Strain: blue at rest, green half way, red at the fabric's limit (and beyond); ease: red
     at contact, green at the fabric's designed gap, blue where it hangs."""

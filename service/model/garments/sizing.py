@@ -347,14 +347,19 @@ def size_bodies_on(source: np.ndarray, bodies: np.ndarray, base: int) -> np.ndar
 @dataclass
 class Region:
     """One tape on a body: plane ``normal . x = offset``, the body section's centre (3,), and
-    (for the thigh) a point the garment's section must NOT enclose (the other thigh: a skirt
-    has no thigh girth)."""
+    points (K, 3) the garment's section must NOT enclose: for the thigh the other thigh (a
+    skirt has no thigh girth), for the chest the upper arms where they cross its plane (a
+    long sleeve cut where it meets the body is not a chest girth)."""
 
     normal: np.ndarray
     offset: float
     centre: np.ndarray
-    exclude: np.ndarray | None = None
+    exclude: np.ndarray | None = None  # (K, 3); one point (3,) is read as (1, 3)
     body_girth: float = 0.0  # metres
+
+    def __post_init__(self):
+        if self.exclude is not None:
+            self.exclude = np.atleast_2d(np.asarray(self.exclude, np.float64))
 
 
 class RegionSpec:
@@ -384,18 +389,24 @@ class RegionSpec:
             centre = sec.pts.mean(axis=0) if len(sec.pts) else np.zeros(3)
             out[name] = Region(normal, float(offset), centre, exclude, sec.perimeter)
 
-        put("chest", spec.chest_edges, M.Y, X[spec.nipples, 1].mean())
+        J = self.model.joints(X)
+        b = self.joint
+        chest_y = X[spec.nipples, 1].mean()
+        arms = []
+        for side in ("l", "r"):
+            sh, el = J[b["upper_arm_" + side]], J[b["forearm_" + side]]
+            if (sh[1] - chest_y) * (el[1] - chest_y) < 0:  # the arm's axis crosses the chest plane
+                arms.append(sh + (chest_y - sh[1]) / (el[1] - sh[1]) * (el - sh))
+        put("chest", spec.chest_edges, M.Y, chest_y, exclude=np.array(arms) if arms else None)
         put("waist", spec.waist_edges, M.Y, X[spec.navel, 1])
         f = M.HIP_LEVEL_FRACTION
         put("hip", spec.hip_edges, M.Y, (1 - f) * X[spec.crotch, 1] + f * X[spec.navel, 1])
-        J = self.model.joints(X)
         jr = spec.joint_ids
         hip, knee = J[jr["hip"]], J[jr["knee"]]
         u = hip - knee
         n = u / np.linalg.norm(u)
         s = (X[spec.crotch, 1] - knee[1]) / (hip[1] - knee[1])
         origin = knee + s * u - THIGH_DROP_M * n
-        b = self.joint
         hr, kr = J[b["thigh_r"]], J[b["shin_r"]]
         other = kr + s * (hr - kr) - THIGH_DROP_M * n
         put("thigh", spec.thigh_edges, n, n @ origin, exclude=other)
@@ -428,7 +439,7 @@ class GarmentSections:
     def girth(self, V: np.ndarray, region: Region, closed: bool = False, tape: bool = False) -> float | None:
         """The cloth's length (metres) along the plane section of the garment V (M, 3) that
         encloses the region's centre (the innermost such loop), or None when no section of
-        the garment goes all around it there (or one also encloses ``region.exclude``).
+        the garment goes all around it there (or one also encloses a point of ``region.exclude``).
         An open chain counts (the two fronts of a buttoned shirt or an open jacket overlap
         without meeting) unless ``closed`` (a garment closed all around: see :func:`_closed`).
         ``tape``: instead of the cloth's length along that loop, the perimeter of its convex
@@ -460,7 +471,7 @@ class GarmentSections:
         seglen = np.linalg.norm(P[seg[:, 0]] - P[seg[:, 1]], axis=1)
         slab = lab[inv[:, 0]]
         c2 = np.array([region.centre @ e1, region.centre @ e2])
-        x2 = None if region.exclude is None else np.array([region.exclude @ e1, region.exclude @ e2])
+        x2 = None if region.exclude is None else np.stack([region.exclude @ e1, region.exclude @ e2], 1)
         best = None
         deg = np.bincount(inv.ravel(), minlength=n)  # chain ends: degree 1
         for c in range(ncomp):
@@ -470,7 +481,7 @@ class GarmentSections:
                 continue
             if not _encloses(a, b, c2) or not _covers(p2[lab == c], c2):
                 continue
-            if x2 is not None and _encloses(a, b, x2):
+            if x2 is not None and any(_encloses(a, b, x) for x in x2):
                 continue
             length = float(seglen[m].sum())
             if best is None or length < best[0]:
