@@ -103,7 +103,7 @@ NEWTON_SECONDS = 2.0  # simulated seconds of the reference's damped settle
 # (``demo.DEMO_FABRICS``), on held-out people of their gender, at the girth regions each has
 # (the T-shirt has no hip or thigh): garment -> (the body girth by which the
 # ``--newton-full-contact`` people are picked, the largest first; the most people it takes
-# there: the long-sleeve tee's full-contact drapes take ~15 minutes a person on 2 cores). The
+# there: the long-sleeve tee's full-contact drapes take 5-15 minutes a person on 2 cores). The
 # long-sleeve tee is the catalogue's garment with the upper arm, which neither other has.
 NEWTON_GARMENTS = {"sports-trousers": ("hip", NEWTON_BODIES), "longsleeve-tee": ("chest", 2)}
 NEWTON_RADIUS_M = 0.003  # Newton's cloth particle radius (its contact thickness), our clearance in that comparison
