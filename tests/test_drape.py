@@ -862,3 +862,36 @@ def test_the_threaded_search_gives_the_same_drape():
     out = [precompute(V, F, "knit", Config(overlap_min_vertices=n, max_iterations=120)).solve(BV, BF, init).vertices
            for n in (0, 1)]
     np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_a_mesh_split_at_its_seams_is_welded_and_coincident_layers_are_not():
+    """A tube exported in two panels (each seam's vertices repeated, 1 um apart as OBJ's 6
+    decimals leave them) is joined into the tube; a square lying on its copy (a double-sided
+    export) and a fan whose panels would share an edge three times are left as they are."""
+    V, F = tube(0.15, 0.3, 16, 4)  # 5 rings of 16 around: vertex k * 16 + j
+    na, rings = 16, 5
+    # split it at columns j = 0 and j = 8: the faces between them on the far side (j 8..16) use
+    # copies of those two columns
+    cut = np.arange(rings) * na
+    copies = {int(v): len(V) + i for i, v in enumerate(np.r_[cut, cut + 8])}
+    X = np.vstack([V, V[cut], V[cut + 8]]) + np.random.default_rng(0).uniform(-1e-6, 1e-6, (len(V) + 2 * rings, 3))
+    j = F % na
+    far = np.all((j >= 8) | (j == 0), axis=1) & np.any(j > 8, axis=1)
+    Fs = F.copy()
+    Fs[far] = [[copies.get(int(v), int(v)) for v in f] for f in F[far]]
+    assert geometry.boundary_vertices(Fs, len(X)).sum() > geometry.boundary_vertices(F, len(V)).sum()
+    index, welded = geometry.weld_seams(X, Fs)
+    assert index.max() + 1 == len(V) and np.array_equal(index[: len(V)], np.arange(len(V)))
+    assert np.array_equal(index[len(V):], np.r_[cut, cut + 8])
+    assert np.array_equal(geometry.boundary_vertices(welded, len(V)), geometry.boundary_vertices(F, len(V)))
+    # a copy of a square on itself is two layers, not a seam
+    S, SF = square(0.2, 4)
+    index, out = geometry.weld_seams(np.vstack([S, S]), np.vstack([SF, SF[:, ::-1] + len(S)]))
+    assert np.array_equal(index, np.arange(2 * len(S))) and np.array_equal(out, np.vstack([SF, SF[:, ::-1] + len(S)]))
+    # three triangles on one edge once joined: left apart
+    T = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [1, 0, 0], [0, 0, 1], [0, 0, 0], [1, 0, 0], [0, -1, 0]], float)
+    index, _ = geometry.weld_seams(T, np.arange(9).reshape(3, 3))
+    assert np.array_equal(index, np.arange(9))
+    # two of them: one seam
+    index, out = geometry.weld_seams(T[:6], np.arange(6).reshape(2, 3))
+    assert np.array_equal(index, [0, 1, 2, 0, 1, 3]) and np.array_equal(out, [[0, 1, 2], [0, 1, 3]])

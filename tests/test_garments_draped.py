@@ -14,6 +14,7 @@ from service.application.scenes import obj_text
 from service.model.formats.gltf_read import read_glb
 from service.settings import Settings
 from tests import draped_data as D
+from tests.bench.common import shared_data_dir
 from tests.harness import RETAILERS, assert_422, redis_db, redis_url
 
 # each test builds garments through the API (seconds each): the full tier
@@ -232,24 +233,37 @@ def test_bad_textures_get_422(client: TestClient, model) -> None:
     assert ctx.queue.queue.count == 0
 
 
-def test_draped_glb_keeps_embedded_texture(client: TestClient, model, validate_glb) -> None:
-    from service.model.garments.catalogue import Material, Texture
+def test_draped_glb_keeps_embedded_texture_and_its_seams_closed(client: TestClient, model, validate_glb) -> None:
+    """A GLB garment, as every glTF exporter writes one: its vertices split at the UV seams. It
+    is draped as one cloth (joined at the seams: its panels do not part) and tried on with its
+    own texture coordinates."""
+    from service.model.garments.catalogue import Material, Texture, render_layout
     from service.model.formats.gltf import mesh_to_glb
+    from service.model.formats.mhclo import parse_obj
 
     draped = D.on_mean(model)
-    G, faces = draped.reference, D.binding(model)[1]
-    uv = (G[:, :2] - G[:, :2].min(0)) / np.ptp(G[:, :2], axis=0)  # a planar projection, in [0, 1]
+    G = draped.reference
+    obj = parse_obj((shared_data_dir() / "makehuman_clothes" / D.GARMENT / f"{D.GARMENT}.obj").read_text(errors="replace"))
+    split = render_layout(obj.faces, obj.face_uv, obj.uv)  # (R,) render vertices, each a welded vertex's copy
+    assert len(split.vertex) > len(G) + 100
     tex = _texture()
     mat = Material((1.0, 1.0, 1.0, 1.0), Texture("cloth.jpg", "image/jpeg", tex), None, "OPAQUE", None, True, 0.0, 0.9)
-    glb = mesh_to_glb(G.astype(np.float32), faces, uv=uv.astype(np.float32), material=mat, name="dress")
+    glb = mesh_to_glb(G[split.vertex].astype(np.float32), split.faces, uv=split.uv, material=mat, name="dress")
     r = client.post("/v1/garments", data={"name": "GLB dress"}, headers=KEY, files={"garment": ("dress.glb", glb)})
     assert r.status_code == 202, r.text
     gid = r.json()["id"]
-    assert r.json()["textured"] is True
+    assert r.json()["textured"] is True and r.json()["n_vertices"] == len(G)
     assert client.app.state.context.garments.run_build(gid, lambda f, m: None)["status"] == "done"
-    created = client.post("/v1/customers", json={"measurements": {"height_cm": 175}}).json()
+    created = client.post("/v1/customers", json={"measurements": {"height_cm": 175, "weight_kg": 90}}).json()
     r = client.get(f"/v1/customers/{created['id']}/garments/{gid}.glb",
                    headers={"Authorization": f"Bearer {created['token']}"})
     out = _assert_textured_glb(r.content, tex, validate_glb)
-    np.testing.assert_allclose(out["uv"], uv, atol=1e-6)
+    np.testing.assert_allclose(out["uv"], split.uv, atol=1e-6)
+    X = out["positions"]
+    assert len(X) == len(split.vertex)
+    seam = np.flatnonzero(np.bincount(split.vertex)[split.vertex] > 1)  # render vertices sharing a cloth vertex
+    first = np.full(len(G), -1)
+    first[split.vertex[::-1]] = np.arange(len(split.vertex))[::-1]
+    gap = np.linalg.norm(X[seam] - X[first[split.vertex[seam]]], axis=1)
+    assert len(seam) > 100 and gap.max() < 1e-6, gap.max()  # unwelded, its seams opened 22 mm (median)
     assert client.delete(f"/v1/garments/{gid}", headers=KEY).status_code == 204

@@ -19,6 +19,7 @@ from service.model.fitting.checks import FitError
 from service.model.fitting.fit import fit_body
 from service.model.formats.mesh_io import scan_type
 from service.model.formats.frames import UNITS, unit_against
+from service.model.geometry.mesh import weld_seams
 from service.model.garments import sizing as SZ
 from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
@@ -499,6 +500,14 @@ class GarmentService(DemoCatalogue):
             if look is not None and len(look[0].vertex) == len(v):
                 layout, embedded = look
                 tex = tex or embedded
+        # one cloth: a file split at its seams (every GLB at its UV seams) is joined there before
+        # it is draped, or its panels would part; the texture keeps its seams (the layout)
+        file_faces = faces
+        weld, faces = weld_seams(v, faces)
+        first = np.unique(weld, return_index=True)[1]
+        v, faces = v[first], faces.astype(np.int32)
+        if layout is not None:
+            layout = RenderLayout(weld[layout.vertex], layout.uv, layout.faces)
         if avatar is None:
             on = on or "mean"
             i = self.examples.index(on)
@@ -511,7 +520,7 @@ class GarmentService(DemoCatalogue):
             upload = DrapedGarment(v, faces, on=None, unit=unit, up=None, avatar=scan)
         upload.layout, upload.texture = layout, tex
         if order is not None:
-            upload.graded = self._read_graded(files, order, upload, v, faces)
+            upload.graded = self._read_graded(files, order, upload, file_faces, weld)
         record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source="draped",
                          **(chart.record_fields() if chart is not None and chart.sizes
                             else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}),
@@ -522,21 +531,24 @@ class GarmentService(DemoCatalogue):
         return self._queue_build(record, upload.to_bytes())
 
     def _read_graded(self, files: list[tuple[bytes, str | None]], order: list[int], upload: DrapedGarment,
-                     v_base: np.ndarray, faces: np.ndarray) -> np.ndarray:
+                     faces: np.ndarray, weld: np.ndarray) -> np.ndarray:
         """(S, M, 3) every size's mesh in chart order, in the base file's frame as placed (its
-        unit and up axis): 422 when a file is not the same garment (vertices and faces)."""
+        unit and up axis), joined where the base file was (``weld`` (N,): each of the base
+        file's vertices' welded one, :func:`weld_seams`; ``faces`` (F, 3) the base file's): 422
+        when a file is not the same garment (vertices and faces)."""
         out = []
         scale = UNITS[upload.unit] if upload.on is not None else 1.0
         R = GARMENT_UPS[upload.up] if upload.up is not None else np.eye(3)
+        first = np.unique(weld, return_index=True)[1]
         for k in order:
             data, fname = files[k]
             loc, label = ("body", "garment", k), f"garment file {k + 1} '{fname or 'garment'}'"
             v, f = read_garment_mesh(data, fname, loc, label)
-            if len(v) != len(v_base) or f.shape != faces.shape or not np.array_equal(f, faces):
+            if len(v) != len(weld) or f.shape != faces.shape or not np.array_equal(f, faces):
                 raise Invalid(loc, f"{label}: not the same mesh as the base size's file ({len(v)} vertices, "
-                                   f"{len(f)} faces; the base size has {len(v_base)} and {len(faces)}): graded "
+                                   f"{len(f)} faces; the base size has {len(weld)} and {len(faces)}): graded "
                                    "meshes must share vertices and faces, in the same order")
-            out.append((v * scale) @ R.T)
+            out.append((v[first] * scale) @ R.T)
         return np.stack(out)
 
     def run_build(self, gid: str, progress: Progress) -> dict[str, Any]:

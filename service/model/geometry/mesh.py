@@ -41,6 +41,57 @@ def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+# a mesh's boundary vertices closer than this fraction of its median edge length are one point
+# split in two (a glTF exporter splits every vertex on a UV seam; CAD and pattern tools export
+# panels apart with their seams' vertices repeated): OBJ's 6 decimals in metres are 1 um apart,
+# a cloth edge ~10 mm long
+WELD_EDGE_FRACTION = 1e-3
+
+
+def weld_seams(vertices: np.ndarray, faces: np.ndarray,
+               tolerance: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Join a mesh that was split at its seams: boundary vertices (on an edge of one face) that
+    lie within ``tolerance`` (default :data:`WELD_EDGE_FRACTION` x the median edge length) of
+    one another become one vertex. vertices (N, 3), faces (F, 3) int -> ``index`` (N,) int64,
+    each vertex's welded vertex 0..M-1 (numbered in order of first appearance; the welded
+    positions are ``vertices[first]`` with ``first = np.unique(index, return_index=True)[1]``),
+    and the welded faces (F, 3) int64. The mesh is returned as it is (``index`` the identity)
+    when joining would collapse a face, make two faces one, or leave an edge shared by more
+    than two faces that was not before (coincident layers, not a seam)."""
+    X = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    n = len(X)
+    identity = np.arange(n, dtype=np.int64)
+    if n == 0 or not len(f):
+        return identity, f
+    edges, counts = edge_counts(f)
+    if tolerance is None:
+        lengths = np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
+        tolerance = WELD_EDGE_FRACTION * float(np.median(lengths))
+    on_boundary = np.unique(edges[counts == 1].ravel())
+    if len(on_boundary) < 2 or not tolerance > 0:
+        return identity, f
+    pairs = cKDTree(X[on_boundary]).query_pairs(float(tolerance), output_type="ndarray")
+    if not len(pairs):
+        return identity, f
+    a, b = on_boundary[pairs[:, 0]], on_boundary[pairs[:, 1]]
+    labels = connected_components(sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)[1]
+    _, first, index = np.unique(labels, return_index=True, return_inverse=True)
+    # number the welded vertices in order of their first vertex (the file's order, gaps closed)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    index = rank[index.reshape(-1)].astype(np.int64)
+    welded = index[f]
+    if np.any((welded[:, 0] == welded[:, 1]) | (welded[:, 1] == welded[:, 2]) | (welded[:, 2] == welded[:, 0])):
+        return identity, f
+    if int((edge_counts(welded)[1] > 2).sum()) > int((counts > 2).sum()):
+        return identity, f
+    if len(np.unique(np.sort(welded, axis=1), axis=0)) < len(np.unique(np.sort(f, axis=1), axis=0)):
+        return identity, f  # two faces made one: a layer lying on its copy (a double-sided export)
+    return index, welded
+
+
 def edge_length_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     """(V, V) symmetric: each edge of the mesh (vertices (V, 3), faces (F, 3)) weighted by its
     length, for distances along the surface (``scipy.sparse.csgraph.dijkstra``)."""
