@@ -866,7 +866,7 @@ def test_the_threaded_search_gives_the_same_drape():
 
 def test_a_mesh_split_at_its_seams_is_welded_and_coincident_layers_are_not():
     """A tube exported in two panels (each seam's vertices repeated, 1 um apart as OBJ's 6
-    decimals leave them) is joined into the tube; a square lying on its copy (a double-sided
+    decimals leave them), or as a triangle soup, is joined into the tube; a square lying on its copy (a double-sided
     export) and a fan whose panels would share an edge three times are left as they are."""
     V, F = tube(0.15, 0.3, 16, 4)  # 5 rings of 16 around: vertex k * 16 + j
     na, rings = 16, 5
@@ -884,6 +884,12 @@ def test_a_mesh_split_at_its_seams_is_welded_and_coincident_layers_are_not():
     assert index.max() + 1 == len(V) and np.array_equal(index[: len(V)], np.arange(len(V)))
     assert np.array_equal(index[len(V):], np.r_[cut, cut + 8])
     assert np.array_equal(geometry.boundary_vertices(welded, len(V)), geometry.boundary_vertices(F, len(V)))
+    # a triangle soup (each face on vertices of its own: Rhino's "unwelded" OBJ) is the tube again
+    soup = X[Fs].reshape(-1, 3)
+    index, welded = geometry.weld_seams(soup, np.arange(len(soup)).reshape(-1, 3))
+    assert index.max() + 1 == len(V) and np.array_equal(np.sort(geometry.edge_counts(welded)[1]),
+                                                        np.sort(geometry.edge_counts(F)[1]))
+    np.testing.assert_allclose(soup[np.unique(index, return_index=True)[1]][index[::3]], soup[::3], atol=1e-5)
     # a copy of a square on itself is two layers, not a seam
     S, SF = square(0.2, 4)
     index, out = geometry.weld_seams(np.vstack([S, S]), np.vstack([SF, SF[:, ::-1] + len(S)]))
