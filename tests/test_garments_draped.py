@@ -234,9 +234,9 @@ def test_bad_textures_get_422(client: TestClient, model) -> None:
 
 
 def test_draped_glb_keeps_embedded_texture_and_its_seams_closed(client: TestClient, model, validate_glb) -> None:
-    """A GLB garment, as every glTF exporter writes one: its vertices split at the UV seams. It
-    is draped as one cloth (joined at the seams: its panels do not part) and tried on with its
-    own texture coordinates."""
+    """A GLB garment, as every glTF exporter writes one: its vertices split at the UV seams (and
+    a few on no face). It is draped as one cloth (joined at the seams: its panels do not part;
+    the stray vertices dropped) and tried on with its own texture coordinates."""
     from service.model.garments.catalogue import Material, Texture, render_layout
     from service.model.formats.gltf import mesh_to_glb
     from service.model.formats.mhclo import parse_obj
@@ -248,7 +248,9 @@ def test_draped_glb_keeps_embedded_texture_and_its_seams_closed(client: TestClie
     assert len(split.vertex) > len(G) + 100
     tex = _texture()
     mat = Material((1.0, 1.0, 1.0, 1.0), Texture("cloth.jpg", "image/jpeg", tex), None, "OPAQUE", None, True, 0.0, 0.9)
-    glb = mesh_to_glb(G[split.vertex].astype(np.float32), split.faces, uv=split.uv, material=mat, name="dress")
+    stray = G[:3] + [0.0, 0.0, 0.05]  # vertices on no face, as some exporters leave them
+    glb = mesh_to_glb(np.vstack([G[split.vertex], stray]).astype(np.float32), split.faces,
+                      uv=np.vstack([split.uv, np.full((3, 2), 0.5, np.float32)]), material=mat, name="dress")
     r = client.post("/v1/garments", data={"name": "GLB dress"}, headers=KEY, files={"garment": ("dress.glb", glb)})
     assert r.status_code == 202, r.text
     gid = r.json()["id"]

@@ -19,7 +19,6 @@ from service.model.fitting.checks import FitError
 from service.model.fitting.fit import fit_body
 from service.model.formats.mesh_io import scan_type
 from service.model.formats.frames import UNITS, unit_against
-from service.model.geometry.mesh import weld_seams
 from service.model.garments import sizing as SZ
 from service.model.garments.tryon import GarmentBasis, build_garment_basis, refresh_skinning
 from service.records import Garment, JobRef
@@ -37,7 +36,7 @@ from .demo import DemoCatalogue
 from .examples import Examples
 from .limits import Limits
 from .progress import MonotoneProgress, Progress
-from .uploads import (GARMENT_UPS, DrapedGarment, MhcloUpload, clean_name, is_textured, glb_look, obj_layout, parse_color, place_on_body, read_draped_avatar,
+from .uploads import (GARMENT_UPS, DrapedGarment, MhcloUpload, clean_name, is_textured, glb_look, obj_layout, one_cloth, parse_color, place_on_body, read_draped_avatar,
                       read_garment_mesh, read_mhclo_layout, read_texture, upload_memory)
 
 
@@ -494,20 +493,15 @@ class GarmentService(DemoCatalogue):
             raise Invalid(("body", "on"), "send either 'on' (an example avatar id) or a file 'avatar', not both")
         tex = read_texture(*texture) if texture is not None else None
         v, faces = read_garment_mesh(garment, garment_name, ("body", "garment"), "garment")
+        v_file = v
         faces, layout = _file_layout(garment_name or "garment", garment, faces)
         if layout is None and len(garment) >= 4 and garment[:4] == b"glTF":  # GLB: uv + embedded texture
             look = glb_look(garment, faces)
             if look is not None and len(look[0].vertex) == len(v):
                 layout, embedded = look
                 tex = tex or embedded
-        # one cloth: a file split at its seams (every GLB at its UV seams) is joined there before
-        # it is draped, or its panels would part; the texture keeps its seams (the layout)
         file_faces = faces
-        weld, faces = weld_seams(v, faces)
-        first = np.unique(weld, return_index=True)[1]
-        v, faces = v[first], faces.astype(np.int32)
-        if layout is not None:
-            layout = RenderLayout(weld[layout.vertex], layout.uv, layout.faces)
+        v, faces, layout, first = one_cloth(v, faces, layout)
         if avatar is None:
             on = on or "mean"
             i = self.examples.index(on)
@@ -520,7 +514,7 @@ class GarmentService(DemoCatalogue):
             upload = DrapedGarment(v, faces, on=None, unit=unit, up=None, avatar=scan)
         upload.layout, upload.texture = layout, tex
         if order is not None:
-            upload.graded = self._read_graded(files, order, upload, file_faces, weld)
+            upload.graded = self._read_graded(files, order, upload, file_faces, first, len(v_file))
         record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source="draped",
                          **(chart.record_fields() if chart is not None and chart.sizes
                             else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}),
@@ -531,22 +525,21 @@ class GarmentService(DemoCatalogue):
         return self._queue_build(record, upload.to_bytes())
 
     def _read_graded(self, files: list[tuple[bytes, str | None]], order: list[int], upload: DrapedGarment,
-                     faces: np.ndarray, weld: np.ndarray) -> np.ndarray:
+                     faces: np.ndarray, first: np.ndarray, n_file: int) -> np.ndarray:
         """(S, M, 3) every size's mesh in chart order, in the base file's frame as placed (its
-        unit and up axis), joined where the base file was (``weld`` (N,): each of the base
-        file's vertices' welded one, :func:`weld_seams`; ``faces`` (F, 3) the base file's): 422
-        when a file is not the same garment (vertices and faces)."""
+        unit and up axis), one cloth as the base file's (``first`` (M,): the base file's vertex
+        of each cloth vertex, :func:`one_cloth`; ``faces`` (F, 3) and ``n_file`` the base file's
+        faces and vertex count): 422 when a file is not the same garment (vertices and faces)."""
         out = []
         scale = UNITS[upload.unit] if upload.on is not None else 1.0
         R = GARMENT_UPS[upload.up] if upload.up is not None else np.eye(3)
-        first = np.unique(weld, return_index=True)[1]
         for k in order:
             data, fname = files[k]
             loc, label = ("body", "garment", k), f"garment file {k + 1} '{fname or 'garment'}'"
             v, f = read_garment_mesh(data, fname, loc, label)
-            if len(v) != len(weld) or f.shape != faces.shape or not np.array_equal(f, faces):
+            if len(v) != n_file or f.shape != faces.shape or not np.array_equal(f, faces):
                 raise Invalid(loc, f"{label}: not the same mesh as the base size's file ({len(v)} vertices, "
-                                   f"{len(f)} faces; the base size has {len(weld)} and {len(faces)}): graded "
+                                   f"{len(f)} faces; the base size has {n_file} and {len(faces)}): graded "
                                    "meshes must share vertices and faces, in the same order")
             out.append((v[first] * scale) @ R.T)
         return np.stack(out)

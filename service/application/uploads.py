@@ -20,6 +20,7 @@ from service.model.body.model import BodyModel
 from service.model.formats.frames import UNITS, UnitError, detect_unit, rotation_to_y
 from service.model.body.measurements import ATTRIBUTES
 from service.model.formats.mesh_io import Scan, ScanError
+from service.model.geometry.mesh import weld_seams
 from service.model.formats import gltf_read
 from service.model.garments.catalogue import Material, RenderLayout, Texture, render_layout
 from service.model.formats.declared_sizes import DeclaredSizeError, check_gltf, check_text_lines
@@ -116,6 +117,27 @@ def read_garment_mesh(data: bytes, filename: str | None, loc: tuple, label: str)
     if len(mesh.faces) > MAX_GARMENT_FACES:
         raise Invalid(loc, f"{label}: {len(mesh.faces)} faces; at most {MAX_GARMENT_FACES} per garment")
     return mesh.points, mesh.faces.astype(np.int32)
+
+
+def one_cloth(vertices: np.ndarray, faces: np.ndarray,
+              layout: RenderLayout | None) -> tuple[np.ndarray, np.ndarray, RenderLayout | None, np.ndarray]:
+    """A draped garment's file as the one cloth the drape engine takes: joined at its seams
+    (``geometry.mesh.weld_seams``: a GLB repeats every vertex on a UV seam, and split panels
+    would part in the drape) and without vertices on no face. vertices (N, 3), faces (F, 3),
+    its render layout (texture coordinates) or None -> the cloth's vertices (M, 3) and faces
+    (F, 3) int32, the layout onto them (its texture seams kept, render vertices on no face
+    dropped), and ``first`` (M,) int64: the file vertex each cloth vertex was taken from."""
+    weld, welded = weld_seams(vertices, faces)
+    used = np.unique(welded)  # welded vertices on a face, in file order
+    cloth = np.full(int(weld.max()) + 1 if len(weld) else 0, -1, np.int64)
+    cloth[used] = np.arange(len(used))
+    first = np.unique(weld, return_index=True)[1][used]
+    if layout is not None:
+        kept = np.unique(layout.faces)
+        render = np.full(len(layout.vertex), -1, np.int64)
+        render[kept] = np.arange(len(kept))
+        layout = RenderLayout(cloth[weld[layout.vertex[kept]]], layout.uv[kept], render[layout.faces])
+    return np.asarray(vertices)[first], cloth[welded].astype(np.int32), layout, first
 
 
 def _text(data: bytes, field: str) -> str:
