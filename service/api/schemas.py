@@ -261,7 +261,8 @@ class GarmentResponse(BaseModel):
     color: list[float] = Field(description="Linear RGBA base colour")
     layer: int = Field(description="Layer order in an outfit (inner garments first)")
     created: str
-    n_vertices: int
+    n_vertices: int = Field(description="Vertices of the garment's cloth (a draped upload joined at its seams, "
+                                        "without vertices on no face: its GLBs' texture seams split them again)")
     n_faces: int
     n_components: int = Field(description="Number of basis rows (PCA components covered; 0 while building)")
     etag: str = Field(description="Content hash of the basis (empty while building)")
