@@ -493,7 +493,7 @@ class GarmentService(DemoCatalogue):
             raise Invalid(("body", "on"), "send either 'on' (an example avatar id) or a file 'avatar', not both")
         tex = read_texture(*texture) if texture is not None else None
         v, faces = read_garment_mesh(garment, garment_name, ("body", "garment"), "garment")
-        v_file = v
+        n_file = len(v)
         faces, layout = _file_layout(garment_name or "garment", garment, faces)
         if layout is None and len(garment) >= 4 and garment[:4] == b"glTF":  # GLB: uv + embedded texture
             look = glb_look(garment, faces)
@@ -514,7 +514,7 @@ class GarmentService(DemoCatalogue):
             upload = DrapedGarment(v, faces, on=None, unit=unit, up=None, avatar=scan)
         upload.layout, upload.texture = layout, tex
         if order is not None:
-            upload.graded = self._read_graded(files, order, upload, file_faces, first, len(v_file))
+            upload.graded = self._read_graded(files, order, upload, file_faces, first, n_file)
         record = Garment(id=new_id(), body_model=self.model.version, owner=owner, name=name, source="draped",
                          **(chart.record_fields() if chart is not None and chart.sizes
                             else {"fabric": chart.fabric if chart is not None else SZ.DEFAULT_FABRIC}),
