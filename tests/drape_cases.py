@@ -108,3 +108,17 @@ def square_sag(n: int = 7, size: float = 0.2, fabric: str = "knit", config=None)
     r = d.solve(None, None, V)
     y = reference_static(d, hanging_start(V, 1.0))
     return 1.0 - float(r.vertices[:, 1].min()), 1.0 - float(y[:, 1].min()), r, y
+
+
+def subdivide(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Midpoint subdivision (each face into four): vertices, faces and the (E, 2) parents of
+    each new vertex (to carry any positions along: the mean of its two parents)."""
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    inv = inv.reshape(3, -1).T + len(V)  # (F, 3): midpoints of edges 01, 12, 20
+    a, b, c = F[:, 0], F[:, 1], F[:, 2]
+    m01, m12, m20 = inv[:, 0], inv[:, 1], inv[:, 2]
+    F2 = np.concatenate([np.stack([a, m01, m20], 1), np.stack([m01, b, m12], 1), np.stack([m20, m12, c], 1),
+                         np.stack([m01, m12, m20], 1)])
+    V2 = np.vstack([V, 0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]])])
+    return V2, F2, uniq

@@ -184,3 +184,49 @@ def test_mhclo_that_cannot_be_draped_fails_its_build_with_the_reason(client: Tes
     assert gid not in ctx.bases.ids() and not ctx.bases.path(gid).exists()
     basis = client.get(f"/v1/garments/{gid}/basis.glb")
     assert basis.status_code == 409 and "zero-area" in basis.json()["detail"], basis.text
+
+
+def test_a_dense_draped_garment_is_built_through_its_simulation_mesh(tmp_path_factory: pytest.TempPathFactory,
+                                                                     validate_glb) -> None:
+    """A garment uploaded denser than ``TRYON_DRAPE_MAX_VERTICES`` (the casual suit subdivided,
+    as a pattern tool exports it, 8,6xx vertices; the limit 1,500 here) builds through its
+    simulation mesh (the build's progress says so) and is tried on with every one of its
+    vertices, outside the body, validator-clean."""
+    from service.application.scenes import obj_text
+    from service.model.geometry.mesh import intersecting_face_pairs, winding_numbers
+    from tests import draped_data as D
+    from tests.drape_cases import subdivide
+
+    with redis_db() as db:
+        settings = Settings(TRYON_DATA_DIR=tmp_path_factory.mktemp("dense"), REDIS_URL=redis_url(db),
+                            TRYON_EMBEDDED_WORKER=False, TRYON_DEMO_ITEMS="", TRYON_DRAPE=True, TRYON_DRAPE_POPULATION=4,
+                            TRYON_DRAPE_MAX_VERTICES=1500,
+                            TRYON_RETAILER_KEYS=",".join(f"{n}:{k}" for n, k in RETAILERS.items()))
+        with TestClient(create_app(settings), raise_server_exceptions=True) as c:
+            ctx = c.app.state.context
+            b, faces = D.binding(ctx.model)
+            V, F, _ = subdivide(b.fit(ctx.model.mean).astype(np.float64), np.asarray(faces, np.int64))
+            r = c.post("/v1/garments", data={"name": "Dense suit", "fabric": "knit"}, headers=KEY,
+                       files={"garment": ("suit.obj", obj_text(V, F).encode())})
+            assert r.status_code == 202, r.text
+            gid = r.json()["id"]
+            assert r.json()["n_vertices"] == len(V) > 8000
+            messages: list[str] = []
+            assert ctx.garments.run_build(gid, lambda f, msg: messages.append(msg))["status"] == "done"
+            assert any("as a simulation mesh of" in msg and f"of its {len(V)} vertices" in msg for msg in messages)
+            g = c.get(f"/v1/garments/{gid}").json()
+            assert g["status"] == "ready" and g["example_fits"] == "drape"
+            created = c.post("/v1/customers", json={"measurements": {"gender": "female", "height_cm": 165,
+                                                                      "weight_kg": 62}}).json()
+            r = c.get(f"/v1/customers/{created['id']}/garments/{gid}.glb",
+                      headers={"Authorization": f"Bearer {created['token']}"})
+            assert r.status_code == 200
+            assert validate_glb(r.content)["issues"]["numErrors"] == 0
+            x = read_glb(r.content)["positions"].astype(np.float64)
+            assert len(x) == len(V)
+            # the basis's mean garment: every vertex of it, outside the mean body, not through itself
+            basis = ctx.bases.load(gid, g["etag"])
+            mean = np.asarray(basis.g, np.float64)
+            body = ctx.model.body_vertices(ctx.garments.examples.vertices[0]).astype(np.float64)
+            assert (winding_numbers(mean, body, ctx.model.body_faces) < 0.5).mean() > 0.999
+            assert len(intersecting_face_pairs(mean, F)) <= 10

@@ -199,7 +199,8 @@ class ExactDrapes:
         progress(DRAPE_START, "draping the garment on the customer's body")
         try:
             draper = precompute(drape_rest(basis), np.asarray(basis.faces, np.int64), garment.fabric,
-                                Config(max_iterations=int(iterations), clearance_m=DRAPE_CLEARANCE_M))
+                                Config(max_iterations=int(iterations), clearance_m=DRAPE_CLEARANCE_M,
+                                       proxy_max_vertices=self.settings.drape_max_vertices or None))
             result = draper.solve(self.model.body_vertices(body.vertices).astype(np.float64),
                                   self.model.body_faces, start)
         except DrapeError as exc:

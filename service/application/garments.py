@@ -316,7 +316,7 @@ class GarmentService(DemoCatalogue):
         cb = None if progress is None else (lambda f, msg: progress(f, msg))
         d = draped_example_fits(self.model, ex.set, ex.vertices, rest, faces, warp_fits, fabric,
                                 self.settings.drape_population, progress=cb, workers=self.settings.drape_workers,
-                                gender=gender)
+                                gender=gender, max_vertices=self.settings.drape_max_vertices or None)
         log.info("draped on %d bodies: %.1fs, %d of them settled, %d population bodies left out (it would end "
                  "inside them without friction in the soft levels)", len(d.stats),
                  sum(s["seconds"] for s in d.stats), sum(bool(s["settled"]) for s in d.stats),

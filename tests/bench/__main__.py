@@ -42,6 +42,8 @@ SUITES: dict[str, tuple[str, str, str, str]] = {
               "sizes and fit: chart round trip, ANSUR II held-out recommendation, monotonicity, timings"),
     "drape": ("tests.bench.drape", "run", "format_result",
               "cloth drape engine: analytic tubes, pinned square vs a dense solve and Newton VBD, two bodies, 10k timing"),
+    "dense": ("tests.bench.dense", "run", "format_result",
+              "dense garments (11k, 44k vertices) through their simulation mesh vs the direct drape; the 44k build"),
     "hostile": ("tests.bench.hostile", "run", "format_result",
                 "a default tryon serve tried as an attacker would: size bombs, slow bodies, spoofing, floods, logs"),
     "load": ("tests.bench.load", "run", "format_result",
@@ -80,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="tryon: only the in-process try-on latency rows (template fast path vs reference)")
     ap.add_argument("--poses", choices=("anatomical", "free"), default="anatomical",
                     help="fitting: the synthetic scans' poses within the joint limits (default) or any axis per bone")
+    ap.add_argument("--no-build", action="store_true", help="dense: skip the whole build of the 44k garment")
     ap.add_argument("--no-newton", action="store_true", help="drape: skip the Newton VBD reference row")
     ap.add_argument("--newton-full-contact", type=int, default=0, metavar="N",
                     help="drape: also settle the T-shirt on the N of its 5 reference people with the largest chests, "
@@ -110,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
              "via_file": args.via_file} if args.suite == "fitting" else {}
     if args.suite == "drape":
         extra = {"newton": not args.no_newton, "newton_full": args.newton_full_contact}
+    if args.suite == "dense":
+        extra = {"build": not args.no_build}
     if args.only is not None:
         if args.suite != "tryon":
             ap.error("--only is a tryon option")

@@ -134,23 +134,9 @@ def _inside(x: np.ndarray, BV: np.ndarray, BF: np.ndarray, depth_m: float = 0.00
     return int((np.linalg.norm(x[cand] - q, axis=1) > depth_m).sum())
 
 
-def _subdivide(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Midpoint subdivision (each face into four): vertices, faces and the (E, 2) parents of
-    each new vertex (to carry any positions along: the mean of its two parents)."""
-    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    uniq, inv = np.unique(e, axis=0, return_inverse=True)
-    inv = inv.reshape(3, -1).T + len(V)  # (F, 3): midpoints of edges 01, 12, 20
-    a, b, c = F[:, 0], F[:, 1], F[:, 2]
-    m01, m12, m20 = inv[:, 0], inv[:, 1], inv[:, 2]
-    F2 = np.concatenate([np.stack([a, m01, m20], 1), np.stack([m01, b, m12], 1), np.stack([m20, m12, c], 1),
-                         np.stack([m01, m12, m20], 1)])
-    V2 = np.vstack([V, 0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]])])
-    return V2, F2, uniq
-
-
 def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int = 0) -> dict:
     from service.model.drape import FABRICS, precompute
-    from tests.drape_cases import cylinder, revolved_body, ring_girth, square_sag, tube
+    from tests.drape_cases import cylinder, revolved_body, ring_girth, square_sag, subdivide, tube
 
     out: dict = {"rows": {}, "drapes": []}
     rows = out["rows"]
@@ -241,21 +227,23 @@ def run(limit: int = 0, repeats: int = 0, newton: bool = True, newton_full: int 
     E = example_vertices(m, example_set(m))
     item = next(i for i in load_catalogue().garments() if i.id == "white-tshirt")
     rest0, init0 = item.binding.fit(E[0]).astype(np.float64), item.binding.fit(E[1]).astype(np.float64)
-    Vg, Fg, par = _subdivide(rest0, item.faces.astype(np.int64))
+    Vg, Fg, par = subdivide(rest0, item.faces.astype(np.int64))
     init = np.vstack([init0, 0.5 * (init0[par[:, 0]] + init0[par[:, 1]])])
     BVg = m.body_vertices(E[1]).astype(np.float64)
+    # draped as it is (the service drapes a garment over TRYON_DRAPE_MAX_VERTICES through its
+    # simulation mesh: `tryon bench dense`)
+    from service.model.drape import Config as _Config
+
     t0 = time.perf_counter()
-    dg = precompute(Vg, Fg, "knit")
+    dg = precompute(Vg, Fg, "knit", _Config(proxy_max_vertices=None))
     r = dg.solve(BVg, m.body_faces, init)
     t_10k = time.perf_counter() - t0
     record("white_tshirt_10k", Vg, Fg, BVg, m.body_faces, r)
     # baseline, same run: the body contact's closest points refreshed more often
     # (every vertex every 10 iterations, in between those that moved 0.5 mm)
-    from service.model.drape import Config as _Config
-
     t0 = time.perf_counter()
-    rb = precompute(Vg, Fg, "knit", _Config(contact_refresh=10, contact_moved_m=0.0005, contact_walk_m=np.inf)).solve(
-        BVg, m.body_faces, init)
+    rb = precompute(Vg, Fg, "knit", _Config(contact_refresh=10, contact_moved_m=0.0005, contact_walk_m=np.inf,
+                                            proxy_max_vertices=None)).solve(BVg, m.body_faces, init)
     t_base = time.perf_counter() - t0
     rows["garment_10k_s"] = {"value": t_10k, "goal": 4.0, "n_vertices": len(Vg),
                              "precompute_s": dg.precompute_s, "iterations": r.stats["iterations"],

@@ -47,7 +47,7 @@ from service.settings import Settings
 from service.model.garments.tryon import (build_garment_basis, customer_body, example_set, example_vertices, strain_map,
                                           strain_maps, try_on)
 from tests.bench.common import median_ms, read_ansur, surface_distances
-from tests.bench.drape import _subdivide
+from tests.drape_cases import subdivide
 
 TEN_K_GARMENT = "mens-tshirt"  # one of GARMENTS whose smallest size subdivided twice has ~10k vertices (12,4xx)
 TEN_K_PEOPLE = 8  # held-out people of its gender it is tried on, smallest to largest chest
@@ -58,7 +58,7 @@ def _subdivided(fits: np.ndarray, faces: np.ndarray, at_least: int) -> tuple[np.
     at edge midpoints of every fit) until they have ``at_least`` vertices: (fits, faces)."""
     faces, fits = np.asarray(faces, np.int64), np.asarray(fits)
     while fits.shape[1] < at_least:
-        _, faces, par = _subdivide(fits[0], faces)
+        _, faces, par = subdivide(fits[0], faces)
         fits = np.concatenate([fits, 0.5 * (fits[:, par[:, 0]] + fits[:, par[:, 1]])], axis=1)
     return fits, faces
 

@@ -12,12 +12,13 @@ import numpy as np
 
 from service.model.geometry import kernels
 
-from .solver import Config, Draper, DrapeError, precompute
+from .proxy import ProxyDraper, precompute
+from .solver import Config, Draper, DrapeError
 
 MIN_SOLVES_PER_WORKER = 4  # fewer solves than this per process: not worth forking for
 
 # what a forked process solves: (draper, inits, bodies, body faces, required), set just before the fork
-_FORKED: tuple[Draper, np.ndarray, np.ndarray, np.ndarray, int] | None = None
+_FORKED: tuple[Draper | ProxyDraper, np.ndarray, np.ndarray, np.ndarray, int] | None = None
 
 
 def _child_signals() -> None:
@@ -28,7 +29,7 @@ def _child_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _solve(draper: Draper, body: np.ndarray, body_faces: np.ndarray, init: np.ndarray,
+def _solve(draper: Draper | ProxyDraper, body: np.ndarray, body_faces: np.ndarray, init: np.ndarray,
            fallbacks: bool) -> tuple[np.ndarray | None, dict]:
     """One drape (``Draper.solve``'s ``fallbacks``): (vertices (N, 3) float32 or None, stats or
     {"failed": why})."""
@@ -46,7 +47,7 @@ def _solve_one(i: int) -> tuple[int, np.ndarray | None, dict]:
     return (i, *_solve(draper, bodies[i], body_faces, inits[i], i < required))
 
 
-def _solves(draper: Draper, inits: np.ndarray, bodies: np.ndarray, body_faces: np.ndarray, workers: int,
+def _solves(draper: Draper | ProxyDraper, inits: np.ndarray, bodies: np.ndarray, body_faces: np.ndarray, workers: int,
             required: int):
     """(i, vertices or None, stats) of every body, in the order they finish; the bodies from
     ``required`` on solved without the drape's fallbacks."""
@@ -73,7 +74,8 @@ def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodie
                    required: int | None = None, workers: int = 1) -> tuple[np.ndarray, list[dict]]:
     """The garment (rest shape (N, 3), faces (F, 3)) settled on each example body (bodies
     (E, B, 3) with ``body_faces`` (G, 3)) from its warp fit there (inits (E, N, 3)): factored
-    once, solved per body, in ``workers`` processes. Returns the draped fits (E, N, 3) float32
+    once, solved per body, in ``workers`` processes (a garment denser than
+    ``config.proxy_max_vertices`` through its simulation mesh: ``proxy``). Returns the draped fits (E, N, 3) float32
     and each solve's stats (the same whatever ``workers``). Raises :class:`DrapeError` naming
     the example that failed, among the first ``required`` bodies (default all); a later body
     that fails gets NaN fits and ``{"failed": reason}``. The later bodies are solved without the
@@ -84,6 +86,8 @@ def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodie
     if inits.ndim != 3 or inits.shape[1:] != np.shape(rest) or len(inits) != len(bodies):
         raise DrapeError(f"expected one start shape per example body; got {inits.shape} for {len(bodies)} bodies")
     draper = precompute(rest, faces, fabric, config)
+    how = (f" (as a simulation mesh of {len(draper.simulation.keep)} of its {draper.n} vertices)"
+           if isinstance(draper, ProxyDraper) else "")
     out = np.empty(inits.shape, np.float32)
     stats: list[dict] = [{} for _ in range(len(bodies))]
     solves = _solves(draper, inits, bodies, body_faces, workers, len(bodies) if required is None else required)
@@ -97,7 +101,7 @@ def drape_examples(rest: np.ndarray, faces: np.ndarray, inits: np.ndarray, bodie
                 out[i] = verts
             stats[i] = st
             if progress is not None:
-                progress(done / len(bodies), f"draped on {done} of {len(bodies)} example avatars")
+                progress(done / len(bodies), f"draped on {done} of {len(bodies)} example avatars{how}")
     finally:
         solves.close()  # a failure stops the other processes now
     return out, stats

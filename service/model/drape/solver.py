@@ -166,6 +166,8 @@ class Config:
     # where they lie together; 0: off) ...
     tie_stiffness: float = 1.0  # ... with this multiple of the membrane's stiffness at the vertex (k_s A_i / l_i^2)
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
+    proxy_max_vertices: int | None = 8000  # a garment with more vertices is draped as a simulation mesh of about this
+    # many and carried on it (`proxy`: a pattern tool's 44k-vertex export takes 23 s a drape on 2 cores); None: never
 
 
 @dataclass
@@ -1000,16 +1002,6 @@ class _PartBinding:
     stay: np.ndarray
     fixed: np.ndarray
 
-    @staticmethod
-    def _frames(x: np.ndarray, face: np.ndarray) -> np.ndarray:
-        """(K, 3, 3) orthonormal frames (rows: first edge, in-plane normal to it, face normal)."""
-        a, b, c = x[face[:, 0]], x[face[:, 1]], x[face[:, 2]]
-        t1 = b - a
-        t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
-        nf = np.cross(b - a, c - a)
-        nf /= np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-12)
-        return np.stack([t1, np.cross(nf, t1), nf], axis=1)
-
     @classmethod
     def of(cls, x: np.ndarray, hf: np.ndarray, parts: list[np.ndarray], body: bool,
            attach_m: float) -> "_PartBinding | None":
@@ -1029,14 +1021,14 @@ class _PartBinding:
         per = np.repeat(np.arange(len(parts)), [len(p) for p in parts])  # (K,) the part of each vertex
         ride = ((not body) | (dist <= attach_m))[per]
         face = hf[fi[per[ride]]]
-        offset = np.einsum("kij,kj->ki", cls._frames(x, face), x[ids[ride]] - q[per[ride]])
+        offset = np.einsum("kij,kj->ki", geometry.face_frames(x, face), x[ids[ride]] - q[per[ride]])
         return cls(ids[ride], face, bary[per[ride]], offset, ids[~ride], x[ids[~ride]].copy())
 
     def place(self, x: np.ndarray) -> None:
         """Put the parts where the binding says on the cloth x (N, 3), in place."""
         if len(self.ride):
             q = np.einsum("kc,kcj->kj", self.bary, x[self.face])
-            x[self.ride] = q + np.einsum("kij,ki->kj", self._frames(x, self.face), self.offset)
+            x[self.ride] = q + np.einsum("kij,ki->kj", geometry.face_frames(x, self.face), self.offset)
         if len(self.stay):
             x[self.stay] = self.fixed
 
@@ -1232,7 +1224,9 @@ def precompute(rest_vertices: np.ndarray, faces: np.ndarray, fabric: "str | Fabr
     """The drape system of one garment (rest shape (N, 3) m, faces (F, 3) int) in one fabric
     (a :data:`FABRICS` name or a :class:`Fabric`), factored once; ``pinned``: vertex indices
     held at their start positions in every solve. Raises :class:`DrapeError` on a degenerate
-    rest shape."""
+    rest shape. The garment as it is, however dense: the package's ``precompute``
+    (``proxy.precompute``) drapes one over ``config.proxy_max_vertices`` through a simulation
+    mesh."""
     cfg = config or Config()
     rest = np.asarray(rest_vertices, np.float64)
     F = np.asarray(faces)

@@ -57,7 +57,7 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
                         faces: np.ndarray, warp_fits: np.ndarray, fabric: str, population: int,
                         progress: Callable[[float, str], None] | None = None,
                         clearance_m: float = DRAPE_CLEARANCE_M, workers: int = 1,
-                        gender: str | None = None) -> DrapedFits:
+                        gender: str | None = None, max_vertices: int | None = Config.proxy_max_vertices) -> DrapedFits:
     """The garment (its rest shape: its own size) draped on every example avatar, each solve
     started from its warp fit there, and on ``population`` people of the body model's training
     population (``tryon.population_sample``; ``gender``: the garment's, ``female``, ``male`` or
@@ -66,7 +66,9 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
     drape is not linear in the body (tight on large bodies, hanging on small ones), and the
     central difference of two examples half a std from the mean extrapolates it badly. Raises
     ``DrapeError`` naming the example avatar that failed; a population body that fails is left
-    out (its stats say ``failed``). The cloth rests ``clearance_m`` off the skin."""
+    out (its stats say ``failed``). The cloth rests ``clearance_m`` off the skin. A garment of
+    more than ``max_vertices`` vertices is draped as a simulation mesh of about that many
+    (``drape.proxy``; None: as it is)."""
     warp_fits = np.asarray(warp_fits, np.float64)
     people = population_sample(model, population, gender)  # (P, K): whole bodies
     W = people[:, : examples.n]  # the components the basis has
@@ -78,7 +80,7 @@ def draped_example_fits(model, examples: G.ExampleSet, example_avatars: np.ndarr
     bodies = np.stack([model.body_vertices(X) for X in shapes]).astype(np.float64)
     drapes, stats = drape_examples(np.asarray(rest, np.float64), np.asarray(faces, np.int64),
                                    np.asarray(inits, np.float64), bodies, model.body_faces, fabric,
-                                   config=Config(clearance_m=clearance_m), progress=progress,
+                                   config=Config(clearance_m=clearance_m, proxy_max_vertices=max_vertices), progress=progress,
                                    required=len(warp_fits), workers=workers)
     fits = drapes[: len(warp_fits)]
     if len(W):

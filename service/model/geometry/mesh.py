@@ -367,6 +367,19 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, rounds: int = 20, keep: np
     return best_V, best_n
 
 
+def face_frames(x: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) orthonormal frames of the triangles ``face`` (K, 3) (vertex ids into x (N, 3)),
+    rows: the first edge, the in-plane normal to it, the face normal. A point's offset from a
+    triangle written in its frame (``frames @ d``) rides with the triangle when it moves and turns
+    (``frames^T @ offset``)."""
+    a, b, c = x[face[:, 0]], x[face[:, 1]], x[face[:, 2]]
+    t1 = b - a
+    t1 = t1 / np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+    nf = np.cross(b - a, c - a)
+    nf = nf / np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-12)
+    return np.stack([t1, np.cross(nf, t1), nf], axis=1)
+
+
 def barycentric(p, a, b, c):
     """Barycentric coordinates (..., 3) of points p (..., 3) in the planes of triangles a, b, c
     (..., 3) (for a point on the triangle: its weights; they sum to 1)."""
