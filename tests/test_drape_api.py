@@ -191,7 +191,12 @@ def test_a_dense_draped_garment_is_built_through_its_simulation_mesh(tmp_path_fa
     """A garment uploaded denser than ``TRYON_DRAPE_MAX_VERTICES`` (the casual suit subdivided,
     as a pattern tool exports it, 8,6xx vertices; the limit 1,500 here) builds through its
     simulation mesh (the build's progress says so) and is tried on with every one of its
-    vertices, outside the body, validator-clean."""
+    vertices, validator-clean, its basis outside the body; the customer's exact drape job goes
+    through the simulation mesh too and serves every vertex."""
+    from unittest import mock
+
+    from rq import SimpleWorker
+
     from service.application.scenes import obj_text
     from service.model.geometry.mesh import intersecting_face_pairs, winding_numbers
     from tests import draped_data as D
@@ -222,8 +227,16 @@ def test_a_dense_draped_garment_is_built_through_its_simulation_mesh(tmp_path_fa
                       headers={"Authorization": f"Bearer {created['token']}"})
             assert r.status_code == 200
             assert validate_glb(r.content)["issues"]["numErrors"] == 0
-            x = read_glb(r.content)["positions"].astype(np.float64)
-            assert len(x) == len(V)
+            assert len(read_glb(r.content)["positions"]) == len(V)
+            # the customer's exact drape (a queued job, run here as a worker runs it) goes the same way
+            url, auth = f"/v1/customers/{created['id']}/garments/{gid}.glb", {"Authorization": f"Bearer {created['token']}"}
+            assert c.get(url, params={"drape": "exact"}, headers=auth).status_code == 202
+            with mock.patch("worker.jobs.worker_context", return_value=ctx):
+                SimpleWorker([ctx.queue.queue], connection=ctx.conn).work(burst=True)
+            r = c.get(url, params={"drape": "exact"}, headers=auth)
+            assert r.status_code == 200, r.text
+            assert validate_glb(r.content)["issues"]["numErrors"] == 0
+            assert len(read_glb(r.content)["positions"]) == len(V)
             # the basis's mean garment: every vertex of it, outside the mean body, not through itself
             basis = ctx.bases.load(gid, g["etag"])
             mean = np.asarray(basis.g, np.float64)
