@@ -40,6 +40,8 @@ COLLAPSE_RELAX = 1.25  # where that limit stops the collapses short of max_verti
 COLLAPSE_RELAX_ROUNDS = 4  # ... up to this many times
 BOUNDARY_MAX_TURN_DEG = 20.0  # an open edge's vertex goes only where the open line turns by less than this
 COLLAPSE_MIN_PIECE = 40  # pieces of fewer vertices (buttons, labels) are kept as they are
+CARRIED_UNTANGLE_ROUNDS = 3  # the carried garment's untangling: this many times the solver's rounds (the 44k
+# T-shirt on the mean avatar: 18 crossing pairs left after 40 rounds, none after 120, 3.3 s)
 BIND_NEAR = 12  # simulation vertices whose triangles are searched for each garment vertex's (its nearest, neighbours)
 
 
@@ -298,7 +300,8 @@ class ProxyDraper:
         if body is not None:
             x = body.outside(x)
         # where the simulation mesh lies pressed in a fold (an armpit) the garment's offsets off
-        # it can cross the layer beside: smoothed out as the solver's untangling does
+        # it can cross the layer beside: smoothed out as the solver's untangling does, with more
+        # rounds (it ends as soon as nothing crosses)
         pairs = geometry.intersecting_face_pairs(x, self.faces) if cfg.untangle_rounds > 0 else np.zeros((0, 2), int)
         left = 0
         if len(pairs):
@@ -306,8 +309,8 @@ class ProxyDraper:
                 body.refresh_near(v, cfg.contact_near_m, 0.0, cfg.contact_walk_m)
                 return body.project(v, None, None)[0]
 
-            x, left = geometry.untangle(x, self.faces, cfg.untangle_rounds, after=contact if body is not None else None,
-                                        pairs=pairs)
+            x, left = geometry.untangle(x, self.faces, CARRIED_UNTANGLE_ROUNDS * cfg.untangle_rounds,
+                                        after=contact if body is not None else None, pairs=pairs)
         stats.update(carried_crossings=int(len(pairs)), self_intersections=int(left))
         if body is not None:
             inside = float(max(0.0, -body.signed_distance(x, exact=True).min()))
