@@ -152,7 +152,7 @@ def collapse_edges(rest: np.ndarray, faces: np.ndarray, max_vertices: int) -> tu
         if frozen[b]:
             return False
         for u in ring(b):
-            if u != a and dist(a, u) > max_edge:  # noqa: B023 (the limit of the current round)
+            if u != a and dist(a, u) > max_edge:  # the limit of the current round
                 return False
         shared = [k for k in fan[b] if a in tri[k]]
         if not shared or len(shared) > 2:

@@ -167,7 +167,7 @@ class Config:
     tie_stiffness: float = 1.0  # ... with this multiple of the membrane's stiffness at the vertex (k_s A_i / l_i^2)
     min_face_area_m2: float = 1e-10  # a rest face smaller than this is degenerate
     proxy_max_vertices: int | None = 8000  # a garment with more vertices is draped as a simulation mesh of about this
-    # many and carried on it (`proxy`: a pattern tool's 44k-vertex export takes 23 s a drape on 2 cores); None: never
+    # many and carried on it (`proxy`: a pattern tool's 44k-vertex export takes 18-20 s a drape on 2 cores); None: never
 
 
 @dataclass
