@@ -698,8 +698,11 @@ def _crumpled_square(n: int = 12, seed: int = 2):
 
 
 def test_intersecting_face_pairs_compiled_numpy_and_subset(monkeypatch):
-    """Two triangles crossing are found, two apart are not; the compiled pair test gives the
-    numpy reference's pairs on a crumpled sheet; ``among`` gives the pairs with those faces."""
+    """Two triangles crossing are found, two apart are not; the compiled grid
+    (``kernels.crossing_pairs``) and the compiled pair test on a k-d tree's candidates give the
+    numpy reference's pairs on crumpled sheets, one of them with faces of very different sizes
+    (a large triangle through the crumple, spanning many grid cells, and slivers); ``among``
+    gives the pairs with those faces, each path."""
     from service.model.geometry import kernels
 
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, -0.5], [0.3, 0.2, 0.5], [0.2, 0.3, 0.5]], float)
@@ -709,14 +712,23 @@ def test_intersecting_face_pairs_compiled_numpy_and_subset(monkeypatch):
     V2[3:, 2] += 1.0  # the second triangle lifted off the first
     assert len(geometry.intersecting_face_pairs(V2, F)) == 0
     V, F, _ = _crumpled_square()
-    out = {}
-    for compiled in ((True, False) if kernels.AVAILABLE else (False,)):
-        monkeypatch.setattr(geometry, "COMPILED_PAIRS", compiled)
-        out[compiled] = {tuple(p) for p in geometry.intersecting_face_pairs(V, F).tolist()}
-    assert len(out[False]) > 5 and all(o == out[False] for o in out.values())
-    among = np.arange(0, len(F), 3)
-    sub = {tuple(sorted(p)) for p in geometry.intersecting_face_pairs(V, F, among=among).tolist()}
-    assert sub == {p for p in out[False] if p[0] in set(among) or p[1] in set(among)}
+    n = len(V)  # a large triangle through the crumple and a sliver across it
+    V_mixed = np.vstack([V, [[-0.05, 0.1, 0.0], [0.25, 0.02, 0.01], [0.25, 0.18, -0.01]],
+                         [[0.05, 0.1, -0.03], [0.15, 0.1, 0.03], [0.1, 0.1001, 0.0]]])
+    F_mixed = np.vstack([F, [[n, n + 1, n + 2], [n + 3, n + 4, n + 5]]])
+    paths = [(True, True), (True, False), (False, False)] if kernels.AVAILABLE else [(False, False)]
+    for V, F in ((V, F), (V_mixed, F_mixed)):
+        out, sub = {}, {}
+        among = np.arange(0, len(F), 3)
+        for compiled, grid in paths:
+            monkeypatch.setattr(geometry, "COMPILED_PAIRS", compiled)
+            monkeypatch.setattr(geometry, "GRID_PAIRS", grid)
+            out[compiled, grid] = {tuple(sorted(p)) for p in geometry.intersecting_face_pairs(V, F).tolist()}
+            sub[compiled, grid] = {tuple(sorted(p)) for p in geometry.intersecting_face_pairs(V, F, among=among).tolist()}
+        ref = out[False, False]
+        assert len(ref) > 5 and all(o == ref for o in out.values())
+        assert all(s == {p for p in ref if p[0] in set(among) or p[1] in set(among)} for s in sub.values())
+    assert any(len(F_mixed) - 2 in p for p in ref) and any(len(F_mixed) - 1 in p for p in ref)
 
 
 def test_untangle_smooths_out_a_crumple_locally():

@@ -51,6 +51,10 @@ def _compiled() -> SimpleNamespace:
                 # globals when they are compiled
                 globals()["_closest_on_triangle"] = jit(_closest_on_triangle)
                 globals()["_add_column"] = jit(_add_column)
+                globals()["_pair_crosses"] = jit(_pair_crosses)
+                globals()["_cell_table"] = jit(_cell_table)
+                globals()["_cell_run"] = jit(_cell_run)
+                globals()["_one_side"] = jit(_one_side)
                 _compiled_kernels = SimpleNamespace(closest_faces=jit(_closest_faces), face_bounds=jit(_face_bounds),
                                                     winding_numbers=jit(_winding_numbers),
                                                     pose_jacobian_into=jit(_pose_jacobian_into),
@@ -62,7 +66,10 @@ def _compiled() -> SimpleNamespace:
                                                     columns_product=jit(_columns_product),
                                                     push_vertices=jit(_push_vertices),
                                                     clamp_steps=jit(_clamp_steps), max_move=jit(_max_move),
-                                                    close_pairs=jit(_close_pairs))
+                                                    close_pairs=jit(_close_pairs),
+                                                    crossing_pairs=jit(_crossing_pairs),
+                                                    cell_entries=jit(_cell_entries),
+                                                    face_boxes=jit(_face_boxes))
     return _compiled_kernels
 
 
@@ -139,6 +146,46 @@ def close_pairs(x, radius, exclude_indptr, exclude_indices):
         fn(*args, out)
     out = out[:count]
     return out[np.argsort(out[:, 0] * len(x) + out[:, 1], kind="stable")]
+
+
+def crossing_pairs(V, F, among=None):
+    """The intersecting face pairs (K, 2) int64 (a < b, sorted) of one mesh (V (N, 3) float64,
+    F (M, 3) int64) that ``geometry.intersecting_face_pairs`` finds, with ``among`` (S,) only
+    those with one of those faces. No list of candidate pairs is made (a 44k-vertex garment has
+    5.5 million face centres within twice the largest face's radius of each other, a few hundred
+    of its faces cross): the faces (those of ``among``) are entered in a uniform grid by their
+    bounding boxes (:func:`_face_boxes`; cells as wide as the median face's box, or 1/8 of the
+    largest), every face then meets those sharing a cell with its box (:func:`_crossing_pairs`,
+    each pair once, in the first cell of the boxes' overlap), and the pairs whose boxes overlap
+    are tested (:func:`_pair_crosses`)."""
+    V = np.ascontiguousarray(V, np.float64)
+    F = np.ascontiguousarray(F, np.int64)
+    m = len(F)
+    if not m:
+        return np.zeros((0, 2), np.int64)
+    k = _compiled()
+    c, lo, hi = np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3))
+    r = np.empty(m)
+    k.face_boxes(V, F, c, r, lo, hi)
+    extent = (hi - lo).max(axis=1)
+    width = max(float(np.median(extent)), float(extent.max()) / 8.0)
+    if not width > 0.0:
+        width = 1.0  # every face a point: none crosses, any cell width finds that
+    origin = lo.min(axis=0)
+    cl = np.floor((lo - origin) / width).astype(np.int64)
+    ch = np.floor((hi - origin) / width).astype(np.int64)
+    dims = ch.max(axis=0) + 1
+    selected = np.ones(m, bool) if among is None else np.zeros(m, bool)
+    if among is not None:
+        selected[np.asarray(among, np.int64)] = True
+    sel = np.flatnonzero(selected)
+    span = ch[sel] - cl[sel] + 1
+    keys = np.empty(int(np.prod(span, axis=1).sum()), np.int64)
+    owner = np.empty(len(keys), np.int64)
+    k.cell_entries(cl, ch, dims, sel, keys, owner)
+    order = np.argsort(keys, kind="stable")
+    out = k.crossing_pairs(V, F, c, r, lo, hi, cl, ch, dims, keys[order], owner[order], selected)
+    return out[np.argsort(out[:, 0] * m + out[:, 1], kind="stable")]
 
 
 def columns_product(indptr, indices, data, cols, X, out):
@@ -481,44 +528,172 @@ def _faces_cross(V, F, pairs, c, r, hit):
     """Which candidate face pairs (K, 2) int64 of one mesh (V (N, 3) float64, F (M, 3) int64)
     intersect (``geometry.intersecting_face_pairs``): bounding spheres (centres c (M, 3), radii
     r (M,)) overlapping, no shared vertex, and an edge of one face crossing the other
-    (Moller-Trumbore, the same float operations as the numpy reference). hit (K,) bool out."""
+    (:func:`_pair_crosses`). hit (K,) bool out."""
     for k in range(pairs.shape[0]):
-        hit[k] = False
-        a, b = pairs[k, 0], pairs[k, 1]
-        dc0, dc1, dc2 = c[a, 0] - c[b, 0], c[a, 1] - c[b, 1], c[a, 2] - c[b, 2]
-        if np.sqrt(dc0 * dc0 + dc1 * dc1 + dc2 * dc2) > r[a] + r[b]:
+        hit[k] = _pair_crosses(V, F, c, r, pairs[k, 0], pairs[k, 1])
+
+
+def _pair_crosses(V, F, c, r, a, b):
+    """Whether faces a and b of one mesh intersect: their bounding spheres (centres c (M, 3),
+    radii r (M,)) overlap, they share no vertex, and an edge of one crosses the other
+    (Moller-Trumbore, the same float operations as the numpy reference)."""
+    dc0, dc1, dc2 = c[a, 0] - c[b, 0], c[a, 1] - c[b, 1], c[a, 2] - c[b, 2]
+    if np.sqrt(dc0 * dc0 + dc1 * dc1 + dc2 * dc2) > r[a] + r[b]:
+        return False
+    for i in range(3):
+        for j in range(3):
+            if F[a, i] == F[b, j]:
+                return False
+    if _one_side(V, F, a, b, r[b]) or _one_side(V, F, b, a, r[a]):
+        return False
+    for s in range(2):
+        P, Q = (a, b) if s == 0 else (b, a)
+        t0, t1, t2 = F[Q, 0], F[Q, 1], F[Q, 2]
+        e10, e11, e12 = V[t1, 0] - V[t0, 0], V[t1, 1] - V[t0, 1], V[t1, 2] - V[t0, 2]
+        e20, e21, e22 = V[t2, 0] - V[t0, 0], V[t2, 1] - V[t0, 1], V[t2, 2] - V[t0, 2]
+        for m in range(3):
+            i, j = F[P, m], F[P, (m + 1) % 3]
+            o0, o1, o2 = V[i, 0], V[i, 1], V[i, 2]
+            d0, d1, d2 = V[j, 0] - o0, V[j, 1] - o1, V[j, 2] - o2
+            h0, h1, h2 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22, d0 * e21 - d1 * e20
+            det = e10 * h0 + e11 * h1 + e12 * h2
+            if abs(det) <= 1e-14:
+                continue
+            inv = 1.0 / det
+            s0, s1, s2 = o0 - V[t0, 0], o1 - V[t0, 1], o2 - V[t0, 2]
+            u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
+            q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
+            v = (d0 * q0 + d1 * q1 + d2 * q2) * inv
+            tt = (e20 * q0 + e21 * q1 + e22 * q2) * inv
+            if u >= 0 and v >= 0 and u + v <= 1 and tt >= 0 and tt <= 1:
+                return True
+    return False
+
+
+def _face_boxes(V, F, c, r, lo, hi):
+    """Each face's centre c (M, 3) (its vertices' mean), bounding-sphere radius r (M,) (the
+    centre's distance to its farthest vertex) and bounding box lo, hi (M, 3), written in place:
+    what ``geometry.intersecting_face_pairs`` computes with numpy."""
+    for f in range(F.shape[0]):
+        i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
+        for d in range(3):
+            a, b, e = V[i0, d], V[i1, d], V[i2, d]
+            c[f, d] = (a + b + e) / 3.0
+            lo[f, d] = min(a, min(b, e))
+            hi[f, d] = max(a, max(b, e))
+        best = 0.0
+        for i in (i0, i1, i2):
+            d0, d1, d2 = V[i, 0] - c[f, 0], V[i, 1] - c[f, 1], V[i, 2] - c[f, 2]
+            best = max(best, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+        r[f] = best
+
+
+def _cell_entries(cl, ch, dims, sel, keys, owner):
+    """The grid cells of the faces ``sel`` (S,): each face's cells from cl to ch (M, 3) (its
+    bounding box's first and last cell per axis; dims (3,) cells per axis) written as cell keys
+    into ``keys`` and the face into ``owner`` (both (sum of the boxes' cell counts,))."""
+    t = 0
+    for s in range(sel.shape[0]):
+        a = sel[s]
+        for x in range(cl[a, 0], ch[a, 0] + 1):
+            for y in range(cl[a, 1], ch[a, 1] + 1):
+                for z in range(cl[a, 2], ch[a, 2] + 1):
+                    keys[t] = (x * dims[1] + y) * dims[2] + z
+                    owner[t] = a
+                    t += 1
+
+
+SIDE_MARGIN = 1e-9  # _one_side: a face clear of a plane by more than this x its radius (no rounding can cross it)
+
+
+def _one_side(V, F, p, q, rq):
+    """Whether the vertices of face q (radius rq) all lie on one side of face p's plane, farther
+    from it than ``SIDE_MARGIN`` x rq: then no edge of either face crosses the other and the
+    Moller-Trumbore tests (which would say so after rounding) are skipped."""
+    i0, i1, i2 = F[p, 0], F[p, 1], F[p, 2]
+    e10, e11, e12 = V[i1, 0] - V[i0, 0], V[i1, 1] - V[i0, 1], V[i1, 2] - V[i0, 2]
+    e20, e21, e22 = V[i2, 0] - V[i0, 0], V[i2, 1] - V[i0, 1], V[i2, 2] - V[i0, 2]
+    n0, n1, n2 = e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20
+    tol = SIDE_MARGIN * rq * np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    above, below = 0, 0
+    for m in range(3):
+        j = F[q, m]
+        d = n0 * (V[j, 0] - V[i0, 0]) + n1 * (V[j, 1] - V[i0, 1]) + n2 * (V[j, 2] - V[i0, 2])
+        if d > tol:
+            above += 1
+        elif d < -tol:
+            below += 1
+    return above == 3 or below == 3
+
+
+def _crossing_pairs(V, F, c, r, lo, hi, cl, ch, dims, skeys, sowner, selected):
+    """:func:`crossing_pairs`' loop: returns the pairs (P, 2) int64. lo, hi (M, 3) the faces' bounding
+    boxes, cl, ch (M, 3) their first and last cells; skeys, sowner the grid's entries
+    (:func:`_cell_entries`) sorted by key; selected (M,) bool the faces entered. Every face
+    against the entered faces in the cells of its box: a pair is taken in the first cell of the
+    two boxes' overlap only, a pair of two entered faces from its larger face only, and tested
+    when the boxes overlap (:func:`_pair_crosses`)."""
+    table, mask = _cell_table(skeys)
+    out = np.empty((64, 2), np.int64)
+    count = 0
+    for b in range(F.shape[0]):
+        for x in range(cl[b, 0], ch[b, 0] + 1):
+            for y in range(cl[b, 1], ch[b, 1] + 1):
+                for z in range(cl[b, 2], ch[b, 2] + 1):
+                    e0, e1 = _cell_run(table, mask, skeys, (x * dims[1] + y) * dims[2] + z)
+                    for e in range(e0, e1):
+                        a = sowner[e]
+                        if a == b or (selected[b] and b < a):
+                            continue
+                        if (max(cl[a, 0], cl[b, 0]) != x or max(cl[a, 1], cl[b, 1]) != y
+                                or max(cl[a, 2], cl[b, 2]) != z):
+                            continue  # met in another cell too: counted there
+                        if (lo[a, 0] > hi[b, 0] or lo[b, 0] > hi[a, 0] or lo[a, 1] > hi[b, 1]
+                                or lo[b, 1] > hi[a, 1] or lo[a, 2] > hi[b, 2] or lo[b, 2] > hi[a, 2]):
+                            continue
+                        if _pair_crosses(V, F, c, r, a, b):
+                            if count == out.shape[0]:
+                                grown = np.empty((2 * count, 2), np.int64)
+                                grown[:count] = out
+                                out = grown
+                            out[count, 0], out[count, 1] = min(a, b), max(a, b)
+                            count += 1
+    return out[:count]
+
+
+def _cell_table(skeys):
+    """An open-addressing hash table (linear probing, at least twice as many slots as keys) of
+    the runs of equal keys in ``skeys`` (N,) sorted: (table (T,) int64, slot -> the first index of
+    its key's run, -1 where empty; mask T - 1)."""
+    n = skeys.shape[0]
+    size = 1
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, np.int64)
+    for s in range(n):
+        if s > 0 and skeys[s] == skeys[s - 1]:
             continue
-        shared = False
-        for i in range(3):
-            for j in range(3):
-                if F[a, i] == F[b, j]:
-                    shared = True
-        if shared:
-            continue
-        for s in range(2):
-            P, Q = (a, b) if s == 0 else (b, a)
-            t0, t1, t2 = F[Q, 0], F[Q, 1], F[Q, 2]
-            e10, e11, e12 = V[t1, 0] - V[t0, 0], V[t1, 1] - V[t0, 1], V[t1, 2] - V[t0, 2]
-            e20, e21, e22 = V[t2, 0] - V[t0, 0], V[t2, 1] - V[t0, 1], V[t2, 2] - V[t0, 2]
-            for m in range(3):
-                i, j = F[P, m], F[P, (m + 1) % 3]
-                o0, o1, o2 = V[i, 0], V[i, 1], V[i, 2]
-                d0, d1, d2 = V[j, 0] - o0, V[j, 1] - o1, V[j, 2] - o2
-                h0, h1, h2 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22, d0 * e21 - d1 * e20
-                det = e10 * h0 + e11 * h1 + e12 * h2
-                if abs(det) <= 1e-14:
-                    continue
-                inv = 1.0 / det
-                s0, s1, s2 = o0 - V[t0, 0], o1 - V[t0, 1], o2 - V[t0, 2]
-                u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
-                q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
-                v = (d0 * q0 + d1 * q1 + d2 * q2) * inv
-                tt = (e20 * q0 + e21 * q1 + e22 * q2) * inv
-                if u >= 0 and v >= 0 and u + v <= 1 and tt >= 0 and tt <= 1:
-                    hit[k] = True
-                    break
-            if hit[k]:
-                break
+        h = (skeys[s] * 2654435761) & mask
+        while table[h] >= 0:
+            h = (h + 1) & mask
+        table[h] = s
+    return table, mask
+
+
+def _cell_run(table, mask, skeys, k):
+    """The run (lo, hi) of key k in ``skeys`` through :func:`_cell_table`'s table; (0, 0) if absent."""
+    n = skeys.shape[0]
+    h = (k * 2654435761) & mask
+    while table[h] >= 0:
+        lo = table[h]
+        if skeys[lo] == k:
+            hi = lo + 1
+            while hi < n and skeys[hi] == k:
+                hi += 1
+            return lo, hi
+        h = (h + 1) & mask
+    return 0, 0
 
 
 def push_vertices(G, body, normals, nb, clearance, a, q, qn, most, indptr, indices, data, disp):
@@ -565,6 +740,8 @@ def warm() -> None:
     clamp_steps(V.copy(), V, 0.01)
     max_move(V, V)
     close_pairs(V, 1.0, np.zeros(4, np.int64), np.zeros(0, np.int64))
+    crossing_pairs(V, F)
+    crossing_pairs(V, F, among=np.zeros(1, np.int64))
     push_vertices(V32, V32, V32, np.zeros(3, np.int32), np.float32(0.0), np.zeros(1, np.int64), V32[:1], V32[:1], z1,
                   *S, np.zeros((3, 3), np.float32))
 
@@ -638,18 +815,7 @@ def _close_pairs(x, dims, skeys, order, radius, ex_ptr, ex_idx, out):
     its 13 neighbours of larger key, whose runs an open-addressing hash table (linear probing,
     at least twice as many slots as vertices) finds."""
     n = x.shape[0]
-    size = 1
-    while size < 2 * n:
-        size *= 2
-    mask = size - 1
-    table = np.full(size, -1, np.int64)  # slot -> the first index of its cell's run in skeys
-    for s in range(n):
-        if s > 0 and skeys[s] == skeys[s - 1]:
-            continue
-        h = (skeys[s] * 2654435761) & mask
-        while table[h] >= 0:
-            h = (h + 1) & mask
-        table[h] = s
+    table, mask = _cell_table(skeys)  # slot -> the first index of its cell's run in skeys
     r2 = radius * radius
     count = 0
     runs = np.empty((14, 2), np.int64)  # the runs (start, end) of the cell itself and its 13 neighbours
@@ -675,18 +841,10 @@ def _close_pairs(x, dims, skeys, order, radius, ex_ptr, ex_idx, out):
                     cz = cz0 + c
                     if cz < 0 or cz >= dims[2] or (a == 0 and b == 0 and c <= 0):
                         continue
-                    k = (cx * dims[1] + cy) * dims[2] + cz
-                    h = (k * 2654435761) & mask
-                    while table[h] >= 0:
-                        lo = table[h]
-                        if skeys[lo] == k:
-                            hi = lo + 1
-                            while hi < n and skeys[hi] == k:
-                                hi += 1
-                            runs[nr, 0], runs[nr, 1] = lo, hi
-                            nr += 1
-                            break
-                        h = (h + 1) & mask
+                    lo, hi = _cell_run(table, mask, skeys, (cx * dims[1] + cy) * dims[2] + cz)
+                    if hi > lo:
+                        runs[nr, 0], runs[nr, 1] = lo, hi
+                        nr += 1
         for si in range(s0, s1):
             i0 = order[si]
             for r in range(nr + 1):

@@ -248,15 +248,19 @@ def closest_point_on_triangles(p, a, b, c):
 
 
 COMPILED_PAIRS = True  # intersecting_face_pairs: the pair tests in a compiled loop (kernels.faces_cross) where numba is there
+GRID_PAIRS = True  # ...and the candidate pairs from a grid inside that loop (kernels.crossing_pairs), no k-d tree
 
 
 def intersecting_face_pairs(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
     """(K, 2) pairs of faces of one mesh that share no vertex and intersect: an edge of one
     crosses the other (Moller-Trumbore on the candidate pairs whose bounding spheres overlap).
     vertices (V, 3), faces (F, 3) int; ``among`` (S,) face indices: only the pairs with one of
-    them."""
+    them. The same set of pairs whichever path finds them (compiled grid, compiled tests on a
+    k-d tree's candidates, numpy); the compiled grid gives each pair as (a < b), sorted."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
+    if COMPILED_PAIRS and GRID_PAIRS and kernels.AVAILABLE and np.isfinite(V).all():
+        return kernels.crossing_pairs(V, F, among)
     tri = V[F]
     c = tri.mean(1)
     r = np.linalg.norm(tri - c[:, None], axis=2).max(1)
