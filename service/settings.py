@@ -75,7 +75,8 @@ class Settings(BaseSettings):
         validation_alias="TRYON_GARMENT_TIMEOUT",
         gt=0,
         description="Seconds a garment build job (one draped garment carried to every example avatar) "
-        "may run before the worker kills it (then retried).",
+        "may run per size of the garment (a garment in 5 sizes: 5 times this) before the worker kills it "
+        "(then retried).",
     )
     drape: bool = Field(
         default=True,

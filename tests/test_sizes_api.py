@@ -191,7 +191,10 @@ def _build(client: TestClient, r) -> dict:
     assert r.status_code == 202, r.text
     g = r.json()
     assert g["status"] == "building"
-    out = client.app.state.context.garments.run_build(g["id"], lambda f, m: None)
+    garments = client.app.state.context.garments
+    # TRYON_GARMENT_TIMEOUT per size: the graded garment drapes each size on every body
+    assert garments.queue.fetch(g["job"]["id"]).timeout == garments.settings.garment_timeout * len(g["sizes"]) > 0
+    out = garments.run_build(g["id"], lambda f, m: None)
     assert out["status"] == "done", out
     g = client.get(f"/v1/garments/{g['id']}").json()
     assert g["status"] == "ready"

@@ -59,6 +59,12 @@ def build_job_id(gid: str) -> str:
     return f"build-{gid}"
 
 
+def build_timeout(settings: Settings, sizes: int) -> int:
+    """Seconds a garment's build job may run: ``TRYON_GARMENT_TIMEOUT`` per size (a garment in 5
+    sizes drapes 5 garments on every example avatar and population body)."""
+    return settings.garment_timeout * max(1, sizes)
+
+
 class GarmentService(DemoCatalogue):
     def __init__(self, settings: Settings, model: BodyModel, repo: GarmentRepo, bases: BasisStore, queue: JobQueue,
                  limits: Limits, examples: Callable[[], Examples], drapes: DrapeStore):
@@ -444,7 +450,8 @@ class GarmentService(DemoCatalogue):
         self.repo.publish(record, upload)
         try:
             self.queue.enqueue(BUILD_JOB, record.id, job_id=job_id, kind="garment",
-                               timeout=self.settings.garment_timeout, body_model=self.model.version,
+                               timeout=build_timeout(self.settings, len(record.sizes or ())),
+                               body_model=self.model.version,
                                description=f"fit garment {record.id} to the example avatars",
                                meta={"garment_id": record.id, "owner": record.owner})
         except BaseException:

@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
+from service.model.garments.sizing import MAX_SIZES
 from service.settings import Settings
 from service.storage.limits import JobTracker, RateLimiter
 
@@ -93,8 +94,8 @@ class Limits:
     # -- queued jobs (all processes: Redis) ------------------------------------------------------
     def _track_age_s(self) -> float:
         """How long a tracked job counts at most (its retries included)."""
-        return JOB_TRACK_FACTOR * max(self.settings.fit_timeout, self.settings.garment_timeout,
-                                      self.settings.drape_timeout)
+        return JOB_TRACK_FACTOR * max(self.settings.fit_timeout, self.settings.garment_timeout * MAX_SIZES,
+                                      self.settings.drape_timeout)  # a build's timeout is per size
 
     def check_jobs(self) -> None:
         """Before an upload that queues a job is parsed: :class:`TooManyRequests` (429 +
