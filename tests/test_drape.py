@@ -729,6 +729,8 @@ def test_intersecting_face_pairs_compiled_numpy_and_subset(monkeypatch):
         assert len(ref) > 5 and all(o == ref for o in out.values())
         assert all(s == {p for p in ref if p[0] in set(among) or p[1] in set(among)} for s in sub.values())
     assert any(len(F_mixed) - 2 in p for p in ref) and any(len(F_mixed) - 1 in p for p in ref)
+    with pytest.raises(IndexError):  # a face past the vertices is refused on every path, never read
+        geometry.intersecting_face_pairs(V_mixed, np.vstack([F_mixed, [[0, 1, len(V_mixed)]]]))
 
 
 def test_untangle_smooths_out_a_crumple_locally():

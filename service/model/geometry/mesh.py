@@ -259,7 +259,10 @@ def intersecting_face_pairs(vertices: np.ndarray, faces: np.ndarray, among: np.n
     k-d tree's candidates, numpy); the compiled grid gives each pair as (a < b), sorted."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
-    if COMPILED_PAIRS and GRID_PAIRS and kernels.AVAILABLE and np.isfinite(V).all():
+    # the compiled grid reads vertices unchecked: faces that index past them take the numpy
+    # path, which raises IndexError as it always has
+    if (COMPILED_PAIRS and GRID_PAIRS and kernels.AVAILABLE and np.isfinite(V).all()
+            and (not F.size or (F.min() >= 0 and F.max() < len(V)))):
         return kernels.crossing_pairs(V, F, among)
     tri = V[F]
     c = tri.mean(1)
