@@ -491,3 +491,30 @@ def test_grading_keeps_the_gap_to_the_body() -> None:
     far[:, 1] *= 0.5
     far_warped = far * [0.20 / 0.15, 1.0, 0.20 / 0.15]
     assert np.allclose(S.keep_offsets(far, far_warped, body, big, F), far_warped)
+
+
+def test_an_open_section_counts_the_body_it_leaves_bare_at_no_ease() -> None:
+    """A tube with a sixteenth of it cut away along its length (an open back, an open jacket's
+    front: the section leaves 22.5 degrees of the body bare) reads its cloth length alone without
+    the body's girth; with it, the cloth plus a sixteenth of the body's girth (the bare arc at no
+    ease), on either side (away from the +x ray of the even-odd rule, which an open section's cloth
+    must cross to count). A closed tube reads the same either way."""
+    from tests.drape_cases import tube
+
+    V, F = tube(0.15, 0.2, n_around=64, n_height=4)
+    region = S.Region(np.array([0.0, 1.0, 0.0]), 0.125, np.array([0.0, 0.125, 0.0]))
+    body = 2 * np.pi * 0.14
+    full = S.GarmentSections(F, len(V)).girth(V, region)
+    assert S.GarmentSections(F, len(V)).girth(V, region, body_girth=body) == full
+    col = F % 64
+    column = np.where((col == 63).any(axis=1) & (col == 0).any(axis=1), 63, col.min(axis=1))  # each quad's column
+    for start in (12, 28, 44):
+        Fo = F[~np.isin(column, np.arange(start, start + 4) % 64)]
+        sections = S.GarmentSections(Fo, len(V))
+        cloth = sections.girth(V, region)
+        assert cloth == pytest.approx(full * 60 / 64, rel=1e-6), start
+        assert sections.girth(V, region, body_girth=body) == pytest.approx(cloth + body / 16, rel=1e-6), start
+    # a garment's girths on a body's regions add the share of that body's girth
+    regions = {r: S.Region(region.normal, region.offset, region.centre, body_girth=body) for r in S.GIRTH_REGIONS}
+    G = S.garment_girths(sections, V, regions)
+    assert G == pytest.approx(np.full(len(S.GIRTH_REGIONS), 100 * (cloth + body / 16)), rel=1e-6)

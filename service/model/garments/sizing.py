@@ -436,7 +436,8 @@ class GarmentSections:
         fkey = fe[..., 0] * n_vertices + fe[..., 1]
         self.face_edges = order[np.searchsorted(key, fkey, sorter=order)]  # (F, 3) edge ids
 
-    def girth(self, V: np.ndarray, region: Region, closed: bool = False, tape: bool = False) -> float | None:
+    def girth(self, V: np.ndarray, region: Region, closed: bool = False, tape: bool = False,
+              body_girth: float = 0.0) -> float | None:
         """The cloth's length (metres) along the plane section of the garment V (M, 3) that
         encloses the region's centre (the innermost such loop), or None when no section of
         the garment goes all around it there (or one also encloses a point of ``region.exclude``).
@@ -444,7 +445,11 @@ class GarmentSections:
         without meeting) unless ``closed`` (a garment closed all around: see :func:`_closed`).
         ``tape``: instead of the cloth's length along that loop, the perimeter of its convex
         hull, as a tape laid around the garment on a body reads it (a draped garment's folds
-        and wrinkles add cloth length along the section, not girth)."""
+        and wrinkles add cloth length along the section, not girth). ``body_girth`` (metres,
+        the body's girth there): an open chain that leaves a share of the body bare
+        (:func:`_bare_share`) adds that share of the body's girth, the bare arc counted at no
+        ease, so that an open garment's ease is its cloth against the part of the body it covers
+        (its cloth length alone read an open-backed top 11 cm tight on the body it was made for)."""
         V = np.asarray(V, np.float64)
         e = self.edges
         s = V @ region.normal - region.offset
@@ -484,6 +489,8 @@ class GarmentSections:
             if x2 is not None and any(_encloses(a, b, x) for x in x2):
                 continue
             length = float(seglen[m].sum())
+            if body_girth and (deg[lab == c] == 1).any():
+                length += body_girth * _bare_share(inv[m], p2, c2)
             if best is None or length < best[0]:
                 best = (length, c)
         if best is None:
@@ -504,6 +511,31 @@ def _closed(ends: np.ndarray) -> bool:
     d = np.linalg.norm(ends[:, None] - ends[None], axis=2)
     np.fill_diagonal(d, np.inf)
     return bool((d.min(axis=1) <= SECTION_SEAM_GAP_M).all())
+
+
+def _bare_share(segments: np.ndarray, points: np.ndarray, p: np.ndarray) -> float:
+    """The share of a full turn about p (2,) that an open chain of section ``segments`` (S, 2)
+    (indices into ``points`` (N, 2)), walked from one open end to the other, falls short of: the
+    share of the body it leaves bare (an open jacket's front, a V-neck at the shoulders, a racer
+    back). 0 where it turns a full turn or more (the overlapping fronts of a buttoned shirt) and
+    for a chain that branches (a non-manifold seam, taken as it is)."""
+    nbr: dict[int, list[int]] = {}
+    for i, j in segments.tolist():
+        nbr.setdefault(i, []).append(j)
+        nbr.setdefault(j, []).append(i)
+    if any(len(v) > 2 for v in nbr.values()):
+        return 0.0
+    node = next(k for k, v in nbr.items() if len(v) == 1)
+    order, prev = [node], -1
+    while len(order) <= len(nbr):
+        nxt = [k for k in nbr[node] if k != prev]
+        if not nxt:
+            break
+        prev, node = node, nxt[0]
+        order.append(node)
+    ang = np.arctan2(points[order, 1] - p[1], points[order, 0] - p[0])
+    turn = abs(float(np.angle(np.exp(1j * np.diff(ang))).sum()))  # each step's angle wrapped to (-pi, pi]
+    return max(0.0, 1.0 - turn / (2.0 * np.pi))
 
 
 def _encloses(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> bool:
@@ -530,7 +562,7 @@ def garment_girths(sections: GarmentSections, rest: np.ndarray, regions: dict[st
     ``tape``: :meth:`GarmentSections.girth`)."""
     out = np.full(len(GIRTH_REGIONS), np.nan)
     for i, r in enumerate(GIRTH_REGIONS):
-        g = sections.girth(rest, regions[r], closed, tape)
+        g = sections.girth(rest, regions[r], closed, tape, 0.0 if tape else regions[r].body_girth)
         if g is not None:
             out[i] = 100.0 * g
     return out
