@@ -518,3 +518,33 @@ def test_an_open_section_counts_the_body_it_leaves_bare_at_no_ease() -> None:
     regions = {r: S.Region(region.normal, region.offset, region.centre, body_girth=body) for r in S.GIRTH_REGIONS}
     G = S.garment_girths(sections, V, regions)
     assert G == pytest.approx(np.full(len(S.GIRTH_REGIONS), 100 * (cloth + body / 16)), rel=1e-6)
+
+
+def test_a_charted_region_the_garment_lacks_is_ranked_by_the_chart() -> None:
+    """Sizes S, M, L of a waist chart on a garment with no section at the waist (low-rise
+    trousers; dungarees' bib on a chest chart): the chart's own waists rank the sizes there, so
+    a customer whose waist is L's gets L, whatever the hips' ease says (which would pick S for a
+    narrow-hipped one); without the chart's values (a record of no chart) the regions the
+    garment has rank them as before; a size tight somewhere still cannot be picked."""
+    R = len(S.REGIONS)
+    wi, hi = S.REGIONS.index("waist"), S.REGIONS.index("hip")
+    G = np.full((3, R), np.nan)
+    G[:, hi] = [96.0, 102.0, 108.0]
+    design = np.full(R, np.nan)
+    design[hi] = 6.0
+    body_cm = np.full(R, np.nan)
+    body_cm[wi], body_cm[hi] = 85.0, 90.0  # L's waist, S's hips
+    fit = S.size_fit(["S", "M", "L"], G, 1, G[1] - design, "stretch", ["waist_cm"])
+    assert S.fit_report(fit, body_cm).recommended == 0
+    fit.chart_cm = S.chart_girths([{"waist_cm": 73.0}, {"waist_cm": 79.0}, {"waist_cm": 85.0}])
+    assert np.isfinite(fit.chart_cm[:, wi]).all() and np.isnan(np.delete(fit.chart_cm, wi, axis=1)).all()
+    assert S.fit_report(fit, body_cm).recommended == 2
+    assert S.fit_report(fit, np.where(np.arange(R) == wi, 78.0, body_cm)).recommended == 1
+    # a chart of the hip too, where the garment has a section: both count
+    fit.key = np.isin(S.REGIONS, ["waist", "hip"])
+    assert S.fit_report(fit, np.where(np.arange(R) == wi, 79.0, body_cm)).recommended in (0, 1)
+    # L tight at the hips (a woven garment 6 cm under the body there): M
+    fit = S.size_fit(["S", "M", "L"], np.where(np.arange(R) == hi, [[96.0], [102.0], [84.0]], G), 1, G[1] - design,
+                     "woven", ["waist_cm"])
+    fit.chart_cm = S.chart_girths([{"waist_cm": 73.0}, {"waist_cm": 79.0}, {"waist_cm": 85.0}])
+    assert S.fit_report(fit, body_cm).recommended == 1

@@ -371,3 +371,27 @@ def test_demo_garment_in_sizes(demo_client: TestClient) -> None:
     assert [s["label"] for s in client.get(f"/v1/garments/{one[0]}").json()["sizes"]] == ["one size"]
     again = garments.ensure_demo()  # the catalogue defines 5 sizes again: rebuilt in sizes
     assert again != one and len(client.get(f"/v1/garments/{again[0]}").json()["sizes"]) == 5
+
+
+def test_a_chart_region_the_garment_does_not_reach_is_ranked_by_the_chart(client: TestClient) -> None:
+    """The MakeHuman sports suit (a cropped top and low-rise trousers: no section of it goes
+    around the waist) sized by a waist chart: a woman whose waist is the largest size's and
+    whose hips are narrow gets the largest size (the chart's waists rank the sizes where the
+    garment has no waist; by its other regions alone she got S)."""
+    suit = shared_data_dir() / "makehuman_clothes" / "female_sportsuit01"
+    if not suit.is_dir():
+        pytest.skip(f"MakeHuman garment not found at {suit}")
+    chart = {"S": {"waist_cm": 73.0}, "M": {"waist_cm": 79.0}, "L": {"waist_cm": 85.0}, "XL": {"waist_cm": 91.0}}
+    files = [("mhclo", ("s.mhclo", (suit / "female_sportsuit01.mhclo").read_bytes(), "text/plain")),
+             ("obj", ("s.obj", (suit / "female_sportsuit01.obj").read_bytes(), "model/obj"))]
+    r = client.post("/v1/garments", data={"name": "Sports suit by waist", "size_chart": json.dumps(chart),
+                                          "base_size": "M", "fabric": "stretch", "gender": "female"},
+                    files=files, headers=KEY)
+    g = _build(client, r) if r.status_code == 202 else r.json()
+    r = client.post("/v1/customers", json={"measurements": {"gender": "female", "height_cm": 157, "chest_cm": 89.4,
+                                                            "waist_cm": 90.0, "hip_cm": 96.0}})
+    assert r.status_code == 201, r.text
+    auth = {"Authorization": f"Bearer {r.json()['token']}"}
+    rep = client.get(f"/v1/customers/{r.json()['id']}/garments/{g['id']}/fit", headers=auth).json()
+    assert "waist" not in {x["region"] for x in rep["sizes"][0]["regions"]}, rep
+    assert rep["recommended"] == "XL", rep

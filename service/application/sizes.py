@@ -129,11 +129,15 @@ def per_size_fits(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np.nda
 
 
 def garment_fit(model, record: Garment, basis: Any) -> S.SizeFit:
-    """A garment's :class:`~service.model.sizing.SizeFit`: stored at its build; for a garment
-    built before sizes, measured on its basis's mean garment on the mean avatar (its one size,
+    """A garment's :class:`~service.model.sizing.SizeFit`: stored at its build, with its chart's
+    measurements from the record (``chart_cm``: they rank the sizes where the garment has no
+    section at a region the chart gives); for a garment built before sizes, measured on its basis's mean garment on the mean avatar (its one size,
     its design ease there; once per basis etag)."""
     if record.fit:
-        return S.SizeFit.from_meta(record.fit)
+        fit = S.SizeFit.from_meta(record.fit)
+        if record.sizes and len(record.sizes) == len(fit.labels):
+            fit.chart_cm = S.chart_girths([sz.measurements for sz in record.sizes])
+        return fit
     key = (record.id, basis.etag() or record.etag)
     hit = _legacy_fits.get(key)
     if hit is None:

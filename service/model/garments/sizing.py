@@ -582,6 +582,9 @@ class SizeFit:
     design_body_cm: np.ndarray
     fabric: str
     key: np.ndarray | None = None  # (R,) bool: the regions the chart sizes (None: all)
+    # (S, R) cm: the chart's own measurement of each size at each girth region it gives (NaN
+    # elsewhere; :func:`chart_girths`), from the garment's record (not stored in ``to_meta``)
+    chart_cm: np.ndarray | None = None
 
     def to_meta(self) -> dict:
         nan = lambda a: [None if not np.isfinite(x) else round(float(x), 3) for x in a]  # noqa: E731
@@ -616,6 +619,20 @@ def size_fit(labels: list[str], garment_cm: np.ndarray, base: int, base_body_cm:
                     for r in REGIONS])
     return SizeFit(list(labels), G, G[base] - base_body_cm, np.asarray(base_body_cm, np.float64), fabric,
                    key if key.any() else None)
+
+
+def chart_girths(measurements: list[dict[str, float]]) -> np.ndarray:
+    """(S, R) cm: each size's chart measurements (``measurements``, one dict per size in chart
+    order, API names) at the girth regions of ``REGIONS`` (:data:`REGION_MEASUREMENT`); NaN where
+    the chart gives none."""
+    out = np.full((len(measurements), len(REGIONS)), np.nan)
+    for i, r in enumerate(REGIONS):
+        name = REGION_MEASUREMENT.get(r)
+        if r in GIRTH_REGIONS and name is not None:
+            for s, m in enumerate(measurements):
+                if m.get(name) is not None:
+                    out[s, i] = float(m[name])
+    return out
 
 
 def verdicts(ease_cm: np.ndarray, body_cm: np.ndarray, design_cm: np.ndarray, fabric: str) -> np.ndarray:
@@ -702,7 +719,16 @@ def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
     chooses = _CHOOSES & charted
     votes = present & (_IS_GIRTH | chooses)  # the hem neither rules out nor ranks sizes
     key = votes if fit.key is None else votes & fit.key
-    if not key.any():
+    # a girth the chart sizes but the garment has no section at (a waist chart for low-rise
+    # trousers, a chest chart for dungarees whose bib does not go around): there the chart
+    # itself ranks the sizes, by how far each size's chart measurement is from the body's
+    by_chart = None
+    if fit.key is not None and fit.chart_cm is not None:
+        absent = np.asarray(fit.key, bool) & _IS_GIRTH & ~present & np.isfinite(body_cm) & \
+            np.isfinite(fit.chart_cm).all(axis=0)
+        if absent.any():
+            by_chart = np.abs(fit.chart_cm[:, absent] - body_cm[absent]).sum(axis=1)
+    if not key.any() and by_chart is None:
         key = votes
     # the recommendation's verdicts: a short sleeve or inseam rules a size out like a tight
     # girth, unless it is short in every size (no size mends it: the report says so, the
@@ -710,7 +736,7 @@ def fit_report(fit: SizeFit, body_cm: np.ndarray) -> FitReport:
     choose = v.copy()
     choose[:, length & ((v < 2).all(axis=0) | ~chooses)] = 2
     return FitReport(fit.labels, ease, strain, v, size_v, present,
-                     recommend(ease[:, present], fit.design_cm[present], choose[:, present], key[present]))
+                     recommend(ease[:, present], fit.design_cm[present], choose[:, present], key[present], by_chart))
 
 
 _IS_GIRTH = np.array([r in GIRTH_REGIONS for r in REGIONS])
@@ -724,18 +750,23 @@ def _size_verdict(v: np.ndarray) -> int:
     return int(v.min()) if v.min() < 2 else int(v.max())
 
 
-def recommend(ease_cm: np.ndarray, design_cm: np.ndarray, verdict: np.ndarray, key: np.ndarray | None = None) -> int:
+def recommend(ease_cm: np.ndarray, design_cm: np.ndarray, verdict: np.ndarray, key: np.ndarray | None = None,
+              by_chart: np.ndarray | None = None) -> int:
     """The size a tailor would pick: of the sizes with no region ``tight`` or ``too_tight``
     (verdict (S, R)), the one whose ease (S, R) is closest to the design ease (R,) (summed
-    absolute difference over the ``key`` regions (R,) bool, those the chart sizes; None: all);
-    if every size is tight somewhere, the loosest (largest total ease)."""
-    if ease_cm.shape[1] == 0:
+    absolute difference over the ``key`` regions (R,) bool, those the chart sizes; None: all;
+    plus ``by_chart`` (S,) cm, how far each size's chart is from the body where the garment has
+    no section at a region the chart sizes); if every size is tight somewhere, the loosest
+    (largest total ease)."""
+    if ease_cm.shape[1] == 0 and by_chart is None:
         return 0
     ok = (verdict >= 2).all(axis=1)
     if not ok.any():
         return int(np.argmax(ease_cm.sum(axis=1)))
     k = np.ones(ease_cm.shape[1], bool) if key is None else np.asarray(key, bool)
     dist = np.abs(ease_cm - design_cm)[:, k].sum(axis=1)
+    if by_chart is not None:
+        dist = dist + by_chart
     dist[~ok] = np.inf
     return int(np.argmin(dist))
 
