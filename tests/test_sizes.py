@@ -497,8 +497,8 @@ def test_an_open_section_counts_the_body_it_leaves_bare_at_no_ease() -> None:
     """A tube with a sixteenth of it cut away along its length (an open back, an open jacket's
     front: the section leaves 22.5 degrees of the body bare) reads its cloth length alone without
     the body's girth; with it, the cloth plus a sixteenth of the body's girth (the bare arc at no
-    ease), on either side (away from the +x ray of the even-odd rule, which an open section's cloth
-    must cross to count). A closed tube reads the same either way."""
+    ease), whichever side the opening faces (the even-odd rule, which a loop's section is read
+    by, found no girth with the opening on its ray). A closed tube reads the same either way."""
     from tests.drape_cases import tube
 
     V, F = tube(0.15, 0.2, n_around=64, n_height=4)
@@ -508,7 +508,7 @@ def test_an_open_section_counts_the_body_it_leaves_bare_at_no_ease() -> None:
     assert S.GarmentSections(F, len(V)).girth(V, region, body_girth=body) == full
     col = F % 64
     column = np.where((col == 63).any(axis=1) & (col == 0).any(axis=1), 63, col.min(axis=1))  # each quad's column
-    for start in (12, 28, 44):
+    for start in (0, 12, 28, 44, 62):
         Fo = F[~np.isin(column, np.arange(start, start + 4) % 64)]
         sections = S.GarmentSections(Fo, len(V))
         cloth = sections.girth(V, region)
@@ -548,3 +548,23 @@ def test_a_charted_region_the_garment_lacks_is_ranked_by_the_chart() -> None:
                      "woven", ["waist_cm"])
     fit.chart_cm = S.chart_girths([{"waist_cm": 73.0}, {"waist_cm": 79.0}, {"waist_cm": 85.0}])
     assert S.fit_report(fit, body_cm).recommended == 1
+
+
+def test_overlapping_fronts_go_around_whichever_way_they_face() -> None:
+    """A wrap of cloth that goes 1.1 times around (a buttoned shirt's overlapping fronts, a
+    spiral widening by 5 % so the fronts lie one over the other) reads its whole cloth length
+    as its girth, with no bare share, whichever way the overlap faces: the even-odd rule's ray
+    through the overlap crosses the cloth twice and found no girth there."""
+    n, r0 = 72, 0.15
+    for start in (0.3, -0.3, 2.0):
+        th = start + np.linspace(0.0, 2.2 * np.pi, n)
+        rad = r0 * (1.0 + 0.05 * np.linspace(0.0, 1.0, n))
+        ring = np.stack([rad * np.cos(th), np.zeros(n), rad * np.sin(th)], 1)
+        V = np.concatenate([ring + [0.0, y, 0.0] for y in (0.0, 0.1, 0.2)])
+        F = np.array([f for k in range(2) for j in range(n - 1) for f in (
+            (k * n + j, (k + 1) * n + j, k * n + j + 1), (k * n + j + 1, (k + 1) * n + j, (k + 1) * n + j + 1))])
+        region = S.Region(np.array([0.0, 1.0, 0.0]), 0.05, np.array([0.0, 0.05, 0.0]))
+        cloth = float(np.linalg.norm(np.diff(ring, axis=0), axis=1).sum())
+        sections = S.GarmentSections(F, len(V))
+        assert sections.girth(V, region) == pytest.approx(cloth, rel=1e-6), start
+        assert sections.girth(V, region, body_girth=2 * np.pi * 0.14) == pytest.approx(cloth, rel=1e-6), start

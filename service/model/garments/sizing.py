@@ -447,7 +447,7 @@ class GarmentSections:
         hull, as a tape laid around the garment on a body reads it (a draped garment's folds
         and wrinkles add cloth length along the section, not girth). ``body_girth`` (metres,
         the body's girth there): an open chain that leaves a share of the body bare
-        (:func:`_bare_share`) adds that share of the body's girth, the bare arc counted at no
+        (:func:`_turn` short of a full turn) adds that share of the body's girth, the bare arc counted at no
         ease, so that an open garment's ease is its cloth against the part of the body it covers
         (its cloth length alone read an open-backed top 11 cm tight on the body it was made for)."""
         V = np.asarray(V, np.float64)
@@ -484,13 +484,20 @@ class GarmentSections:
             a, b = p2[inv[m, 0]], p2[inv[m, 1]]
             if closed and not _closed(P[ids[(lab == c) & (deg == 1)]]):
                 continue
-            if not _encloses(a, b, c2) or not _covers(p2[lab == c], c2):
+            # an open chain (a shirt's fronts, an open back) goes around a point when it turns
+            # about it by half a turn or more, walked end to end; a loop (or a chain that
+            # branches) by the even-odd rule, which for an open chain would depend on where
+            # its ray leaves it (through an opening: outside; through overlapping fronts: twice)
+            order = _chain_order(inv[m]) if (deg[lab == c] == 1).any() else None
+            around = (lambda x: _encloses(a, b, x)) if order is None else \
+                (lambda x: _turn(p2[order], x) >= np.pi)  # noqa: E731
+            if not around(c2) or not _covers(p2[lab == c], c2):
                 continue
-            if x2 is not None and any(_encloses(a, b, x) for x in x2):
+            if x2 is not None and any(around(x) for x in x2):
                 continue
             length = float(seglen[m].sum())
-            if body_girth and (deg[lab == c] == 1).any():
-                length += body_girth * _bare_share(inv[m], p2, c2)
+            if body_girth and order is not None:
+                length += body_girth * max(0.0, 1.0 - _turn(p2[order], c2) / (2.0 * np.pi))
             if best is None or length < best[0]:
                 best = (length, c)
         if best is None:
@@ -513,18 +520,15 @@ def _closed(ends: np.ndarray) -> bool:
     return bool((d.min(axis=1) <= SECTION_SEAM_GAP_M).all())
 
 
-def _bare_share(segments: np.ndarray, points: np.ndarray, p: np.ndarray) -> float:
-    """The share of a full turn about p (2,) that an open chain of section ``segments`` (S, 2)
-    (indices into ``points`` (N, 2)), walked from one open end to the other, falls short of: the
-    share of the body it leaves bare (an open jacket's front, a V-neck at the shoulders, a racer
-    back). 0 where it turns a full turn or more (the overlapping fronts of a buttoned shirt) and
-    for a chain that branches (a non-manifold seam, taken as it is)."""
+def _chain_order(segments: np.ndarray) -> np.ndarray | None:
+    """The nodes of an open chain of section ``segments`` (S, 2) in order from one open end to
+    the other; None for a chain that branches (a non-manifold seam)."""
     nbr: dict[int, list[int]] = {}
     for i, j in segments.tolist():
         nbr.setdefault(i, []).append(j)
         nbr.setdefault(j, []).append(i)
     if any(len(v) > 2 for v in nbr.values()):
-        return 0.0
+        return None
     node = next(k for k, v in nbr.items() if len(v) == 1)
     order, prev = [node], -1
     while len(order) <= len(nbr):
@@ -533,9 +537,16 @@ def _bare_share(segments: np.ndarray, points: np.ndarray, p: np.ndarray) -> floa
             break
         prev, node = node, nxt[0]
         order.append(node)
-    ang = np.arctan2(points[order, 1] - p[1], points[order, 0] - p[0])
-    turn = abs(float(np.angle(np.exp(1j * np.diff(ang))).sum()))  # each step's angle wrapped to (-pi, pi]
-    return max(0.0, 1.0 - turn / (2.0 * np.pi))
+    return np.array(order)
+
+
+def _turn(points: np.ndarray, p: np.ndarray) -> float:
+    """How far (radians, >= 0) a polyline of points (K, 2), walked in order, turns about p (2,):
+    a full turn (2 pi) around it, more where its ends overlap (a buttoned shirt's fronts), less
+    by the share of the way around that it leaves open (an open jacket's front, a V-neck at the
+    shoulders, a cropped back): that share of the body is bare."""
+    ang = np.arctan2(points[:, 1] - p[1], points[:, 0] - p[0])
+    return abs(float(np.angle(np.exp(1j * np.diff(ang))).sum()))  # each step's angle wrapped to (-pi, pi]
 
 
 def _encloses(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> bool:
