@@ -568,3 +568,20 @@ def test_overlapping_fronts_go_around_whichever_way_they_face() -> None:
         sections = S.GarmentSections(F, len(V))
         assert sections.girth(V, region) == pytest.approx(cloth, rel=1e-6), start
         assert sections.girth(V, region, body_girth=2 * np.pi * 0.14) == pytest.approx(cloth, rel=1e-6), start
+
+
+def test_a_coarse_loop_around_an_off_centre_point_is_a_girth() -> None:
+    """A loop of cloth with few vertices around (a trouser hem of 8, the leg standing off its
+    centre) goes all around a point inside it: its girth, though its crossing points leave
+    sectors around that point empty (read as no loop before, which cut the trousers' inseam
+    short where their hem is coarse). Slit open, the same sparse chain is no girth."""
+    from tests.drape_cases import tube
+
+    V, F = tube(0.1, 0.2, n_around=8, n_height=2)
+    region = S.Region(np.array([0.0, 1.0, 0.0]), 0.05, np.array([0.06, 0.05, 0.0]))
+    ring = V[:8] * [1.0, 0.0, 1.0]
+    octagon = float(np.linalg.norm(ring - np.roll(ring, 1, axis=0), axis=1).sum())
+    assert S.GarmentSections(F, len(V)).girth(V, region) == pytest.approx(octagon, rel=1e-9)
+    col = F % 8
+    slit = (col == 7).any(axis=1) & (col == 0).any(axis=1)
+    assert S.GarmentSections(F[~slit], len(V)).girth(V, region) is None

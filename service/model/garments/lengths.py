@@ -54,7 +54,7 @@ INSEAM_MIN_SHIN = 0.75
 # plane scan step (m) and bisection steps after it: 2 cm / 2**4 = 1.25 mm resolution
 SCAN_STEP_M = 0.02
 REFINE_STEPS = 4
-# a section may miss a loop at an odd plane (one through a vertex, a coarse tube whose few
+# a section may miss a loop at an odd plane (one through a vertex, an open chain whose few
 # crossing points leave a sector of ``sizing.COVER_SECTORS`` empty): the scan goes on over
 # misses up to this long (m) before it calls the garment ended
 MAX_GAP_M = 0.07

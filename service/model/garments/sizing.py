@@ -72,8 +72,9 @@ THIGH_DROP_M = 0.04
 # recommendation's design-ease distance is taken at those regions, as a tailor reads a chart)
 REGION_MEASUREMENT = {"chest": "chest_cm", "waist": "waist_cm", "hip": "hip_cm", "thigh": "thigh_cm",
                       "sleeve": "arm_length_cm", "inseam": "inseam_cm"}
-# the garment section around a region must cover every one of these angular sectors around the
-# body section's centre (the garment goes all around there), else it has no such region
+# an open garment section around a region must cover every one of these angular sectors around
+# the body section's centre (the garment goes all around there), else it has no such region (a
+# closed loop around the centre goes all around it, however few its points)
 COVER_SECTORS = 12
 # metres: a section's open ends this close to one another are the two sides of a seam (the loop
 # goes on); farther apart, the section leaves the cloth there (a hem, a cuff) and is not a girth
@@ -488,10 +489,14 @@ class GarmentSections:
             # about it by half a turn or more, walked end to end; a loop (or a chain that
             # branches) by the even-odd rule, which for an open chain would depend on where
             # its ray leaves it (through an opening: outside; through overlapping fronts: twice)
-            order = _chain_order(inv[m]) if (deg[lab == c] == 1).any() else None
+            opened = bool((deg[lab == c] == 1).any())
+            order = _chain_order(inv[m]) if opened else None
             around = (lambda x: _encloses(a, b, x)) if order is None else \
                 (lambda x: _turn(p2[order], x) >= np.pi)  # noqa: E731
-            if not around(c2) or not _covers(p2[lab == c], c2):
+            # a loop around the centre goes all around it; an open chain must also leave no
+            # sector of it bare (a coarse trouser hem's loop, a few points around a leg that
+            # stands off its centre, left sectors empty and was read as no loop)
+            if not around(c2) or (opened and not _covers(p2[lab == c], c2)):
                 continue
             if x2 is not None and any(around(x) for x in x2):
                 continue
