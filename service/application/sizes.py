@@ -131,8 +131,9 @@ def per_size_fits(model, rests: np.ndarray, faces: np.ndarray, bodies_on: np.nda
 def garment_fit(model, record: Garment, basis: Any) -> S.SizeFit:
     """A garment's :class:`~service.model.sizing.SizeFit`: stored at its build, with its chart's
     measurements from the record (``chart_cm``: they rank the sizes where the garment has no
-    section at a region the chart gives); for a garment built before sizes, measured on its basis's mean garment on the mean avatar (its one size,
-    its design ease there; once per basis etag)."""
+    section at a region the chart gives); for a garment built before sizes, measured on its
+    basis's mean garment on the mean avatar (its one size, its design ease there; once per
+    basis etag)."""
     if record.fit:
         fit = S.SizeFit.from_meta(record.fit)
         if record.sizes and len(record.sizes) == len(fit.labels):

@@ -447,10 +447,11 @@ class GarmentSections:
         ``tape``: instead of the cloth's length along that loop, the perimeter of its convex
         hull, as a tape laid around the garment on a body reads it (a draped garment's folds
         and wrinkles add cloth length along the section, not girth). ``body_girth`` (metres,
-        the body's girth there): an open chain that leaves a share of the body bare
-        (:func:`_turn` short of a full turn) adds that share of the body's girth, the bare arc counted at no
-        ease, so that an open garment's ease is its cloth against the part of the body it covers
-        (its cloth length alone read an open-backed top 11 cm tight on the body it was made for)."""
+        the body's girth there): an open chain that leaves a share of the body bare (it turns
+        about the centre by that much less than a full turn, :func:`_turn`) adds that share of
+        the body's girth, the bare arc counted at no ease, so that an open garment's ease is its
+        cloth against the part of the body it covers (its cloth length alone read an open-backed
+        top 11 cm tight on the body it was made for)."""
         V = np.asarray(V, np.float64)
         e = self.edges
         s = V @ region.normal - region.offset
@@ -501,7 +502,7 @@ class GarmentSections:
             if x2 is not None and any(around(x) for x in x2):
                 continue
             length = float(seglen[m].sum())
-            if body_girth and order is not None:
+            if body_girth and order is not None:  # the bare share at no ease
                 length += body_girth * max(0.0, 1.0 - _turn(p2[order], c2) / (2.0 * np.pi))
             if best is None or length < best[0]:
                 best = (length, c)
