@@ -246,8 +246,8 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
                 mono_tot += int(mono.size)
     # the issue's own reading: people whose chart measurements all fall in one size, on a chart
     # of the standard's chest and waist intervals (the letter codes give both; no hip)
-    cw_dict = {lb: {"chest_cm": v["chest_cm"], "waist_cm": S.en13402_chart("waist_cm")[lb]["waist_cm"]}
-               for lb, v in chart_dict.items()}
+    waists = S.en13402_chart("waist_cm")
+    cw_dict = {lb: {"chest_cm": v["chest_cm"], "waist_cm": waists[lb]["waist_cm"]} for lb, v in chart_dict.items()}
     _, cw_garments, _ = _graded(model, items, cw_dict)
     cw_hit, cw_tot, cw_people, cw_misses = 0, 0, 0, []
     for p in people:

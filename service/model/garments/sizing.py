@@ -494,16 +494,17 @@ class GarmentSections:
             order = _chain_order(inv[m]) if opened else None
             around = (lambda x: _encloses(a, b, x)) if order is None else \
                 (lambda x: _turn(p2[order], x) >= np.pi)  # noqa: E731
+            turn = 2.0 * np.pi if order is None else _turn(p2[order], c2)
             # a loop around the centre goes all around it; an open chain must also leave no
             # sector of it bare (a coarse trouser hem's loop, a few points around a leg that
             # stands off its centre, left sectors empty and was read as no loop)
-            if not around(c2) or (opened and not _covers(p2[lab == c], c2)):
+            if turn < np.pi or (order is None and not around(c2)) or (opened and not _covers(p2[lab == c], c2)):
                 continue
             if x2 is not None and any(around(x) for x in x2):
                 continue
             length = float(seglen[m].sum())
-            if body_girth and order is not None:  # the bare share at no ease
-                length += body_girth * max(0.0, 1.0 - _turn(p2[order], c2) / (2.0 * np.pi))
+            if body_girth:  # the bare share at no ease (none for a loop)
+                length += body_girth * max(0.0, 1.0 - turn / (2.0 * np.pi))
             if best is None or length < best[0]:
                 best = (length, c)
         if best is None:
