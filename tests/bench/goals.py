@@ -112,6 +112,8 @@ GOALS: dict[str, tuple[Goal, ...]] = {
              100.0, "issue 44"),
         Goal("held-out ANSUR II people in one size: that size recommended", "ansur_heldout/share", ">=", 95.0, "%",
              100.0, "issue 44; retailers' size charts (True Fit / Fit Analytics publish no figure)"),
+        Goal("held-out people in one size by chest, waist and hip, every catalogue garment: that size recommended",
+             "ansur_heldout_catalogue/share", ">=", 95.0, "%", 100.0, "issue 44 (its wording: chest, waist and hip all in one size)"),
         Goal("monotonic: ease grows, strain falls with size", "monotonic/share", ">=", 100.0, "%", 100.0, "issue 44"),
         Goal("fit report per garment, in process", "timings/fit_report_ms", "<=", 5.0, "ms", 1.0, "issue 44"),
         Goal("try-on of one size, in process", "timings/one_size_try_on_ms", "<=", 2.0, "ms", 1.0,

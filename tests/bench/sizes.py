@@ -13,6 +13,10 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
   the same tops graded to a chart of the standard's chest and waist interval middles (the letter
   codes give no hip), held-out people whose chest and waist both fall in one size's intervals
   (no goal);
+- the issue's reading on every catalogue garment with a chart (14: tops, whole-body garments and
+  bottoms, each in its demo fabric): graded to a chart of chest (bust), waist and hip (bottoms:
+  waist and hip), held-out people of its gender whose charted measurements all fall in one size
+  (``catalogue_heldout``; goal >= 95 % as the row above);
 - monotonic: at every girth region of every (person, garment), ease grows and strain falls with size;
 - timings in process: the fit report of one garment, the customer's girths (once per body),
   grading, one size's example fits (the build's unit of work), the try-on of one size, and of
@@ -54,6 +58,7 @@ from tests.bench.common import median_ms, read_ansur, surface_distances
 from tests.drape_cases import subdivide
 
 TEN_K_GARMENT = "mens-tshirt"  # one of GARMENTS whose smallest size subdivided twice has ~10k vertices (12,4xx)
+CATALOGUE_PEOPLE = 40  # held-out people per catalogue garment whose chest, waist and hip fall in one size
 TEN_K_PEOPLE = 8  # held-out people of its gender it is tried on, smallest to largest chest
 
 
@@ -152,16 +157,16 @@ def _size_of(chest: float) -> str | None:
     return None
 
 
-def _graded(model, items: dict, chart_dict: dict) -> tuple[Chart, dict, list[float]]:
-    """``GARMENTS`` graded to ``chart_dict`` (base size M) from the mean avatar as the service
-    grades an upload: the chart, {garment id: gender, fit (girths per size), bodies, rests,
-    faces, on}, and each garment's grading seconds."""
+def _graded(model, items: dict, chart_dict: dict, which=GARMENTS) -> tuple[Chart, dict, list[float]]:
+    """Garments ``which`` ((id, gender, fabric), default ``GARMENTS``) graded to ``chart_dict``
+    (base size M) from the mean avatar as the service grades an upload: the chart, {garment id:
+    gender, fit (girths per size), bodies, rests, faces, on}, and each garment's grading seconds."""
     sizes, base = S.validate_chart(chart_dict, "M")
     chart = Chart(sizes, base, "knit")
     names = list(chart_dict[chart.labels[0]])
     src = np.asarray(model.mean, np.float64)
     garments, t_grade = {}, []
-    for gid, gender, fabric in GARMENTS:
+    for gid, gender, fabric in which:
         item = items[gid]
         faces = np.asarray(item.faces, np.int64)
         g0 = item.binding.fit(src)
@@ -183,6 +188,74 @@ def _size_of_both(chest: float, waist: float) -> str | None:
         return None
     lo, hi = S.EN13402_3_LETTER_WAIST_CM[label]
     return label if lo <= waist < hi else None
+
+
+def _hip_intervals(middles: tuple[float, ...]) -> list[tuple[float, float]]:
+    """Intervals around a chart's hip middles (cm): bounded halfway to the neighbours, the end
+    sizes as wide on their open side as on the other."""
+    mid = np.asarray(middles, np.float64)
+    cuts = (mid[1:] + mid[:-1]) / 2
+    lo = np.r_[mid[0] - (cuts[0] - mid[0]), cuts]
+    hi = np.r_[cuts, mid[-1] + (mid[-1] - cuts[-1])]
+    return list(zip(lo.tolist(), hi.tolist()))
+
+
+def _heldout_one(model, items: dict, it, gender: str, people: list[dict], per_garment: int,
+                 girths: dict[int, np.ndarray]) -> dict:
+    """:func:`catalogue_heldout` for one garment ``it`` worn by ``gender``; ``girths``: the
+    people's body girths by index, filled as needed."""
+    from service.application.demo import DEMO_FABRICS
+    from service.model.garments.demo_sizes import DEMO_SIZE_LABELS, DERIVED_HIP_CM
+
+    hips = DERIVED_HIP_CM[gender]
+    hip_iv = _hip_intervals(hips)
+    intervals = {lb: {"waist_cm": S.EN13402_3_LETTER_WAIST_CM[lb], "hip_cm": hip_iv[i],
+                      **({"chest_cm": S.EN13402_3_LETTER_CHEST_CM[lb]} if it.category != "bottom" else {})}
+                 for i, lb in enumerate(DEMO_SIZE_LABELS)}
+    chart_dict = {lb: {k: hips[i] if k == "hip_cm" else (a + b) / 2 for k, (a, b) in iv.items()}
+                  for i, (lb, iv) in enumerate(intervals.items())}
+    fabric = DEMO_FABRICS.get(it.id, "woven")
+    chart, graded, _ = _graded(model, items, chart_dict, ((it.id, gender, fabric),))
+    fit = graded[it.id]["fit"]
+    h = n = 0
+    for k, p in enumerate(people):
+        m = p["measurements"]
+        if m["gender"] != gender:
+            continue
+        want = next((lb for lb, iv in intervals.items() if all(a <= m[q] < b for q, (a, b) in iv.items())), None)
+        if want is None:
+            continue
+        if k not in girths:
+            girths[k] = S.girths_of_body(model, avatar_from_measurements(model, m).vertices)
+        h += chart.labels[S.fit_report(fit, girths[k]).recommended] == want
+        n += 1
+        if n >= per_garment:
+            break
+    return {"category": it.category, "fabric": fabric, "chart": sorted(chart_dict["M"]), "hit": h, "people": n}
+
+
+def catalogue_heldout(model, items: dict, people: list[dict], per_garment: int) -> dict:
+    """Every catalogue garment with a demo chart (tops and whole-body garments, bottoms), graded
+    to a chart of chest (bust), waist and hip (EN 13402-3's letter-code chest and waist interval
+    middles, the hips ``demo_sizes.DERIVED_HIP_CM``; bottoms: waist and hip, the demo chart) in
+    its demo fabric; held-out people of its gender whose charted measurements all fall in one
+    size's intervals (up to ``per_garment``): that size recommended? Per garment (a unisex one
+    per gender) and in all."""
+    from service.model.garments.demo_sizes import demo_chart
+
+    girths: dict[int, np.ndarray] = {}
+    rows, hit, tot = {}, 0, 0
+    for it in items.values():
+        if demo_chart(it.category, it.gender) is None:
+            continue
+        for gender in (it.gender,) if it.gender in ("female", "male") else ("female", "male"):
+            name = it.id if gender == it.gender else f"{it.id} ({gender})"
+            rows[name] = _heldout_one(model, items, it, gender, people, per_garment, girths)
+            hit += rows[name]["hit"]
+            tot += rows[name]["people"]
+    return {"garments": len(rows), "recommendations": tot, "hit": hit, "share": hit / max(tot, 1),
+            "worst": min(rows, key=lambda g: rows[g]["hit"] / max(rows[g]["people"], 1)) if rows else None,
+            "per_garment": rows}
 
 
 def run(limit: int = 0, repeats: int = 50, **_) -> dict:
@@ -266,6 +339,7 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
             if got != want:
                 cw_misses.append({"garment": gid, "chest_cm": m["chest_cm"], "waist_cm": m["waist_cm"], "want": want,
                                   "got": got})
+    catalogue = catalogue_heldout(model, items, people, limit or CATALOGUE_PEOPLE)
     g0 = garments[GARMENTS[0][0]]
     girths0 = S.girths_of_body(model, bodies_cache[0][1].vertices)
     report_ms = median_ms(lambda: S.fit_report(g0["fit"], girths0).to_dict(), repeats)
@@ -279,8 +353,8 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
     try_on(basis, body)
     tryon_ms = median_ms(lambda: try_on(basis, body), repeats)
     # the size's basis try-on (as served: synthesis + push-out) vs that size draped directly on the
-    # customer's body by the drape engine (its rest shape, started from the try-on, as the exact
-    # drape job does); the strain maps (per-vertex stretch against the size's rest shape) of both
+    # customer's body by the drape engine (its rest shape, started from the warp fits' basis try-on:
+    # where the build's drapes and the exact drape job start); the strain maps (per-vertex stretch against the size's rest shape) of both
     rest0 = np.asarray(g0["rests"][0], np.float64)
     draper = precompute(rest0, g0["faces"], GARMENTS[0][2], Config(clearance_m=DRAPE_CLEARANCE_M))
     gender0 = GARMENTS[0][1]
@@ -342,6 +416,7 @@ def run(limit: int = 0, repeats: int = 50, **_) -> dict:
                           "share": hit / max(tot, 1), "misses": misses[:20]},
         "ansur_heldout_chest_waist": {"chart": cw_dict, "people": cw_people, "recommendations": cw_tot,
                                       "hit": cw_hit, "share": cw_hit / max(cw_tot, 1), "misses": cw_misses[:20]},
+        "ansur_heldout_catalogue": catalogue,
         "monotonic": {"ok": mono_ok, "total": mono_tot, "share": mono_ok / max(mono_tot, 1)},
         "basis_vs_drape": basis_vs_drape,
         "basis_vs_drape_warp": basis_vs_drape_warp,
@@ -369,6 +444,11 @@ def format_result(r: dict) -> str:
         *([("  ... chart of chest and waist, people in one size by both",
             f"{c['hit']}/{c['recommendations']} ({100 * c['share']:.1f} %), {c['people']} people", "(no goal)")]
           if (c := r.get("ansur_heldout_chest_waist")) else []),
+        *([(f"  ... every catalogue garment ({c['garments']}, tops and bottoms, demo fabrics), a chart of chest, "
+            "waist and hip (bottoms: waist and hip), people in one size by all",
+            f"{c['hit']}/{c['recommendations']} ({100 * c['share']:.1f} %); worst {c['worst']} "
+            f"{c['per_garment'][c['worst']]['hit']}/{c['per_garment'][c['worst']]['people']}", ">= 95 %")]
+          if (c := r.get("ansur_heldout_catalogue")) else []),
         ("monotonic: ease grows, strain falls with size", f"{r['monotonic']['ok']}/{r['monotonic']['total']} "
          f"({100 * r['monotonic']['share']:.0f} %)", "100 %"),
         *([(f"per-size basis try-on vs direct drape ({r['basis_vs_drape']['garment']} "
