@@ -59,11 +59,11 @@ def test_relative_links_resolve(path: Path):
         assert (path.parent / file_part).exists(), f"{path.name}: broken link {target}"
 
 
-def test_the_page_picture_is_small_png():
-    img = DOCS / "img" / "page.png"
-    data = img.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    assert len(data) < 300 * 1024
+def test_the_page_pictures_are_small_pngs():
+    for name in ("page.png", "fit.png"):
+        data = (DOCS / "img" / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n"
+        assert len(data) < 300 * 1024
 
 
 def test_every_endpoint_is_in_the_shop_or_retailer_docs():
