@@ -68,6 +68,17 @@ def test_mhclo_upload_is_draped_on_every_example(client: TestClient) -> None:
 
     own = strain_maps(bound, faces, np.asarray(basis.g)[None])[0]
     assert np.abs(np.asarray(basis.gs) - own).max() > 1e-4
+    # and its start channel is the basis of the bound (made-to-measure) fits the drapes started
+    # from: where the customer's exact drape starts (at the mean body, the bound garment itself)
+    from service.model.garments import garment as GM
+    from service.model.garments.tryon import customer_body, drape_start
+
+    gw, Bw = GM.build_basis(np.stack([binding.fit(X) for X in ex.vertices]).astype(np.float64), ex.set)
+    assert np.abs(np.asarray(basis.gw) - gw).max() < 1e-5 and np.abs(np.asarray(basis.Bw) - Bw).max() < 1e-5
+    w = np.zeros(len(ctx.model.variances))
+    w[0] = 1.0
+    assert np.abs(drape_start(basis, customer_body(ctx.model, w)) - GM.synthesize(gw, Bw, w)).max() < 1e-5
+    assert np.abs(drape_start(basis, customer_body(ctx.model, 0 * w)) - bound).max() < 1e-5
     from service.model.geometry.mesh import winding_numbers
 
     body = ctx.model.body_vertices(ex.vertices[0]).astype(np.float64)
@@ -94,6 +105,8 @@ def test_mhclo_in_sizes_is_draped_per_size(client: TestClient) -> None:
     assert [s["label"] for s in hat["sizes"]] == ["S", "L"] and hat["example_fits"] == "drape"
     small, large = (ctx.bases.load(gid, hat["etag"], i) for i in (0, 1))
     assert np.abs(np.asarray(large.g) - np.asarray(small.g)).max() > 1e-4  # two sizes, each draped at its own
+    # each size keeps the fits its drapes started from (the exact drape's start): the size's own
+    assert np.abs(np.asarray(large.gw) - np.asarray(small.gw)).max() > 1e-4
 
 
 def _far_mhclo(mhclo: bytes, factor: float) -> bytes:

@@ -268,15 +268,26 @@ def test_garment_basis_save_load_round_trip(model, tmp_path):
     ex = T.example_set(model, n=3)
     EX = T.example_vertices(model, ex)
     skirt = D.make_demo_garments(model)["skirt"]
-    basis = T.build_garment_basis(model, np.stack([skirt.fit(model, E) for E in EX]), skirt.faces, ex,
-                                  meta={"name": "skirt"}, rest=skirt.fit(model, EX[0]))
+    fits = np.stack([skirt.fit(model, E) for E in EX])
+    # a basis of drapes keeps the fits they started from (here: the fits moved 1 cm) as its start channel
+    starts = fits + np.float32(0.01)
+    basis = T.build_garment_basis(model, fits, skirt.faces, ex, meta={"name": "skirt"}, rest=skirt.fit(model, EX[0]),
+                                  start_fits=starts)
     assert basis.gs is not None and basis.Bs is not None  # the strain channel is stored too
+    assert basis.gw is not None and basis.Bw is not None  # and the start channel
     basis.save(tmp_path / "g1")
     back = T.GarmentBasis.load(tmp_path / "g1")
     for k in T.ARRAYS:
         np.testing.assert_array_equal(getattr(back, k), getattr(basis, k))
     assert back.meta["name"] == "skirt" and back.etag() == basis.etag()
     assert not list(tmp_path.glob(".tmp-*"))
+    # a drape starts from the start channel at the customer's weights; without one, from the try-on
+    body = T.customer_body(model, model.population["weights"][5])
+    plain = T.build_garment_basis(model, fits, skirt.faces, ex)
+    assert plain.gw is None
+    want = G.synthesize(np.asarray(plain.g), np.asarray(plain.B), body.weights) + 0.01  # the same fits, 1 cm on
+    np.testing.assert_allclose(T.drape_start(back, body), want, atol=1e-5)
+    np.testing.assert_array_equal(T.drape_start(plain, body), T.try_on(plain, body)[0])
 
 
 def test_demo_garments_are_outside_the_body_they_were_fitted_to(model):

@@ -23,7 +23,7 @@ import numpy as np
 from service.model.body.model import BodyModel
 from service.model.drape import Config, DrapeError, precompute
 from service.model.garments.draped import DRAPE_CLEARANCE_M
-from service.model.garments.tryon import GarmentBasis, try_on
+from service.model.garments.tryon import GarmentBasis, drape_start
 from service.records import Customer, Garment, JobRef
 from service.settings import Settings
 from service.storage.drapes import DrapeStore
@@ -43,8 +43,8 @@ log = logging.getLogger("tryon.drapes")
 
 DRAPE_JOB = "worker.jobs.drape_garment"  # the rq job, by dotted path (the service never imports worker)
 # bump when what a drape is made of changes (its method, its start): every key, job id and ETag changes
-DRAPE_VERSION = 2
-DRAPE_START = 0.05  # a drape job's progress once the records are loaded and the basis try-on made
+DRAPE_VERSION = 3
+DRAPE_START = 0.05  # a drape job's progress once the records are loaded and the start made
 
 
 def drape_key(model_version: str, cid: str, weights: list[float], gid: str, garment_etag: str,
@@ -193,9 +193,9 @@ class ExactDrapes:
         if self.store.load(cid, gid, key) is not None:
             return {"status": "done", **out}
         progress = MonotoneProgress(progress)
-        progress(0.0, "trying the garment on")
+        progress(0.0, "placing the garment on the body")
         body = self.customers.body(record)
-        start = np.asarray(try_on(basis, body, layer=0)[0], np.float64)
+        start = drape_start(basis, body)
         progress(DRAPE_START, "draping the garment on the customer's body")
         try:
             draper = precompute(drape_rest(basis), np.asarray(basis.faces, np.int64), garment.fabric,

@@ -251,12 +251,13 @@ class GarmentService(DemoCatalogue):
             return self._store_sizes(record, rests, faces, on, bodies[chart.base], chart, layout, material,
                                      progress, bound=binding.fit, drape=drape)
         fits = self._bound_fits(binding) if fits is None else fits
-        rest = strains = None
+        rest = strains = starts = None
         if drape:  # its size: the garment as bound to the mean example avatar
             rest = fits[mean]
             d = self.drape_to_examples(rest, faces, fits, record.fabric, progress, record.gender)
-            fits, strains = d.fits, d.strain_fits
-        return self._store_one_size(record, fits, faces, layout, material, rest=rest, drape=drape, strain_fits=strains)
+            fits, strains, starts = d.fits, d.strain_fits, fits
+        return self._store_one_size(record, fits, faces, layout, material, rest=rest, drape=drape, strain_fits=strains,
+                                    start_fits=starts)
 
     def _bound_fits(self, binding: Any) -> np.ndarray:
         """(E, N, 3) a bound garment's fit to every example avatar, checked (``Invalid``)."""
@@ -283,8 +284,10 @@ class GarmentService(DemoCatalogue):
             fits = sizing.per_size_fits(self.model, rests, faces, bodies_on,
                                         progress.scaled(0.0, 0.1 if drape else 0.9))
         strains: list = [None] * len(fits)
+        starts: list = [None] * len(fits)
         if drape:
             n = len(fits)
+            starts = fits
             draped = [self.drape_to_examples(rests[s], faces, f, chart.fabric,
                                              progress.scaled(0.1 + 0.8 * s / n, 0.8 / n, f"size {chart.labels[s]}: "),
                                              record.gender)
@@ -297,7 +300,8 @@ class GarmentService(DemoCatalogue):
                     "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version,
                     "size": chart.labels[s]}
             bases.append(build_garment_basis(self.model, f, faces, self.examples.set, meta=meta, layout=layout,
-                                             material=material, rest=rests[s], strain_fits=strains[s]))
+                                             material=material, rest=rests[s], strain_fits=strains[s],
+                                             start_fits=starts[s]))
         fit = SZ.sized_garment_fit(self.model, rests, faces, bodies_on, chart.labels, chart.base, base_body,
                                    chart.fabric, list(chart.sizes[0]["measurements"]))
         self.bases.save_sizes(record.id, bases)
@@ -417,14 +421,15 @@ class GarmentService(DemoCatalogue):
 
     def _store_one_size(self, record: Garment, fits: np.ndarray, faces: np.ndarray, layout: RenderLayout | None,
                         material: Material | None, rest: np.ndarray | None = None, drape: bool = False,
-                        example_fits: str | None = None, strain_fits: np.ndarray | None = None) -> Garment:
+                        example_fits: str | None = None, strain_fits: np.ndarray | None = None,
+                        start_fits: np.ndarray | None = None) -> Garment:
         """A one-size garment's clothing basis from its example fits (E, N, 3) (and those of its
-        strain channel (E, N), from the drapes) built and stored; the record with its counts,
-        ETag, girths (``fit``) and how its fits were made."""
+        strain channel (E, N), and the fits they were draped from (E, N, 3), for drapes) built and
+        stored; the record with its counts, ETag, girths (``fit``) and how its fits were made."""
         meta = {"name": record.name, "owner": record.owner, "source": record.source, "color": record.color,
                 "layer": record.layer, "created": record.created, "id": record.id, "body_model": self.model.version}
         basis = build_garment_basis(self.model, fits, faces, self.examples.set, meta=meta, layout=layout,
-                                    material=material, rest=rest, strain_fits=strain_fits)
+                                    material=material, rest=rest, strain_fits=strain_fits, start_fits=start_fits)
         fit = SZ.sized_garment_fit(self.model, np.asarray(fits[0])[None], faces, self.examples.vertices[0],
                                    record.size_labels(), 0, self.examples.vertices[0], record.fabric)
         self.bases.save(record.id, basis)
@@ -603,7 +608,7 @@ class GarmentService(DemoCatalogue):
                                      progress=progress.scaled(start, span))
         except ValueError as exc:
             return self._fail_build(record, f"the garment could not be fitted: {exc}", progress)
-        fits, strains = result.fits, None
+        fits, strains, starts = result.fits, None, None
         if self.settings.drape:
             # its size: the garment as uploaded on the body it was draped on (in the model's frame)
             progress(1.0 - share["basis"], "draping the garment on the example avatars")
@@ -611,14 +616,14 @@ class GarmentService(DemoCatalogue):
                 d = self.drape_to_examples(garment, faces, fits, record.fabric,
                                            progress.scaled(1.0 - share["basis"], 0.8 * share["basis"], "draping: "),
                                            record.gender)
-                fits, strains = d.fits, d.strain_fits
+                fits, strains, starts = d.fits, d.strain_fits, fits
             except DrapeError as exc:
                 return self._fail_build(record, f"the garment could not be draped: {exc}", progress)
         progress(1.0 - share["basis"], "building the clothing basis")
         rgba = tuple(record.color) if record.color else scenes.DEFAULT_GARMENT_COLOR
         material = _upload_material(upload.texture, rgba, None, upload.layout)
         built = self._store_one_size(record, fits, faces, upload.layout, material, rest=garment,
-                                     drape=self.settings.drape, strain_fits=strains)
+                                     drape=self.settings.drape, strain_fits=strains, start_fits=starts)
         return self._complete_build(built, progress)
 
     def _run_mhclo_build(self, record: Garment, upload: MhcloUpload, progress: MonotoneProgress) -> dict[str, Any]:

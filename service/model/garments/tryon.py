@@ -41,10 +41,11 @@ from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
 # with `tryon bench tryon` (garment accuracy on held-out avatars; see README "Figures").
 EXAMPLES = {"n": 32, "c": 0.5}
-ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "rest", "gs", "Bs", "render_vertex", "render_uv",
-          "render_faces")
-# normal basis, rest shape and render layout: bases saved before they existed load without them
-OPTIONAL = ("gn", "Bn", "rest", "gs", "Bs", "render_vertex", "render_uv", "render_faces")
+ARRAYS = ("g", "B", "faces", "binding", "skin_idx", "skin_w", "gn", "Bn", "rest", "gs", "Bs", "gw", "Bw", "render_vertex",
+          "render_uv", "render_faces")
+# normal basis, rest shape, strain and start channels, render layout: bases saved before they
+# existed load without them
+OPTIONAL = ("gn", "Bn", "rest", "gs", "Bs", "gw", "Bw", "render_vertex", "render_uv", "render_faces")
 MATERIAL_FILE = "material.json"
 TEXTURE_EXT = {"image/png": ".png", "image/jpeg": ".jpg"}
 
@@ -142,6 +143,11 @@ class GarmentBasis:
     rest: np.ndarray | None = None  # (M, 3) the garment's rest shape (its size; the strain map's reference)
     gs: np.ndarray | None = None  # (M,) the strain map of the mean garment (vertex_strain against rest) ...
     Bs: np.ndarray | None = None  # (N, M) ... and its basis: the strain map is a linear channel like the normals
+    # where a drape of this garment starts on a body (:func:`drape_start`): the basis (M, 3) / (N, M, 3) of
+    # the example fits the build's drapes started from (the warp's), for a basis built from drapes; None:
+    # the basis's own try-on
+    gw: np.ndarray | None = None
+    Bw: np.ndarray | None = None
     render_vertex: np.ndarray | None = None  # (R,) int32 welded vertex of each render vertex
     render_uv: np.ndarray | None = None  # (R, 2) float32, glTF convention (origin top-left)
     render_faces: np.ndarray | None = None  # (F, 3) int32 into the render vertices
@@ -303,8 +309,10 @@ def material_digest(material: Material | None) -> bytes:
 def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.ExampleSet,
                         meta: dict | None = None, layout: RenderLayout | None = None,
                         material: Material | None = None, rest: np.ndarray | None = None,
-                        strain_fits: np.ndarray | None = None) -> GarmentBasis:
+                        strain_fits: np.ndarray | None = None, start_fits: np.ndarray | None = None) -> GarmentBasis:
     """fits: (1 + 2N, M, 3) the garment fitted to each example avatar (listing order);
+    start_fits: (1 + 2N, M, 3) the example fits ``fits`` were draped from, when they are drapes
+    (kept as the start channel (gw, Bw): :func:`drape_start`);
     rest: (M, 3) the garment's rest shape (its own size), kept for the strain map, whose channel
     (gs, Bs) is built from ``strain_fits`` (1 + 2N, M) (e.g. regressed over many drapes:
     ``draped.DrapedFits``) or else from the fits' own strain maps (:func:`strain_maps`);
@@ -317,6 +325,7 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
         S = np.asarray(strain_fits if strain_fits is not None else strain_maps(rest, faces, fits), np.float64)
         gs, Bs = G.build_basis(S[:, :, None], examples)
         gs, Bs = gs[:, 0], Bs[:, :, 0]
+    gw, Bw = (None, None) if start_fits is None else G.build_basis(np.asarray(start_fits, np.float64), examples)
     nb = model.n_body_vertices
     binding = G.bind_to_body(g, model.mean[:nb])
     skin_idx, skin_w = garment_skin_weights(model, g, faces, fits)
@@ -332,7 +341,8 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
     basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
                          skin_idx=skin_idx, skin_w=skin_w,
                          gn=gn, Bn=Bn, meta=meta, rest=None if rest is None else np.asarray(rest, np.float32),
-                         gs=gs, Bs=Bs)
+                         gs=gs, Bs=Bs, gw=None if gw is None else gw.astype(np.float32),
+                         Bw=None if Bw is None else Bw.astype(np.float32))
     basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
     basis.material = material
     meta["etag"] = basis_digest(basis)
@@ -388,6 +398,17 @@ def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarr
                                  screening=SW.SCREENING if SKIN_SCREENING else 0.0)
 
 
+def drape_start(basis: GarmentBasis, body: CustomerBody) -> np.ndarray:
+    """(M, 3) float64: where a drape of the garment starts on ``body`` (its weights): for a basis
+    built from drapes, the start channel gw + w Bw, where the build's population drapes started
+    (``draped.draped_example_fits``: the warp fits' basis), so that the drape settles as the
+    drapes the basis was fitted to did; else (or for a basis saved before the channel) the basis
+    try-on."""
+    if basis.gw is not None and basis.Bw is not None and body.weights is not None:
+        return G.synthesize(np.asarray(basis.gw), np.asarray(basis.Bw), body.weights).astype(np.float64)
+    return np.asarray(try_on(basis, body, layer=0)[0], np.float64)
+
+
 def basis_digest(basis: GarmentBasis) -> str:
     """The content digest of a basis (its ETag): geometry, skinning, render layout, material."""
     h = hashlib.sha256()
@@ -416,7 +437,9 @@ def refresh_skinning(model, basis: GarmentBasis) -> GarmentBasis | None:
                        gn=np.asarray(basis.gn), Bn=np.asarray(basis.Bn), meta=meta,
                        rest=None if basis.rest is None else np.asarray(basis.rest),
                        gs=None if basis.gs is None else np.asarray(basis.gs),
-                       Bs=None if basis.Bs is None else np.asarray(basis.Bs))
+                       Bs=None if basis.Bs is None else np.asarray(basis.Bs),
+                       gw=None if basis.gw is None else np.asarray(basis.gw),
+                       Bw=None if basis.Bw is None else np.asarray(basis.Bw))
     out.render_vertex, out.render_uv, out.render_faces = basis.render_vertex, basis.render_uv, basis.render_faces
     out.material = basis.material
     meta["etag"] = basis_digest(out)
