@@ -241,11 +241,30 @@ def test_a_dense_draped_garment_is_built_through_its_simulation_mesh(tmp_path_fa
             assert r.status_code == 200
             assert validate_glb(r.content)["issues"]["numErrors"] == 0
             assert len(read_glb(r.content)["positions"]) == len(V)
-            # the customer's exact drape (a queued job, run here as a worker runs it) goes the same way
+            # the customer's exact drape (a queued job, run here as a worker runs it) goes the same way,
+            # started where the build's drapes started: the basis's start channel at the customer's weights
             url, auth = f"/v1/customers/{created['id']}/garments/{gid}.glb", {"Authorization": f"Bearer {created['token']}"}
             assert c.get(url, params={"drape": "exact"}, headers=auth).status_code == 202
-            with mock.patch("worker.jobs.worker_context", return_value=ctx):
+            from service.application import drapes as DR
+            from service.model.garments.tryon import customer_body, drape_start, try_on
+
+            starts: list[np.ndarray] = []
+            real_precompute = DR.precompute
+
+            def recording(*args, **kwargs):
+                draper = real_precompute(*args, **kwargs)
+                solve = draper.solve
+                draper.solve = lambda bv, bf, init, *a, **k: (starts.append(np.array(init)), solve(bv, bf, init, *a, **k))[1]
+                return draper
+
+            with mock.patch("worker.jobs.worker_context", return_value=ctx), \
+                    mock.patch.object(DR, "precompute", side_effect=recording):
                 SimpleWorker([ctx.queue.queue], connection=ctx.conn).work(burst=True)
+            basis = ctx.bases.load(gid, g["etag"])
+            customer = customer_body(ctx.model, np.asarray(ctx.customers_repo.get(created["id"]).weights))
+            assert len(starts) == 1 and basis.gw is not None
+            np.testing.assert_allclose(starts[0], drape_start(basis, customer), atol=1e-6)
+            assert np.abs(starts[0] - try_on(basis, customer)[0]).max() > 1e-3
             r = c.get(url, params={"drape": "exact"}, headers=auth)
             assert r.status_code == 200, r.text
             assert validate_glb(r.content)["issues"]["numErrors"] == 0

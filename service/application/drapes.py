@@ -1,6 +1,7 @@
-"""Per-customer exact drapes (``?drape=exact`` on a garment's try-on): the customer's basis try-on
-settled on the customer's own body by the cloth drape engine (``service.model.drape``), at the
-garment's own size and in its fabric. One queued job per (customer, garment, size, customer
+"""Per-customer exact drapes (``?drape=exact`` on a garment's try-on): the garment settled on the
+customer's own body by the cloth drape engine (``service.model.drape``), at the garment's own size
+and in its fabric, from where the build's drapes started (``tryon.drape_start``: a drape basis's
+start channel at the customer's weights, else the basis try-on). One queued job per (customer, garment, size, customer
 shape); its result is stored as files (``storage.drapes``) and then served in the try-on's GLB
 layout, the draped vertices in place of the basis try-on's.
 
@@ -170,10 +171,9 @@ class ExactDrapes:
     # -- the drape job -----------------------------------------------------------------------
     def run(self, cid: str, gid: str, size: str | None, iterations: int, key: str,
             progress: Progress) -> dict[str, Any]:
-        """The drape job: the customer's basis try-on of the garment (size ``size``) settled on
-        the customer's body (at most ``iterations``, as the API's settings asked), stored under
-        ``key``. Idempotent: a drape already stored is done; a
-        customer or garment deleted, or changed since (another key), leaves nothing; a
+        """The drape job: the garment (size ``size``) settled on the customer's body from its
+        start there (``tryon.drape_start``; at most ``iterations``, as the API's settings asked),
+        stored under ``key``. Idempotent: a drape already stored is done; a customer or garment deleted, or changed since (another key), leaves nothing; a
         :class:`DrapeError` (the garment cannot be draped on this body) fails the job with the
         reason and is not retried; anything else raises (the queue retries). A delete during the
         drape wins (its file is removed)."""
