@@ -13,9 +13,9 @@ Garments: catalogue tops graded to the EN 13402-3 letter sizes XS-XL (chest/bust
   the same tops graded to a chart of the standard's chest and waist interval middles (the letter
   codes give no hip), held-out people whose chest and waist both fall in one size's intervals
   (no goal);
-- the issue's reading on every catalogue garment with a chart (14: tops, whole-body garments and
-  bottoms, each in its demo fabric): graded to a chart of chest (bust), waist and hip (bottoms:
-  waist and hip), held-out people of its gender whose charted measurements all fall in one size
+- the issue's reading on every catalogue garment with a chart (15: tops, whole-body garments and
+  bottoms, each in its demo fabric; the unisex dungarees once per gender): graded to a chart of
+  chest (bust), waist and hip (bottoms: waist and hip), held-out people of its gender whose charted measurements all fall in one size
   (``catalogue_heldout``; goal >= 95 % as the row above);
 - monotonic: at every girth region of every (person, garment), ease grows and strain falls with size;
 - timings in process: the fit report of one garment, the customer's girths (once per body),

@@ -341,8 +341,7 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
     basis = GarmentBasis(g=g, B=B, faces=np.asarray(faces, np.int32), binding=binding,
                          skin_idx=skin_idx, skin_w=skin_w,
                          gn=gn, Bn=Bn, meta=meta, rest=None if rest is None else np.asarray(rest, np.float32),
-                         gs=gs, Bs=Bs, gw=None if gw is None else gw.astype(np.float32),
-                         Bw=None if Bw is None else Bw.astype(np.float32))
+                         gs=gs, Bs=Bs, gw=gw, Bw=Bw)
     basis.render_vertex, basis.render_uv, basis.render_faces = (look.get(k) for k in ARRAYS[-3:])
     basis.material = material
     meta["etag"] = basis_digest(basis)
