@@ -118,6 +118,27 @@ def preset_poses(model, vertices: np.ndarray, path: str | Path | None = None) ->
             for name, p in spec["poses"].items()}
 
 
+def stride_poses(model, vertices: np.ndarray, amplitudes: tuple[float, ...],
+                 path: str | Path | None = None) -> list[np.ndarray]:
+    """The page's walking preset on one avatar (V, 3), and its mirror (the other leg forward),
+    each at the ``amplitudes``: every target direction t taken to (1 - a) down + a t (a = 1: the
+    preset; a < 1 a shorter stride, a > 1 a longer one). Returns [(17, 3) axis-angle], the
+    preset's amplitudes first, then the mirror's."""
+    spec = presets(path)
+    joints = model.joints(np.asarray(vertices, np.float64))
+    walk = targets(spec["poses"]["walking"])
+    flip = np.array([-1.0, 1.0, 1.0])
+    mirror = {(k[:-2] + ("_r" if k.endswith("_l") else "_l")): v * flip for k, v in walk.items()}
+    down = np.array([0.0, -1.0, 0.0])
+    out = []
+    for tg in (walk, mirror):
+        for a in amplitudes:
+            t = {k: (1 - a) * down + a * v for k, v in tg.items()}
+            out.append(pose_from_directions(joints, model.bone_parents, {k: v / np.linalg.norm(v) for k, v in t.items()},
+                                            spec["order"], spec["child"]))
+    return out
+
+
 def preset_transforms(model, vertices: np.ndarray, path: str | Path | None = None) -> np.ndarray:
     """Bone transforms (P, 17, 4, 4) of the page's presets (not adapted) on the avatar
     ``vertices`` (V, 3), in ``presets()`` order: the test poses of garment skin weights

@@ -453,3 +453,185 @@ def transfer_skin_weights(vertices: np.ndarray, faces: np.ndarray, body_vertices
         return top_k(Wi if legs is None else ramp_legs(X, faces, Wi, legs), k)
     return release_stretched(X, faces, W, reliable, L, test_transforms, distance, rest_lengths=rest_lengths, k=k,
                              legs=legs, screening=screening)
+
+
+# -- step 6: the legs' weights refined in strides --------------------------------------------------
+STRIDE_STRETCH = 1.1  # an edge posed longer than this x its length on that body is pulled back to it
+STRIDE_FIDELITY = 1e-4  # pull toward the transferred weights (x the mean diagonal of the stretch term)
+STRIDE_CONTACT = 100.0  # weight of the one-sided contact rows (x that diagonal, x 4 / the cases' count)
+STRIDE_SUM = 10.0  # weight of each vertex's weights summing to 1 (x that diagonal)
+STRIDE_GAP = 0.003  # metres: a garment vertex keeps min(its gap at rest, this) off its body point ...
+STRIDE_SLACK = 0.0005  # ... unless the transferred weights already took it closer (and inside: this deeper at most)
+STRIDE_COVER = 0.002  # metres: a covered body vertex keeps its garment point this far out (or as far as before)
+STRIDE_COVER_DISTANCE = 0.05  # metres: a body vertex is covered when the garment's closest point is this close ...
+STRIDE_ROUNDS = 10  # local-global rounds, then as many again within each vertex's top-k joints
+STRIDE_MIN_LEG_WEIGHT = 1e-3  # the refined vertices: those with at least this much weight on the leg bones
+STRIDE_MAX_VERTICES = 4000  # a garment with more of them keeps its transferred weights: the refinement holds
+# 6 poses x 5 bodies of operators over (vertices x joints) unknowns (men's jeans, 886 vertices: 4 s on 2 cores,
+# 112 MB at peak; the dungarees, 3,763: 133 MB)
+
+
+@dataclass(frozen=True)
+class StrideCase:
+    """One body the garment is refined on: the garment on it (M, 3), the rest body (Vb, 3), and
+    test poses of that body: bone transforms (P, J, 4, 4) and the posed body (P, Vb, 3)."""
+
+    garment: np.ndarray
+    body: np.ndarray
+    transforms: np.ndarray
+    posed: np.ndarray
+
+
+def _stride_terms(case: StrideCase, faces: np.ndarray, body_faces: np.ndarray, W0: np.ndarray, act: np.ndarray,
+                  joints: np.ndarray, e: np.ndarray) -> list[dict]:
+    """The linear operators of :func:`refine_in_strides` for one body, per pose: with w the
+    refined weights (A x S, flattened; A = ``act`` vertices, S = ``joints``) and the other
+    weights those of W0 (M, J), the posed edge vectors are ``D w + fx`` (3E,), the garment
+    vertices' heights along their body points' normals ``Pn w + pfix`` (A,), and the covered
+    body vertices' garment points' heights over them ``Q w + qfix`` (K,)."""
+    X = np.asarray(case.garment, np.float64)
+    body = np.asarray(case.body, np.float64)
+    M, nA, nS = len(X), len(act), len(joints)
+    pos = -np.ones(M, np.int64)
+    pos[act] = np.arange(nA)
+    nvar = nA * nS
+
+    def lin(vid: np.ndarray, coef: np.ndarray, Y: np.ndarray, rows: np.ndarray):
+        """COO parts of sum over points of coef (n, 3) . sum_s w_(vid, s) Y_(vid, s) into ``rows``
+        (n,), and the fixed part (n,) from W0's other weights."""
+        a = pos[vid] >= 0
+        r = np.repeat(rows[a], nS)
+        c = (pos[vid[a]][:, None] * nS + np.arange(nS)[None]).ravel()
+        v = np.einsum("asj,aj->as", Y[vid[a]][:, joints, :], coef[a]).ravel()
+        Wf = W0[vid].copy()
+        Wf[np.ix_(a, joints)] = 0.0
+        fixed = np.einsum("nj,nj->n", np.einsum("nsj,ns->nj", Y[vid], Wf), coef)
+        return r, c, v, fixed
+
+    le = np.maximum(np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1), MIN_EDGE_LENGTH)
+    face, q, bary = closest_points_on_mesh(X[act], body, body_faces)
+    n0 = vertex_normals(body, body_faces).astype(np.float64)
+    nq = np.einsum("mk,mkj->mj", bary, n0[body_faces[face]])
+    nq /= np.maximum(np.linalg.norm(nq, axis=1, keepdims=True), 1e-12)
+    gap = np.clip(np.minimum(np.einsum("ij,ij->i", X[act] - q, nq), STRIDE_GAP), 0.0, None)
+    cf, cq, cb = closest_points_on_mesh(body, X, faces)
+    d = cq - body
+    dist = np.linalg.norm(d, axis=1)
+    ok = (dist < STRIDE_COVER_DISTANCE) & (np.einsum("ij,ij->i", d, n0) > np.cos(np.pi / 4) * dist)
+    ok[ok] = (pos[faces[cf[ok]]] >= 0).any(axis=1)
+    cid, cv, cbary = np.flatnonzero(ok), faces[cf[ok]], cb[ok]
+    Xh = np.c_[X, np.ones(M)]
+    out = []
+    for G, pb in zip(np.asarray(case.transforms, np.float64), np.asarray(case.posed, np.float64)):
+        Y = np.einsum("jab,mb->mja", G[:, :3, :], Xh)  # (M, J, 3): each vertex moved by each bone
+        npb = vertex_normals(pb, body_faces).astype(np.float64)
+        qp = np.einsum("mk,mkj->mj", bary, pb[body_faces[face]])
+        nqp = np.einsum("mk,mkj->mj", bary, npb[body_faces[face]])
+        nqp /= np.maximum(np.linalg.norm(nqp, axis=1, keepdims=True), 1e-12)
+        parts, fx = [], np.zeros((len(e), 3))
+        for sign, end in ((1.0, 0), (-1.0, 1)):
+            for k in range(3):
+                coef = np.zeros((len(e), 3))
+                coef[:, k] = sign
+                r, c, v, f = lin(e[:, end], coef, Y, 3 * np.arange(len(e)) + k)
+                parts.append((r, c, v))
+                fx[:, k] += f
+        D = sp.csr_matrix((np.concatenate([p[2] for p in parts]), (np.concatenate([p[0] for p in parts]),
+                                                                  np.concatenate([p[1] for p in parts]))),
+                          shape=(3 * len(e), nvar))
+        r, c, v, f = lin(act, nqp, Y, np.arange(nA))
+        Pn = sp.csr_matrix((v, (r, c)), shape=(nA, nvar))
+        pfix = f - np.einsum("aj,aj->a", qp, nqp)
+        nrm = npb[cid]
+        parts, qfix = [], -np.einsum("kj,kj->k", pb[cid], nrm)
+        for corner in range(3):
+            r, c, v, f = lin(cv[:, corner], cbary[:, corner, None] * nrm, Y, np.arange(len(cid)))
+            parts.append((r, c, v))
+            qfix += f
+        Q = sp.csr_matrix((np.concatenate([p[2] for p in parts]), (np.concatenate([p[0] for p in parts]),
+                                                                  np.concatenate([p[1] for p in parts]))),
+                          shape=(len(cid), nvar))
+        out.append({"D": D, "fx": fx, "le": le, "Pn": Pn, "pfix": pfix, "gap": gap, "Q": Q, "qfix": qfix})
+    return out
+
+
+def refine_in_strides(W: np.ndarray, faces: np.ndarray, body_faces: np.ndarray, cases: list[StrideCase],
+                      leg_joints: np.ndarray, *, k: int = TOP_K) -> tuple[np.ndarray, np.ndarray]:
+    """Step 6 (our addition): the weights (M, J) of the garment's vertices on the legs (at least
+    ``STRIDE_MIN_LEG_WEIGHT`` on ``leg_joints``) re-solved so that the test poses of ``cases``
+    (strides, on a few bodies) stretch no edge past ``STRIDE_STRETCH`` while the cloth keeps
+    off the body where the transferred weights kept it. A posed vertex is linear in its weights,
+    x_i = sum_j w_ij G_j [x_i; 1], so every condition is a linear one: local-global rounds
+    (as ARAP's) alternate (local) each posed edge projected to its allowed length, and each
+    garment vertex (body point under it, along its normal) or covered body vertex (its garment
+    point over it) that went inside its floor as a one-sided row, with (global) the least
+    squares of those targets, ``STRIDE_FIDELITY`` x |W - W0|^2 and rows summing to 1; then the
+    same within each vertex's ``k`` largest joints, which the GLB keeps. The floors: a garment
+    vertex at least min(its gap at rest, ``STRIDE_GAP``) off the body, a covered body vertex
+    under its garment point by ``STRIDE_COVER``, each relaxed to where W0 already took it.
+    Without this, the weight change between the legs, spread over the few centimetres the leg
+    ramp gives it, stretches the crotch's front in a walking step up to 1.9x on a heavy body;
+    spreading it wider by a fixed rule lets the forward thigh through the cloth (docs/drape.md).
+    A garment with more than ``STRIDE_MAX_VERTICES`` such vertices keeps the weights W.
+    Returns the top-k (indices (M, k) int32, weights (M, k) float32)."""
+    W0 = np.clip(np.asarray(W, np.float64), 0.0, None)
+    faces = np.asarray(faces, np.int64)
+    body_faces = np.asarray(body_faces, np.int64)
+    act = np.flatnonzero(W0[:, np.asarray(leg_joints)].sum(axis=1) >= STRIDE_MIN_LEG_WEIGHT)
+    if not len(act) or not cases or len(act) > STRIDE_MAX_VERTICES:
+        return top_k(W0, k)
+    joints = np.flatnonzero(W0[act].max(axis=0) >= STRIDE_MIN_LEG_WEIGHT)
+    nA, nS = len(act), len(joints)
+    nvar = nA * nS
+    on = np.zeros(len(W0), bool)
+    on[act] = True
+    e = mesh_edges(faces)
+    e = e[on[e[:, 0]] | on[e[:, 1]]]
+    terms = [t for case in cases for t in _stride_terms(case, faces, body_faces, W0, act, joints, e)]
+    # all bodies and poses as one system: edges (3E rows each), contacts (garment side, body side)
+    D = sp.vstack([t["D"] for t in terms]).tocsr()
+    fx = np.concatenate([t["fx"] for t in terms])
+    le = np.concatenate([t["le"] for t in terms])
+    cw = np.repeat(1.0 / le ** 2, 3)
+    C = sp.vstack([t[a] for t in terms for a in ("Pn", "Q")]).tocsr()
+    cfix = np.concatenate([t[a] for t in terms for a in ("pfix", "qfix")])
+    H0 = (D.T @ sp.diags(cw) @ D).tocsr()
+    scale = float(H0.diagonal().mean()) or 1.0
+    mu, kap, nu = STRIDE_FIDELITY * scale, STRIDE_SUM * scale, STRIDE_CONTACT * scale * 4 / len(terms)
+    rows = sp.csr_matrix((np.ones(nvar), (np.repeat(np.arange(nA), nS), np.arange(nvar))), shape=(nA, nvar))
+    w0 = W0[act][:, joints].ravel()
+    H = (H0 + mu * sp.identity(nvar) + kap * (rows.T @ rows)).tocsr()
+    base = mu * w0 + kap * (rows.T @ np.ones(nA))
+    # floors: a garment vertex min(its gap at rest, STRIDE_GAP) off its body point, a covered body vertex's
+    # garment point STRIDE_COVER over it, or only as far as W0 already kept them (less STRIDE_SLACK once inside)
+    c0 = C @ w0 + cfix
+    limit = np.concatenate([t["gap"] if a == "Pn" else np.full(t["Q"].shape[0], STRIDE_COVER)
+                            for t in terms for a in ("Pn", "Q")])
+    floor = np.where(c0 >= limit, limit, np.where(c0 >= 0, c0, c0 - STRIDE_SLACK))
+    w = w0.copy()
+    kk = np.arange(nvar)
+    factor = None  # H's (a round without contact rows)
+    for it in range(2 * STRIDE_ROUNDS):
+        if it == STRIDE_ROUNDS:  # within each vertex's k largest joints from here on
+            top = np.argsort(-w.reshape(nA, nS), axis=1)[:, :k]
+            mask = np.zeros((nA, nS), bool)
+            np.put_along_axis(mask, top, True, axis=1)
+            kk = np.flatnonzero(mask.ravel())
+            w = np.where(mask.ravel(), w, 0.0)
+            H = H[kk][:, kk].tocsr()
+            factor = None
+        ev = (D @ w).reshape(-1, 3) + fx
+        length = np.linalg.norm(ev, axis=1)
+        target = ev * np.minimum(1.0, STRIDE_STRETCH * le / np.maximum(length, 1e-12))[:, None]
+        rhs = base + D.T @ (cw * (target - fx).ravel())
+        inside = np.flatnonzero(C @ w + cfix < floor)  # the contact rows of this round
+        if not len(inside):
+            factor = factor or factor_spd(H)
+            w[kk] = factor.solve(rhs[kk])
+            continue
+        A = C[inside][:, kk].tocsr()
+        rhs = (rhs + nu * (C[inside].T @ (floor[inside] - cfix[inside])))[kk]
+        w[kk] = factor_spd((H + nu * (A.T @ A)).tocsc()).solve(rhs)
+    out = W0.copy()
+    out[np.ix_(act, joints)] = w.reshape(nA, nS)
+    return top_k(out, k)

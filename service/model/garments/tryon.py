@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from service.model.garments import garment as G
 from service.model.garments import skin_weights as SW
 from service.model.body.model import BONES
+from service.model.body.measurements import ATTRIBUTES
 from service.model.garments.catalogue import Material, RenderLayout, Texture
 from service.model.geometry.mesh import (face_bounds, face_incidence, mesh_edges, row_dot, vertex_faces, vertex_mean_strain,
                                          vertex_normals)
@@ -35,7 +36,7 @@ from service.model.formats.gltf import MeshTemplate
 from service.model.formats.gltf_buffers import vertex_tangents
 from service.model.garments.correctives import skin_under_faces
 from service.model.garments.layering import covered_body
-from service.model.body.poses import preset_transforms
+from service.model.body.poses import preset_transforms, stride_poses
 from service.model.garments.skin_weights import leg_frame, transfer_skin_weights
 
 # Example avatars: E0 and E(i, +/-) = m +/- c sqrt(lambda_i) U_i for i < N. N and c were chosen
@@ -64,11 +65,19 @@ SKIN_LIMB_SIDE = True
 # inpainting screened toward the closest-point matches (skin_weights.SCREENING): a loose jacket's
 # front took the sleeves' arm weight without it, and its hem rose with the arms
 SKIN_SCREENING = True
+# step 6 of skin_weights (the legs' weights refined in strides, skin_weights.refine_in_strides): the
+# crotch's front stretched up to 1.9x in the page's walking step on a heavy body without it
+SKIN_STRIDES = True
+STRIDE_AMPLITUDES = (0.6, 1.2)  # the strides it is refined in: the page's walking step (and its mirror) at these
+STRIDE_PERCENTILES = (1.0, 99.0)  # on the mean avatar, the training population's people at these percentiles of
+# the first component (the smallest and the largest bodies) ...
+STRIDE_BMI_PERCENTILE = 99.0  # ... and of each gender the one at this percentile of the body mass index
 # the version of the skin weights a basis carries (meta "skinning"; absent: 1): bases built by an
 # older version get their weights recomputed (:func:`refresh_skinning`) when next served.
 # 2: step 4, the legs' ramp; 3: the limb side of steep inpainted edges released (armpits);
-# 4: the inpainting screened toward the closest-point matches (loose tops' fronts)
-SKINNING_VERSION = 4
+# 4: the inpainting screened toward the closest-point matches (loose tops' fronts); 5: step 6, the legs'
+# weights refined in strides
+SKINNING_VERSION = 5
 
 def example_set(model, n: int | None = None, c: float | None = None) -> G.ExampleSet:
     n = min(n or EXAMPLES["n"], model.n_components)
@@ -328,7 +337,7 @@ def build_garment_basis(model, fits: np.ndarray, faces: np.ndarray, examples: G.
     gw, Bw = (None, None) if start_fits is None else G.build_basis(np.asarray(start_fits, np.float64), examples)
     nb = model.n_body_vertices
     binding = G.bind_to_body(g, model.mean[:nb])
-    skin_idx, skin_w = garment_skin_weights(model, g, faces, fits)
+    skin_idx, skin_w = garment_skin_weights(model, g, faces, fits, B)
     meta = dict(meta or {})
     meta.update({"n_vertices": int(g.shape[0]), "n_faces": int(len(faces)), "n_components": int(examples.n),
                  "examples_c": examples.c, "skinning": SKINNING_VERSION})
@@ -377,11 +386,76 @@ def strain_map(basis: GarmentBasis, weights: np.ndarray, vertices: np.ndarray, s
     return strain_maps(basis.rest if basis.rest is not None else basis.g, basis.faces, [vertices])[0]
 
 
-def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def stride_bodies(model) -> list[np.ndarray]:
+    """Body weights (K,) of the training population's people the leg weights are refined on beside
+    the mean avatar (:func:`stride_cases`): those at ``STRIDE_PERCENTILES`` of the first component
+    (the smallest and the largest bodies), and of each gender the one at ``STRIDE_BMI_PERCENTILE``
+    of the body mass index (the heaviest for their height: thighs that squeeze the crotch)."""
+    pop = np.asarray(model.population["weights"], np.float64)
+    att = np.asarray(model.population["attributes"], np.float64)  # (N, 12) in ATTRIBUTES order
+    gender, height, weight = (att[:, ATTRIBUTES.index(a)] for a in ("gender", "height_cm", "weight_kg"))
+    order = np.argsort(pop[:, 0], kind="stable")
+    out = [pop[order[int(round(q / 100 * (len(order) - 1)))]] for q in STRIDE_PERCENTILES]
+    bmi = weight / (height / 100) ** 2
+    for male in (False, True):
+        ids = np.flatnonzero((gender >= 0.5) == male)
+        if len(ids):
+            ids = ids[np.argsort(bmi[ids], kind="stable")]
+            out.append(pop[ids[int(round(STRIDE_BMI_PERCENTILE / 100 * (len(ids) - 1)))]])
+    return out
+
+
+def stride_cases(model, g: np.ndarray, B: np.ndarray | None) -> list[SW.StrideCase]:
+    """The bodies and strides a garment's leg weights are refined in (``SW.refine_in_strides``):
+    the mean avatar with the garment g (M, 3), and, with its basis B (N, M, 3), the training
+    population's people at ``STRIDE_PERCENTILES`` of the first component with the garment
+    synthesised on them; each in ``poses.stride_poses`` at ``STRIDE_AMPLITUDES``."""
+    nb = model.n_body_vertices
+    bodies = [(np.asarray(model.mean, np.float64), np.asarray(g, np.float64))]
+    if B is not None and len(B):
+        for w in stride_bodies(model):
+            bodies.append((np.asarray(model.vertices(w), np.float64),
+                           G.synthesize(np.asarray(g, np.float32), np.asarray(B, np.float32), w).astype(np.float64)))
+    cases = []
+    for full, garment in bodies:
+        posed = [model.forward(pose=p, vertices=full) for p in stride_poses(model, full, STRIDE_AMPLITUDES)]
+        cases.append(SW.StrideCase(garment=garment, body=full[:nb], transforms=np.stack([p.transforms for p in posed]),
+                                   posed=np.stack([p.vertices[:nb] for p in posed])))
+    return cases
+
+
+def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray,
+                         B: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Skin weights (M, 4) int + (M, 4) float of a garment g (M, 3) on the mean avatar
     (``skin_weights.transfer_skin_weights``), tested in the page's poses on the mean body
     with each edge at its shortest over the example fits (1 + 2N, M, 3) (a heavy body squeezes
-    the armpit and crotch)."""
+    the armpit and crotch); the legs' weights then refined in strides (:func:`stride_cases`,
+    on the population's extremes too where the basis B (N, M, 3) is given)."""
+    h = hashlib.sha256(repr((SKINNING_VERSION, SKIN_STRIDES, SKIN_RELEASE_IN_POSES, SKIN_LEG_RAMP, SKIN_LIMB_SIDE,
+                             SKIN_SCREENING, id(model))).encode())
+    for a in (g, faces, fits, B):
+        h.update(b"-" if a is None else np.ascontiguousarray(a, np.float64).tobytes())
+    key = h.hexdigest()
+    if key in _SKIN_MEMO:
+        return tuple(a.copy() for a in _SKIN_MEMO[key])  # type: ignore[return-value]
+    idx, w = _transferred_skin_weights(model, g, faces, fits)
+    if SKIN_STRIDES:
+        idx, w = SW.refine_in_strides(SW.dense_weights(idx, w, len(model.bone_parents)), faces, model.body_faces,
+                                      stride_cases(model, g, B),
+                                      np.array([BONES.index(b) for c in SW.LEG_BONES for b in c]))
+    if len(_SKIN_MEMO) >= SKIN_MEMO_SIZE:
+        _SKIN_MEMO.pop(next(iter(_SKIN_MEMO)))
+    _SKIN_MEMO[key] = (idx.copy(), w.copy())
+    return idx, w
+
+
+# the weights of the last few garments, by their inputs: a process building the same garment again
+# (the demo set, in every test app of a run) takes them from here (the refinement takes seconds)
+SKIN_MEMO_SIZE = 16
+_SKIN_MEMO: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _transferred_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     nb = model.n_body_vertices
     body0 = model.mean[:nb]
     e = mesh_edges(faces)
@@ -429,7 +503,7 @@ def refresh_skinning(model, basis: GarmentBasis) -> GarmentBasis | None:
     g, B = np.asarray(basis.g, np.float64), np.asarray(basis.B, np.float64)
     step = (float(basis.meta.get("examples_c", EXAMPLES["c"])) * np.sqrt(model.variances[: len(B)]))[:, None, None]
     fits = np.concatenate([g[None], np.stack([g + step * B, g - step * B], 1).reshape(-1, *g.shape)])
-    skin_idx, skin_w = garment_skin_weights(model, g, np.asarray(basis.faces), fits)
+    skin_idx, skin_w = garment_skin_weights(model, g, np.asarray(basis.faces), fits, B)
     meta = {**basis.meta, "skinning": SKINNING_VERSION}
     out = GarmentBasis(g=np.asarray(basis.g), B=np.asarray(basis.B), faces=np.asarray(basis.faces),
                        binding=np.asarray(basis.binding), skin_idx=skin_idx, skin_w=skin_w,
