@@ -407,9 +407,9 @@ def stride_bodies(model) -> list[np.ndarray]:
 
 def stride_cases(model, g: np.ndarray, B: np.ndarray | None) -> list[SW.StrideCase]:
     """The bodies and strides a garment's leg weights are refined in (``SW.refine_in_strides``):
-    the mean avatar with the garment g (M, 3), and, with its basis B (N, M, 3), the training
-    population's people at ``STRIDE_PERCENTILES`` of the first component with the garment
-    synthesised on them; each in ``poses.stride_poses`` at ``STRIDE_AMPLITUDES``."""
+    the mean avatar with the garment g (M, 3), and, with its basis B (N, M, 3), the people of
+    :func:`stride_bodies` with the garment synthesised on them; each in ``poses.stride_poses`` at
+    ``STRIDE_AMPLITUDES``."""
     nb = model.n_body_vertices
     bodies = [(np.asarray(model.mean, np.float64), np.asarray(g, np.float64))]
     if B is not None and len(B):
@@ -431,8 +431,9 @@ def garment_skin_weights(model, g: np.ndarray, faces: np.ndarray, fits: np.ndarr
     with each edge at its shortest over the example fits (1 + 2N, M, 3) (a heavy body squeezes
     the armpit and crotch); the legs' weights then refined in strides (:func:`stride_cases`,
     on the population's extremes too where the basis B (N, M, 3) is given)."""
-    h = hashlib.sha256(repr((SKINNING_VERSION, SKIN_STRIDES, SKIN_RELEASE_IN_POSES, SKIN_LEG_RAMP, SKIN_LIMB_SIDE,
-                             SKIN_SCREENING, id(model))).encode())
+    switches = (SKINNING_VERSION, SKIN_STRIDES, SKIN_RELEASE_IN_POSES, SKIN_LEG_RAMP, SKIN_LIMB_SIDE, SKIN_SCREENING,
+                STRIDE_AMPLITUDES, STRIDE_PERCENTILES, STRIDE_BMI_PERCENTILE, id(model))
+    h = hashlib.sha256(repr((switches, sorted((k, v) for k, v in vars(SW).items() if k.isupper()))).encode())
     for a in (g, faces, fits, B):
         h.update(b"-" if a is None else np.ascontiguousarray(a, np.float64).tobytes())
     key = h.hexdigest()
