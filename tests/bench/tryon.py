@@ -560,18 +560,12 @@ SHOW_THROUGH_CATEGORIES = ("bottom", "demo", "suit")
 
 
 def covered_points(body: np.ndarray, body_faces: np.ndarray, garment: np.ndarray, faces: np.ndarray) -> tuple:
-    """The rest body's (V, 3) vertices covered by the garment (M, 3): its closest point within
-    ``COVER_DISTANCE`` and over the vertex (offset within 45 degrees of the body normal). Returns
-    (body vertex ids (K,), garment face (K,), barycentric (K, 3)): fixed garment points to follow
-    through a pose."""
-    from service.model.geometry.mesh import closest_points_on_mesh, vertex_normals
+    """The rest body's (V, 3) vertices covered by the garment (M, 3) within ``COVER_DISTANCE``
+    (``skin_weights.covered_points``): (body vertex ids (K,), garment face (K,), barycentric
+    (K, 3)), fixed garment points to follow through a pose."""
+    from service.model.garments.skin_weights import covered_points as covered
 
-    n = vertex_normals(body, body_faces).astype(np.float64)
-    face, q, bary = closest_points_on_mesh(body, np.asarray(garment, np.float64), np.asarray(faces))
-    d = q - body
-    dist = np.linalg.norm(d, axis=1)
-    ok = (dist < COVER_DISTANCE) & (np.einsum("ij,ij->i", d, n) > np.cos(np.pi / 4) * dist)
-    return np.flatnonzero(ok), face[ok], bary[ok]
+    return covered(body, body_faces, garment, faces, max_distance=COVER_DISTANCE)
 
 
 def show_through(covered: tuple, garment: np.ndarray, faces: np.ndarray, body: np.ndarray,

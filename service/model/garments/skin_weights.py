@@ -471,6 +471,22 @@ STRIDE_MAX_VERTICES = 4000  # a garment with more of them keeps its transferred 
 # 112 MB at peak; the dungarees, 3,763: 133 MB)
 
 
+def covered_points(body: np.ndarray, body_faces: np.ndarray, garment: np.ndarray, faces: np.ndarray,
+                   body_normals: np.ndarray | None = None,
+                   max_distance: float = STRIDE_COVER_DISTANCE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body's (V, 3) vertices covered by the garment (M, 3) / faces (F, 3): its closest point
+    within ``max_distance`` and over the vertex (the offset within 45 degrees of the body normal,
+    ``body_normals`` (V, 3) or computed). Returns (body vertex ids (K,), garment face (K,),
+    barycentric (K, 3)): garment points that follow the vertex through a pose."""
+    B = np.asarray(body, np.float64)
+    n = vertex_normals(B, body_faces).astype(np.float64) if body_normals is None else body_normals
+    face, q, bary = closest_points_on_mesh(B, np.asarray(garment, np.float64), np.asarray(faces))
+    d = q - B
+    dist = np.linalg.norm(d, axis=1)
+    ok = (dist < max_distance) & (np.einsum("ij,ij->i", d, n) > np.cos(np.pi / 4) * dist)
+    return np.flatnonzero(ok), face[ok], bary[ok]
+
+
 @dataclass(frozen=True)
 class StrideCase:
     """One body the garment is refined on: the garment on it (M, 3), the rest body (Vb, 3), and
@@ -514,12 +530,10 @@ def _stride_terms(case: StrideCase, faces: np.ndarray, body_faces: np.ndarray, W
     nq = np.einsum("mk,mkj->mj", bary, n0[body_faces[face]])
     nq /= np.maximum(np.linalg.norm(nq, axis=1, keepdims=True), 1e-12)
     gap = np.clip(np.minimum(np.einsum("ij,ij->i", X[act] - q, nq), STRIDE_GAP), 0.0, None)
-    cf, cq, cb = closest_points_on_mesh(body, X, faces)
-    d = cq - body
-    dist = np.linalg.norm(d, axis=1)
-    ok = (dist < STRIDE_COVER_DISTANCE) & (np.einsum("ij,ij->i", d, n0) > np.cos(np.pi / 4) * dist)
-    ok[ok] = (pos[faces[cf[ok]]] >= 0).any(axis=1)
-    cid, cv, cbary = np.flatnonzero(ok), faces[cf[ok]], cb[ok]
+    cid, cface, cbary = covered_points(body, body_faces, X, faces, n0)
+    cv = faces[cface]
+    mine = (pos[cv] >= 0).any(axis=1)
+    cid, cv, cbary = cid[mine], cv[mine], cbary[mine]
     Xh = np.c_[X, np.ones(M)]
     out = []
     for G, pb in zip(np.asarray(case.transforms, np.float64), np.asarray(case.posed, np.float64)):
